@@ -1,0 +1,187 @@
+"""sensor_msgs/Image <-> numpy, without cv_bridge.
+
+Supported encodings (``sensor_msgs/image_encodings.hpp`` names): rgb8, bgr8, rgba8, bgra8,
+mono8, mono16, 8UC1 (read like mono8), 8UC3 (read like bgr8), 16UC1 and 32FC1. Row padding
+(``step`` > width x bytes per pixel) and ``is_bigendian`` are honoured when reading; messages
+written here are unpadded and little-endian.
+
+Filling ``msg.data``: assigning ``array.array('B', arr.tobytes())`` is ~0.3 ms for a KITTI-size
+float image, while assigning a numpy array or memoryview costs 100-200 ms (the rosidl setter
+checks element by element). Reading goes through ``np.frombuffer`` and always returns a copy,
+so the message can be reused or resized afterwards.
+"""
+
+from __future__ import annotations
+
+import array
+from dataclasses import dataclass
+
+import numpy as np
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+
+from sfm_ttr_ros.frames import InputError
+from sfm_ttr_ros.visualize import colorize_depth
+
+
+class ImageConversionError(InputError):
+    """A sensor_msgs/Image that cannot be converted (or an array that cannot be sent)."""
+
+
+@dataclass(frozen=True)
+class _Enc:
+    dtype: np.dtype  # element type, native byte order
+    channels: int
+
+    @property
+    def bytes_per_pixel(self) -> int:
+        return self.dtype.itemsize * self.channels
+
+
+_U8, _U16, _F32 = np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32)
+ENCODINGS: dict[str, _Enc] = {
+    "rgb8": _Enc(_U8, 3),
+    "bgr8": _Enc(_U8, 3),
+    "rgba8": _Enc(_U8, 4),
+    "bgra8": _Enc(_U8, 4),
+    "mono8": _Enc(_U8, 1),
+    "8UC1": _Enc(_U8, 1),
+    "8UC3": _Enc(_U8, 3),
+    "mono16": _Enc(_U16, 1),
+    "16UC1": _Enc(_U16, 1),
+    "32FC1": _Enc(_F32, 1),
+}
+SUPPORTED_ENCODINGS = tuple(ENCODINGS)
+_BY_LOWER = {k.lower(): k for k in ENCODINGS}
+
+
+def _encoding(name: str) -> tuple[str, _Enc]:
+    key = _BY_LOWER.get(str(name).lower())
+    if key is None:
+        raise ImageConversionError(
+            f"unsupported image encoding {name!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}"
+        )
+    return key, ENCODINGS[key]
+
+
+def image_to_numpy(msg: Image) -> np.ndarray:
+    """Decode an Image into H x W (one channel) or H x W x C, in the message's own channel order
+    and element type (uint8, uint16 or float32, native byte order). Always a copy."""
+    name, enc = _encoding(msg.encoding)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise ImageConversionError(f"{name} image has zero size: width={w}, height={h}")
+    row_bytes = w * enc.bytes_per_pixel
+    if step < row_bytes:
+        raise ImageConversionError(
+            f"{name} image step {step} is smaller than width x bytes per pixel = "
+            f"{w} x {enc.bytes_per_pixel} = {row_bytes}"
+        )
+    expected = step * h
+    got = len(msg.data)
+    if got < expected:
+        raise ImageConversionError(
+            f"truncated {name} image {w}x{h}: expected step x height = {step} x {h} = "
+            f"{expected} bytes, got {got}"
+        )
+    buf = np.frombuffer(msg.data, dtype=np.uint8, count=expected)
+    rows = buf.reshape(h, step)[:, :row_bytes]
+    src_dtype = enc.dtype.newbyteorder(">" if msg.is_bigendian else "<")
+    if step == row_bytes:
+        rows = rows.reshape(-1)
+    else:
+        rows = np.ascontiguousarray(rows)
+    out = rows.view(src_dtype).astype(enc.dtype, copy=True)  # copy + native byte order
+    shape = (h, w) if enc.channels == 1 else (h, w, enc.channels)
+    return out.reshape(shape)
+
+
+def image_to_rgb8(msg: Image) -> np.ndarray:
+    """Decode a colour or mono Image into H x W x 3 uint8 RGB (contiguous).
+
+    rgba8 / bgra8 drop alpha; mono8 / 8UC1 are repeated into 3 channels; mono16 / 16UC1 are
+    reduced to 8 bits by ``>> 8`` (a fixed mapping: the same raw value gives the same grey in
+    every frame, unlike per-frame max scaling). 32FC1 is not a colour image and is refused.
+    """
+    name, enc = _encoding(msg.encoding)
+    if enc.dtype == _F32:
+        raise ImageConversionError(
+            f"{name} is not a colour or mono image encoding; cannot convert it to rgb8"
+        )
+    a = image_to_numpy(msg)
+    if name == "rgb8":
+        return a
+    if name in ("bgr8", "8UC3"):
+        return np.ascontiguousarray(a[:, :, ::-1])
+    if name == "rgba8":
+        return np.ascontiguousarray(a[:, :, :3])
+    if name == "bgra8":
+        return np.ascontiguousarray(a[:, :, 2::-1])
+    if name in ("mono16", "16UC1"):
+        a = (a >> 8).astype(np.uint8)
+    return np.repeat(a[:, :, None], 3, axis=2)  # mono8 / 8UC1 / reduced mono16
+
+
+def numpy_to_image(array_: np.ndarray, encoding: str, header: Header | None = None) -> Image:
+    """Encode an array as an unpadded little-endian Image of ``encoding``.
+
+    The array must be H x W (or H x W x 1) for one-channel encodings and H x W x C otherwise,
+    with the encoding's element type: uint8 for the 8-bit encodings, uint16 for mono16/16UC1
+    (other integer types are refused rather than wrapped); any floating type for 32FC1 (cast to
+    float32; NaN stays NaN). Channel order is taken as given (no swapping).
+    """
+    name, enc = _encoding(encoding)
+    a = np.asarray(array_)
+    if a.ndim == 3 and a.shape[2] == 1 and enc.channels == 1:
+        a = a[:, :, 0]
+    want_ndim = 2 if enc.channels == 1 else 3
+    if a.ndim != want_ndim or (enc.channels > 1 and a.shape[2] != enc.channels):
+        want = "H x W" if enc.channels == 1 else f"H x W x {enc.channels}"
+        raise ImageConversionError(f"{name} needs an {want} array, got shape {a.shape}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ImageConversionError(f"cannot encode a zero-size image of shape {a.shape}")
+    if enc.dtype == _F32:
+        if not np.issubdtype(a.dtype, np.floating):
+            raise ImageConversionError(f"{name} needs a floating-point array, got {a.dtype}")
+    elif a.dtype != enc.dtype:
+        raise ImageConversionError(f"{name} needs a {enc.dtype} array, got {a.dtype}")
+    le = np.ascontiguousarray(a, dtype=enc.dtype.newbyteorder("<"))
+    msg = Image()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = int(a.shape[0]), int(a.shape[1])
+    msg.encoding = name
+    msg.is_bigendian = 0
+    msg.step = msg.width * enc.bytes_per_pixel
+    msg.data = array.array("B", le.tobytes())
+    return msg
+
+
+def depth_to_image(depth_m: np.ndarray, header: Header | None = None) -> Image:
+    """A depth map in metres as a REP 118 32FC1 Image: invalid pixels (non-finite or <= 0)
+    become NaN."""
+    d = np.asarray(depth_m)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[:, :, 0]
+    if d.ndim != 2:
+        raise ImageConversionError(f"depth must be an H x W array, got shape {d.shape}")
+    if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):
+        raise ImageConversionError(f"depth must be numeric, got {d.dtype}")
+    d = d.astype(np.float32, copy=True)
+    d[~(np.isfinite(d) & (d > 0))] = np.nan
+    return numpy_to_image(d, "32FC1", header)
+
+
+def depth_to_colored_image(
+    depth: np.ndarray,
+    header: Header | None = None,
+    vmin: float | None = None,
+    vmax: float | None = None,
+) -> Image:
+    """A depth map as a bgr8 Image coloured by inverse depth
+    (:func:`sfm_ttr_ros.visualize.colorize_depth`; invalid pixels black)."""
+    try:
+        bgr = colorize_depth(depth, vmin=vmin, vmax=vmax)
+    except InputError as exc:
+        raise ImageConversionError(str(exc)) from exc
+    return numpy_to_image(bgr, "bgr8", header)

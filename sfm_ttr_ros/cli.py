@@ -1,0 +1,218 @@
+"""``sfm-ttr`` / ``python -m sfm_ttr_ros``: the ROS-free command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .frames import InputError
+
+log = logging.getLogger("sfm_ttr_ros")
+
+
+def add_model_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("model")
+    g.add_argument("--model", default="default",
+                   help="default | monodepth2 | mobilenet | python:module:factory")
+    g.add_argument("--encoder", default="", help="encoder.pth (Monodepth2 layout)")
+    g.add_argument("--decoder", default="", help="depth.pth (Monodepth2 layout)")
+    g.add_argument("--num-layers", type=int, default=18, help="ResNet depth for monodepth2")
+    g.add_argument("--device", default="cpu", help="cpu | cuda | auto")
+    g.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+
+
+def add_method_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("SfM-TTR (defaults = the paper's)")
+    g.add_argument("--steps", type=int, default=200)
+    g.add_argument("--lr", type=float, default=1e-4)
+    g.add_argument("--bn-mode", choices=["frozen", "train"], default="frozen")
+    g.add_argument("--weighting", choices=["observation", "track", "none"],
+                   default="observation")
+    g.add_argument("--ransac-iterations", type=int, default=20)
+    g.add_argument("--tau", type=float, default=0.5)
+    g.add_argument("--sfm-max-image-size", type=int, default=640)
+    g.add_argument("--seed", type=int, default=0)
+
+
+def add_sequence_args(p: argparse.ArgumentParser, required: bool = True) -> None:
+    g = p.add_argument_group("sequence (a KITTI raw drive, or an image folder + K)")
+    g.add_argument("--kitti-raw", help="KITTI raw root (holds <date>/<drive>/image_02)")
+    g.add_argument("--drive", help="<date>_drive_XXXX_sync")
+    g.add_argument("--kitti-gt", help="KITTI depth GT root (holds {train,val}/<drive>/...)")
+    g.add_argument("--images", help="folder of images (any other sequence)")
+    g.add_argument("--intrinsics", help="K file for --images: 3x3 or fx fy cx cy")
+    g.add_argument("--gt-depth", help="GT depth PNG folder for --images (depth x gt-scale)")
+    g.add_argument("--gt-scale", type=float, default=256.0)
+    g.add_argument("--start", type=int, default=0, help="first frame index")
+    g.add_argument("--max-frames", type=int, default=0, help="0 = all")
+
+
+def open_sequence(args: argparse.Namespace):
+    from .sequence import open_image_folder, open_kitti
+
+    if args.kitti_raw:
+        if not args.drive:
+            raise InputError("--kitti-raw needs --drive <date>_drive_XXXX_sync")
+        return open_kitti(args.kitti_raw, args.drive, args.kitti_gt)
+    if args.images:
+        if not args.intrinsics:
+            raise InputError("--images needs --intrinsics K.txt")
+        return open_image_folder(args.images, args.intrinsics, args.gt_depth, args.gt_scale)
+    raise InputError("give a sequence: --kitti-raw RAW --drive D, or --images DIR --intrinsics K")
+
+
+def build_model_from_args(args: argparse.Namespace):
+    import torch
+
+    from .models import ModelConfig, build_model
+
+    torch.set_num_threads(max(1, args.threads))
+    return build_model(ModelConfig(type=args.model, encoder_path=args.encoder,
+                                   decoder_path=args.decoder, num_layers=args.num_layers,
+                                   device=args.device))
+
+
+def ttr_config_from_args(args: argparse.Namespace):
+    from .alignment import AlignmentConfig
+    from .pipeline import TTRConfig
+    from .refinement import RefinementConfig
+    from .sfm import SfmConfig
+
+    return TTRConfig(
+        sfm=SfmConfig(max_image_size=args.sfm_max_image_size, seed=args.seed),
+        alignment=AlignmentConfig(ransac_iterations=args.ransac_iterations, tau=args.tau,
+                                  seed=args.seed),
+        refinement=RefinementConfig(steps=args.steps, lr=args.lr, bn_mode=args.bn_mode,
+                                    weighting=args.weighting, seed=args.seed),
+    )
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Offline SfM-TTR over a whole sequence (the paper's setting) and write the results."""
+    from .evaluation import EvalConfig, Evaluator
+    from .pipeline import SfmTTR
+    from .visualize import colorize_depth, write_ply
+
+    seq = open_sequence(args)
+    stop = len(seq) if args.max_frames <= 0 else min(len(seq), args.start + args.max_frames)
+    frames = seq.frames(args.start, stop)
+    out = Path(args.out)
+    for sub in ("before", "after"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    model = build_model_from_args(args)
+    ttr = SfmTTR(model, ttr_config_from_args(args))
+    t0 = time.perf_counter()
+    try:
+        res = ttr.process_window(frames, seq.intrinsics)
+    finally:
+        ttr.close()
+    seconds = time.perf_counter() - t0
+    import cv2
+
+    evals = {k: Evaluator(EvalConfig(eigen_crop=args.eigen_crop)) for k in ("before", "after")}
+    for f in frames:
+        for key, depths in (("before", res.depths_before), ("after", res.depths)):
+            np.save(out / key / f"{f.name}.npy", depths[f.name].astype(np.float32))
+            cv2.imwrite(str(out / key / f"{f.name}.png"), colorize_depth(depths[f.name]))
+            gt = seq.gt(f.name)
+            if gt is not None:
+                evals[key].add(f.name, depths[f.name], gt)
+    if res.cloud_xyz.size:
+        write_ply(out / "points.ply", res.cloud_xyz,
+                  res.sfm.points_rgb if res.sfm is not None else None,
+                  {"reprojection_error": res.cloud_error})
+    summary = {
+        "sequence": seq.name,
+        "frames": len(frames),
+        "refined": res.refined,
+        "reason": res.reason,
+        "registered": res.sfm.num_registered if res.sfm else 0,
+        "points": res.sfm.num_points if res.sfm else 0,
+        "scale": res.scale,
+        "alignment": res.alignment.stats if res.alignment else {},
+        "loss_before": res.loss_before,
+        "loss_after": res.loss_after,
+        "loss_history": res.refinement.loss_history if res.refinement else [],
+        "cloud_frame": res.cloud_frame,
+        "timings": res.timings,
+        "seconds": seconds,
+        "seconds_per_frame": seconds / max(1, len(frames)),
+    }
+    if evals["before"].summary()["frames"]:
+        summary["metrics"] = {k: _plain(e.summary()) for k, e in evals.items()}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    print(f"{len(frames)} frames, refined={res.refined} {res.reason}".strip())
+    if "metrics" in summary:
+        from .evaluation import format_table
+
+        print(format_table({"no_ttr": summary["metrics"]["before"],
+                            "sfm_ttr": summary["metrics"]["after"]}))
+    print(f"results in {out}")
+    return 0
+
+
+def _plain(summary: dict) -> dict:
+    return {k: v for k, v in summary.items() if k not in ("per_frame",)}
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    """Write a synthetic KITTI-format drive (raw layout + improved-GT PNGs)."""
+    from .kitti import write_kitti_drive
+    from .synthetic import make_sequence
+
+    seq = make_sequence(seed=args.seed, domain=args.domain, num_frames=args.frames,
+                        width=args.width, height=args.height)
+    drive = write_kitti_drive(seq, args.kitti_raw, args.kitti_gt, drive_number=args.drive_number)
+    print(f"wrote {drive}: {args.frames} frames {args.width}x{args.height} "
+          f"to {args.kitti_raw} (GT: {args.kitti_gt})")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sfm-ttr", description=__doc__)
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="SfM-TTR over a whole sequence (offline, as the paper)")
+    add_sequence_args(r)
+    add_model_args(r)
+    add_method_args(r)
+    r.add_argument("--eigen-crop", action="store_true", help="evaluate inside the Garg crop")
+    r.add_argument("--out", required=True, help="output folder")
+    r.set_defaults(func=cmd_run)
+
+    g = sub.add_parser("generate", help="write a synthetic KITTI-format drive")
+    g.add_argument("--kitti-raw", required=True)
+    g.add_argument("--kitti-gt", default=None)
+    g.add_argument("--frames", type=int, default=30)
+    g.add_argument("--width", type=int, default=1242)
+    g.add_argument("--height", type=int, default=375)
+    g.add_argument("--domain", default="B", help="A (training domain) or B (held out)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--drive-number", type=int, default=1)
+    g.set_defaults(func=cmd_generate)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"sfm-ttr: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sfm-ttr: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""Frames, intrinsics and windows: the data every stage of SfM-TTR passes around.
+
+A *window* is the set of consecutive frames that one SfM reconstruction and one test-time
+refinement run over (Sec. 3 of Izquierdo & Civera, CVPR 2023, runs over a whole sequence; the
+online node runs it over sliding windows of ``window_size`` frames, ``window_stride`` new ones
+between consecutive windows).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+class InputError(ValueError):
+    """Bad input given to the library (clear message, raised before any heavy work)."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of an image of ``width`` x ``height`` pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        vals = (self.fx, self.fy, self.cx, self.cy)
+        if not all(math.isfinite(float(v)) for v in vals):
+            raise InputError(f"intrinsics must be finite, got fx,fy,cx,cy = {vals}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise InputError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise InputError(f"image size must be positive, got {self.width}x{self.height}")
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the usual name of the matrix
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    @classmethod
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:  # noqa: N802
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise InputError(f"K must be 3x3, got shape {K.shape}")
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height)
+
+    @classmethod
+    def from_file(cls, path: str | Path, width: int, height: int) -> Intrinsics:
+        """Read a 3x3 K (9 numbers, e.g. ``K.txt``) or ``fx fy cx cy`` from a text file."""
+        try:
+            vals = np.loadtxt(path, dtype=np.float64).ravel()
+        except (OSError, ValueError) as exc:
+            raise InputError(f"cannot read intrinsics from {path}: {exc}") from exc
+        if vals.size == 9:
+            return cls.from_K(vals.reshape(3, 3), width, height)
+        if vals.size == 4:
+            return cls(*map(float, vals), width, height)
+        raise InputError(f"{path}: expected 9 numbers (K) or 4 (fx fy cx cy), got {vals.size}")
+
+    def scaled(self, width: int, height: int) -> Intrinsics:
+        """Intrinsics of the same camera with the image resized to ``width`` x ``height``."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(
+            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, int(width), int(height)
+        )
+
+
+@dataclass
+class Frame:
+    """One RGB image of a sequence. ``image`` is H x W x 3 uint8 RGB."""
+
+    index: int
+    image: np.ndarray
+    stamp: float = 0.0
+    name: str = ""
+    header: object = field(default=None, repr=False)  # opaque (e.g. a ROS header), passed through
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            self.name = f"{self.index:010d}"
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+def check_rgb_image(image: np.ndarray, what: str = "image") -> np.ndarray:
+    """Validate an H x W x 3 uint8 image (grayscale is expanded); return it contiguous."""
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"{what}: expected a numpy array, got {type(image).__name__}")
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(f"{what}: expected H x W x 3, got shape {image.shape}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise InputError(f"{what}: zero-size image {image.shape}")
+    if image.dtype != np.uint8:
+        raise InputError(f"{what}: expected uint8, got {image.dtype}")
+    return np.ascontiguousarray(image)
+
+
+def check_window(frames: Sequence[Frame], intrinsics: Intrinsics) -> None:
+    """Raise :class:`InputError` unless ``frames`` is a usable window for ``intrinsics``."""
+    if len(frames) == 0:
+        raise InputError("empty window: no frames given")
+    for f in frames:
+        check_rgb_image(f.image, f"frame {f.name}")
+        if f.size != (intrinsics.width, intrinsics.height):
+            raise InputError(
+                f"frame {f.name} is {f.size[0]}x{f.size[1]} but the intrinsics are for "
+                f"{intrinsics.width}x{intrinsics.height}: all frames of a window"
+                " must share one size"
+            )
+    names = [f.name for f in frames]
+    if len(set(names)) != len(names):
+        raise InputError("frame names in a window must be unique")
+
+
+def load_rgb(path: str | Path) -> np.ndarray:
+    """Read an image file as H x W x 3 uint8 RGB, with a clear error if it cannot be read."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"image file not found: {path}")
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"cannot decode image file: {path}")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff")
+
+
+def list_images(folder: str | Path) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"image folder not found: {folder}")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+    return files
+
+
+def load_frames(paths: Iterable[str | Path], stamps: Sequence[float] | None = None) -> list[Frame]:
+    frames = []
+    for i, p in enumerate(paths):
+        p = Path(p)
+        stamp = float(stamps[i]) if stamps is not None else float(i)
+        frames.append(Frame(index=i, image=load_rgb(p), stamp=stamp, name=p.stem))
+    return frames
+
+
+def sliding_windows(num_frames: int, window_size: int, stride: int) -> Iterator[range]:
+    """Index ranges of overlapping windows covering ``0 .. num_frames-1``.
+
+    Every frame belongs to at least one window; the last window is shifted back so that it is
+    full whenever ``num_frames >= window_size``.
+    """
+    if window_size < 2 or stride < 1:
+        raise InputError(f"window_size must be >= 2 and stride >= 1 (got {window_size}, {stride})")
+    if num_frames <= window_size:
+        yield range(0, num_frames)
+        return
+    start = 0
+    while True:
+        end = start + window_size
+        if end >= num_frames:
+            yield range(num_frames - window_size, num_frames)
+            return
+        yield range(start, end)
+        start += stride

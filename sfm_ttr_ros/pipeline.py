@@ -1,0 +1,202 @@
+"""One SfM-TTR window end to end: SfM → alignment → refinement → prediction.
+
+The same :class:`SfmTTR` object serves the command line (offline: one window = the whole
+sequence, as in the paper), the benchmark and the ROS node (online: sliding windows, the
+encoder continued from the previous window or reset to the original weights).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .alignment import AlignmentConfig, AlignmentResult, align_scale
+from .frames import Frame, Intrinsics, check_window
+from .models.base import DepthModel
+from .refinement import (
+    FrameSupervision,
+    RefinementConfig,
+    RefinementResult,
+    frame_loss,
+    normalized_grid,
+    observation_weights,
+    refine_encoder,
+    restore_encoder,
+    sample_depth,
+    snapshot_encoder,
+)
+from .sfm import SfmConfig, SfmReconstructor, SfmResult
+
+
+@dataclass
+class TTRConfig:
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    refinement: RefinementConfig = field(default_factory=RefinementConfig)
+    reset_each_window: bool = False  # True: every window starts from the original weights
+    min_supervision_points: int = 50  # fewer selected points in the window: do not refine
+    predict_batch: int = 8
+
+
+@dataclass
+class WindowResult:
+    """Outcome of one window. ``depths`` are the published depths (refined when ``refined``)."""
+
+    names: list[str]
+    depths: dict[str, np.ndarray]
+    depths_before: dict[str, np.ndarray]
+    refined: bool
+    reason: str = ""  # why the window was not refined ("" when it was)
+    sfm: SfmResult | None = None
+    alignment: AlignmentResult | None = None
+    refinement: RefinementResult | None = None
+    scale: float = float("nan")
+    loss_before: float = float("nan")
+    loss_after: float = float("nan")
+    cloud_frame: str = ""  # the registered frame whose optical frame the cloud is in
+    cloud_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    cloud_error: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def sample_at(depth: np.ndarray, pixels: np.ndarray, mode: str = "bilinear") -> np.ndarray:
+    """An image-resolution depth map read at pixels (OpenCV convention)."""
+    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
+    return sample_depth(d, normalized_grid(pixels, depth.shape[1], depth.shape[0]), mode).numpy()
+
+
+class SfmTTR:
+    """SfM-TTR over windows of a stream for one depth network."""
+
+    def __init__(self, model: DepthModel, config: TTRConfig | None = None,
+                 workspace: str | None = None):
+        self.model = model.eval()
+        for p in self.model.parameters():
+            p.requires_grad_(False)
+        self.config = config or TTRConfig()
+        self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
+        self._original = snapshot_encoder(model)
+        self._stop = False
+
+    # -- state ---------------------------------------------------------------------------
+    def reset_model(self) -> None:
+        """Back to the original encoder weights."""
+        restore_encoder(self.model, self._original)
+
+    def set_config(self, config: TTRConfig) -> None:
+        """New options, used from the next window on."""
+        self.config = config
+        self.reconstructor.config = config.sfm
+
+    def cancel(self) -> None:
+        """Stop the running window at the next step boundary (thread-safe)."""
+        self._stop = True
+        self.reconstructor.cancel()
+
+    def close(self) -> None:
+        self.reconstructor.close()
+
+    # -- prediction ----------------------------------------------------------------------
+    def predict(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Depth (H x W float32, network units) of each image with the current weights."""
+        out: list[np.ndarray] = []
+        b = max(1, self.config.predict_batch)
+        for i in range(0, len(images), b):
+            out.extend(self.model.predict(list(images[i:i + b])))
+        return out
+
+    # -- one window ----------------------------------------------------------------------
+    def process_window(self, frames: Sequence[Frame], intrinsics: Intrinsics,
+                       refine: bool = True,
+                       should_stop: Callable[[], bool] | None = None) -> WindowResult:
+        """Run the whole method on one window; every frame gets a depth in the result."""
+        check_window(frames, intrinsics)
+        self._stop = False
+        cfg = self.config
+        names = [f.name for f in frames]
+        t: dict[str, float] = {}
+
+        def stop() -> bool:
+            return self._stop or (should_stop is not None and should_stop())
+
+        if cfg.reset_each_window:
+            self.reset_model()
+        t0 = time.perf_counter()
+        before = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
+        t["predict_before"] = time.perf_counter() - t0
+        res = WindowResult(names, dict(before), before, refined=False, timings=t)
+        if not refine:
+            res.reason = "refinement skipped"
+            return res
+
+        t0 = time.perf_counter()
+        sfm = self.reconstructor.reconstruct(frames, intrinsics)
+        t["sfm"] = time.perf_counter() - t0
+        t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
+        res.sfm = sfm
+        if not sfm.ok:
+            res.reason = f"SfM failed: {sfm.reason}"
+            return res
+
+        # Stage 2-3: network depth at the SfM keypoints, one scale for the whole window.
+        t0 = time.perf_counter()
+        images = {f.name: f.image for f in frames}
+        reg = [n for n in names if n in sfm.frames]
+        d_sfm = np.concatenate([sfm.frames[n].depths for n in reg])
+        d_nn = np.concatenate([
+            sample_at(before[n], sfm.frames[n].pixels, cfg.refinement.sampling) for n in reg])
+        align = align_scale(d_sfm, d_nn, cfg.alignment)
+        res.alignment, res.scale = align, align.scale
+        t["align"] = time.perf_counter() - t0
+        if not align.ok or int(align.selected.sum()) < cfg.min_supervision_points:
+            res.reason = (f"too few supervision points: {int(align.selected.sum())} selected of "
+                          f"{d_sfm.size} (< {cfg.min_supervision_points})")
+            return res
+
+        sup = self._supervision(sfm, reg, images, align)
+        res.loss_before = float(np.mean([frame_loss(before[s.name], s) for s in sup]))
+        t0 = time.perf_counter()
+        res.refinement = refine_encoder(self.model, sup, cfg.refinement, should_stop=stop)
+        t["refine"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        res.depths = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
+        t["predict_after"] = time.perf_counter() - t0
+        res.loss_after = float(np.mean([frame_loss(res.depths[s.name], s) for s in sup]))
+        res.refined = res.refinement.steps_done > 0
+        if not res.refined:
+            res.reason = "refinement cancelled" if res.refinement.cancelled else "no usable frame"
+        self._cloud(res, sfm, reg)
+        return res
+
+    def _supervision(self, sfm: SfmResult, reg: list[str], images: dict[str, np.ndarray],
+                     align: AlignmentResult) -> list[FrameSupervision]:
+        """Split the window's selected points back into frames: target ŝ·D_sfm, weight."""
+        weighting = self.config.refinement.weighting
+        sup, start = [], 0
+        for n in reg:
+            obs = sfm.frames[n]
+            sel = align.selected[start:start + len(obs)]
+            start += len(obs)
+            if weighting == "observation":
+                w = observation_weights(obs.reproj_errors[sel])
+            elif weighting == "track":
+                w = observation_weights(obs.track_errors[sel])
+            else:
+                w = np.ones(int(sel.sum()))
+            sup.append(FrameSupervision(n, images[n], obs.pixels[sel],
+                                        align.scale * obs.depths[sel], w))
+        return sup
+
+    @staticmethod
+    def _cloud(res: WindowResult, sfm: SfmResult, reg: list[str]) -> None:
+        """The sparse cloud in the newest registered frame's optical frame, network units."""
+        newest = reg[-1]
+        xyz = sfm.points_in_frame(newest) * res.scale
+        res.cloud_frame = newest
+        res.cloud_xyz = xyz.astype(np.float32)
+        res.cloud_error = sfm.points_error.astype(np.float32)

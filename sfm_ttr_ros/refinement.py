@@ -1,0 +1,208 @@
+"""Stage 4 of SfM-TTR: test-time refinement of the encoder on aligned sparse SfM depth.
+
+Izquierdo & Civera, CVPR 2023, Sec. 3.3, Eq. (5): for a frame j with selected points l,
+
+    L_j = 1/|S_j| Σ_l  exp(−r_lj²) · | ŝ·D_sfm(l, j) − D_nn(p_lj) |
+
+minimised with Adam (lr 1e-4, 200 steps, one frame per step, frames shuffled) over the
+ENCODER g only; the decoder h is frozen. Frames SfM did not register carry no supervision and
+are never used for training (they are still predicted by the refined network afterwards).
+
+BatchNorm is an explicit choice (``bn_mode``): ``"frozen"`` keeps the running statistics and
+normalises with them (modules in eval mode, affine parameters still trained); ``"train"`` puts
+the encoder in train mode, so each single-image step normalises with its own statistics and
+updates the running ones, as the authors' release most likely did.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .frames import InputError
+from .models.base import DepthModel
+
+BN_MODES = ("frozen", "train")
+WEIGHTINGS = ("observation", "track", "none")
+SAMPLINGS = ("bilinear", "nearest")
+
+
+@dataclass
+class RefinementConfig:
+    steps: int = 200
+    lr: float = 1e-4
+    bn_mode: str = "frozen"
+    weighting: str = "observation"  # exp(−r²) with r per observation, per track, or w = 1
+    sampling: str = "bilinear"  # how D_nn is read at the keypoints (the release: nearest)
+    min_points: int = 10  # frames with fewer selected points are not used for training
+    early_stop_patience: int = 0  # >0: stop when the running loss has not improved for N steps
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.steps < 0:
+            raise InputError(f"steps must be >= 0, got {self.steps}")
+        if not (self.lr > 0 and np.isfinite(self.lr)):
+            raise InputError(f"lr must be a positive number, got {self.lr}")
+        for name, value, allowed in (("bn_mode", self.bn_mode, BN_MODES),
+                                     ("weighting", self.weighting, WEIGHTINGS),
+                                     ("sampling", self.sampling, SAMPLINGS)):
+            if value not in allowed:
+                raise InputError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+@dataclass
+class FrameSupervision:
+    """Supervision of one registered frame: pixels (OpenCV convention, image resolution),
+    target depth ŝ·D_sfm in network units, per-point weights exp(−r²)."""
+
+    name: str
+    image: np.ndarray  # H x W x 3 uint8 RGB
+    pixels: np.ndarray  # N x 2 (x, y)
+    target: np.ndarray  # N
+    weights: np.ndarray  # N
+
+    def __len__(self) -> int:
+        return int(self.target.shape[0])
+
+
+@dataclass
+class RefinementResult:
+    loss_history: list[float] = field(default_factory=list)
+    steps_done: int = 0
+    cancelled: bool = False
+    early_stopped: bool = False
+    frames_used: int = 0
+    seconds: float = 0.0
+
+
+def observation_weights(reproj_errors: np.ndarray) -> np.ndarray:
+    """Eq. (5)'s confidence weight exp(−r²) of each observation."""
+    return np.exp(-np.square(np.asarray(reproj_errors, np.float64)))
+
+
+def normalized_grid(pixels: np.ndarray, width: int, height: int) -> torch.Tensor:
+    """Pixel centres (OpenCV convention) of an image of width x height → grid_sample coords."""
+    g = np.empty((1, 1, len(pixels), 2), np.float32)
+    g[0, 0, :, 0] = (pixels[:, 0] + 0.5) / width * 2.0 - 1.0
+    g[0, 0, :, 1] = (pixels[:, 1] + 0.5) / height * 2.0 - 1.0
+    return torch.from_numpy(g)
+
+
+def sample_depth(depth: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    """Read a 1 x 1 x h x w depth map at grid points (any resolution: coords are normalised)."""
+    return F.grid_sample(depth, grid, mode=mode, padding_mode="border",
+                         align_corners=False).reshape(-1)
+
+
+def weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Eq. (5): mean of exp(−r²)·|ŝ·D_sfm − D_nn| over a frame's selected points."""
+    return (weights * (pred - target).abs()).mean()
+
+
+def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
+    """Encoder train/eval per ``bn_mode``; the decoder is always in eval mode."""
+    model.eval()
+    if bn_mode == "train":
+        model.encoder.train()
+
+
+def freeze_decoder(model: DepthModel) -> list[torch.nn.Parameter]:
+    """requires_grad only on the encoder (no gradients are computed for the decoder)."""
+    for p in model.decoder.parameters():
+        p.requires_grad_(False)
+    params = [p for p in model.encoder.parameters()]
+    for p in params:
+        p.requires_grad_(True)
+    return params
+
+
+def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
+                   config: RefinementConfig | None = None,
+                   should_stop: Callable[[], bool] | None = None,
+                   optimizer_state: dict | None = None) -> RefinementResult:
+    """Run SfM-TTR's refinement in place on ``model``'s encoder; returns the loss history.
+
+    ``should_stop`` is polled between steps (cancellation). Deterministic for a seed on CPU.
+    """
+    cfg = config or RefinementConfig()
+    result = RefinementResult()
+    usable = [s for s in supervision if len(s) >= cfg.min_points]
+    result.frames_used = len(usable)
+    if not usable or cfg.steps == 0:
+        return result
+    t0 = time.perf_counter()
+    device = model.device
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+
+    # Everything per frame that does not change between steps is prepared once.
+    inputs, grids, targets, weights = [], [], [], []
+    for s in usable:
+        h, w = s.image.shape[:2]
+        inputs.append(model.preprocess(s.image))
+        grids.append(normalized_grid(s.pixels, w, h).to(device))
+        targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
+        weights.append(torch.as_tensor(s.weights, dtype=torch.float32, device=device))
+
+    params = freeze_decoder(model)
+    optimizer = torch.optim.Adam(params, lr=cfg.lr)
+    if optimizer_state:
+        optimizer.load_state_dict(optimizer_state)
+    set_bn_mode(model, cfg.bn_mode)
+    order: list[int] = []
+    best, since_best, running = float("inf"), 0, None
+    try:
+        for _ in range(cfg.steps):
+            if should_stop is not None and should_stop():
+                result.cancelled = True
+                break
+            if not order:
+                order = list(rng.permutation(len(usable)))
+            j = order.pop()
+            depth = model(inputs[j])
+            pred = sample_depth(depth, grids[j], cfg.sampling)
+            loss = weighted_l1(pred, targets[j], weights[j])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            value = float(loss.detach())
+            result.loss_history.append(value)
+            result.steps_done += 1
+            if cfg.early_stop_patience > 0:
+                running = value if running is None else 0.9 * running + 0.1 * value
+                if running < best * 0.999:
+                    best, since_best = running, 0
+                else:
+                    since_best += 1
+                    if since_best >= cfg.early_stop_patience:
+                        result.early_stopped = True
+                        break
+    finally:
+        model.eval()
+        for p in model.parameters():
+            p.requires_grad_(False)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -> float:
+    """Eq. (5) for one frame evaluated on a predicted depth map (any resolution), no grad."""
+    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
+    h, w = s.image.shape[:2]
+    pred = sample_depth(d, normalized_grid(s.pixels, w, h), mode).numpy()
+    return float(np.mean(s.weights * np.abs(pred - s.target))) if len(s) else float("nan")
+
+
+def snapshot_encoder(model: DepthModel) -> dict[str, torch.Tensor]:
+    """A copy of the encoder's weights (and BN buffers) to reset to later."""
+    return copy.deepcopy(model.encoder.state_dict())
+
+
+def restore_encoder(model: DepthModel, state: dict[str, torch.Tensor]) -> None:
+    model.encoder.load_state_dict(state)
