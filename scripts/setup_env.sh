@@ -11,6 +11,9 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 VENV="${VENV:-$ROOT/.venv}"
 TORCH_VERSION="2.13.0"
+# colcon needs setuptools < 80; torch 2.13 needs >= 77.0.3. Passed to every pip call below so
+# that no step upgrades it.
+SETUPTOOLS="setuptools>=77.0.3,<80"
 
 say() { printf '[setup_env] %s\n' "$*"; }
 
@@ -40,18 +43,18 @@ fi
 say "upgrading pip"
 "${PIP[@]}" install --upgrade pip
 
-say "installing build tools: setuptools<80 (colcon needs it) and wheel"
-"${PIP[@]}" install "setuptools<80" wheel
+say "installing build tools: $SETUPTOOLS and wheel"
+"${PIP[@]}" install "$SETUPTOOLS" wheel
 
 # torch first and pinned: this machine has the CPU wheel of torch $TORCH_VERSION on disk; with no
 # torch installed, the package's loose `torch>=2.1` would pull a multi-GB CUDA build.
 say "installing torch==$TORCH_VERSION first"
-"${PIP[@]}" install "torch==$TORCH_VERSION"
+"${PIP[@]}" install "torch==$TORCH_VERSION" "$SETUPTOOLS"
 
-# --no-build-isolation: build with the setuptools<80 just installed instead of fetching the
+# --no-build-isolation: build with the setuptools just installed instead of fetching the
 # newest setuptools into an isolated build environment.
 say "installing sfm_ttr_ros editable with extras ros,dev,train"
-"${PIP[@]}" install --no-build-isolation -e ".[ros,dev,train]"
+"${PIP[@]}" install --no-build-isolation -e ".[ros,dev,train]" "$SETUPTOOLS"
 
 say "checking the environment"
 (cd / && "$PY" - <<'PYEOF'

@@ -195,17 +195,19 @@ def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
 # ---------------------------------------------------------------------------------------------
 
 
+def _upsample_wrapped(img: np.ndarray, size: int, interp: int) -> np.ndarray:
+    """Periodic upsampling of a square periodic image to ``size`` (pixel-centre aligned)."""
+    f = img.shape[0] / size
+    M = np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5]])
+    flags = interp | cv2.WARP_INVERSE_MAP
+    out = cv2.warpAffine(img, M, (size, size), flags=flags, borderMode=cv2.BORDER_WRAP)
+    return out.reshape(size, size, -1)
+
+
 def _value_noise(rng: np.random.Generator, size: int, cells: int, channels: int = 1) -> np.ndarray:
     """Seamless (periodic) value noise in [0, 1]: a random cells x cells grid, cubic-upsampled."""
     g = rng.random((cells, cells, channels), dtype=np.float32)
-    pad = 2
-    gp = np.pad(g, ((pad, pad), (pad, pad), (0, 0)), mode="wrap")
-    cell = size // cells
-    big = cv2.resize(gp, ((cells + 2 * pad) * cell,) * 2, interpolation=cv2.INTER_CUBIC)
-    if big.ndim == 2:
-        big = big[:, :, None]
-    off = pad * cell
-    return big[off : off + size, off : off + size]
+    return _upsample_wrapped(g if channels > 1 else g[:, :, 0], size, cv2.INTER_CUBIC)
 
 
 def _fbm(
@@ -216,14 +218,25 @@ def _fbm(
     persistence: float = 0.65,
     channels: int = 1,
 ) -> np.ndarray:
-    """Multi-scale (fractal) seamless noise, zero mean, unit standard deviation."""
+    """Multi-scale (fractal) seamless noise, zero mean, unit standard deviation.
+
+    Octaves with cells of 16 texels or more are summed at a quarter of the resolution and
+    upsampled once (they are smooth at that scale anyway).
+    """
     max_cells = max_cells or size // 2
+    low_size = max(size // 4, 1)
+    low = np.zeros((low_size, low_size, channels), np.float32)
     out = np.zeros((size, size, channels), np.float32)
     amp, cells = 1.0, base_cells
     while cells <= max_cells:
-        out += amp * (_value_noise(rng, size, cells, channels) - 0.5)
+        if size // cells >= 16:
+            low += amp * (_value_noise(rng, low_size, cells, channels) - 0.5)
+        else:
+            out += amp * (_value_noise(rng, size, cells, channels) - 0.5)
         amp *= persistence
         cells *= 2
+    low2 = low if channels > 1 else low[:, :, 0]
+    out += _upsample_wrapped(low2, size, cv2.INTER_LINEAR)
     out -= out.mean()
     out /= out.std() + 1e-6
     return out if channels > 1 else out[:, :, 0]
@@ -446,7 +459,16 @@ def _tex_glass(rng) -> np.ndarray:
     s = 256
     img = 0.2 + 0.05 * _fbm(rng, s, 4, 128, channels=3) + np.array([0.0, 0.02, 0.06])
     layer = np.zeros((s, s, 3), np.float32)
-    _draw_blobs(layer, rng, 30, 4, 30, lambda r: r.uniform(0.05, 0.35, 3).tolist())
+    _draw_blobs(
+        layer,
+        rng,
+        30,
+        4,
+        30,
+        lambda r: (
+            r.uniform(0.05, 0.3) * np.array([1, 1.05, 1.15]) + r.uniform(-0.04, 0.04, 3)
+        ).tolist(),
+    )
     return _to_u8(img + cv2.GaussianBlur(layer, (0, 0), 2.0))
 
 
@@ -461,7 +483,9 @@ def _tex_dark(rng) -> np.ndarray:
 def _tex_metal(rng) -> np.ndarray:
     s = 256
     n = cv2.resize(_fbm(rng, s, 4, 128), (s, s))
-    streak = cv2.resize(rng.random((1, 32), dtype=np.float32), (s, s), interpolation=cv2.INTER_CUBIC)
+    streak = cv2.resize(
+        rng.random((1, 32), dtype=np.float32), (s, s), interpolation=cv2.INTER_CUBIC
+    )
     img = 0.55 + 0.08 * n + 0.15 * (streak - 0.5)
     layer = np.zeros((s, s), np.float32)
     _draw_blobs(layer, rng, 25, 2, 12, lambda r: float(r.uniform(-0.3, 0.2)))
@@ -485,7 +509,9 @@ def _tex_foliage(rng, style: str) -> np.ndarray:
         return (base * r.uniform(0.4, 1.7) + r.uniform(-0.05, 0.05, 3)).tolist()
 
     _draw_blobs(img, rng, 900, 2, 14, leaf)
-    _draw_blobs(img, rng, 250, 1, 4, lambda r: (np.array([0.06, 0.08, 0.04]) * r.uniform(0.5, 2)).tolist())
+    _draw_blobs(
+        img, rng, 250, 1, 4, lambda r: (np.array([0.06, 0.08, 0.04]) * r.uniform(0.5, 2)).tolist()
+    )
     return _to_u8(img)
 
 
@@ -621,8 +647,16 @@ class _Builder:
         self.add(BOX, material, tint, offset, lo, hi)
 
     def cylinder(self, material, x, z, r, y_top, y_bottom, tint=(1, 1, 1), offset=(0, 0)):
-        self.add(CYLINDER, material, tint, offset, (x - r, y_top, z - r), (x + r, y_bottom, z + r),
-                 (x, 0.0, z), r)
+        self.add(
+            CYLINDER,
+            material,
+            tint,
+            offset,
+            (x - r, y_top, z - r),
+            (x + r, y_bottom, z + r),
+            (x, 0.0, z),
+            r,
+        )
 
     def sphere(self, material, c, r, tint=(1, 1, 1), offset=(0, 0)):
         c = np.asarray(c, float)
@@ -641,7 +675,8 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
     b.add(PLANE, KERB, (1, 1, 1), (0, 0), (0, 0, 0), (0, 0, 0))
     hw, sw, kh = p.street_width / 2, p.sidewalk_width, p.kerb_height
     palette = np.array(_PALETTES[p.texture_style], np.float32)
-    start = math.floor(z_min / 50.0) * 50.0 - 50.0  # a fixed grid so prefixes do not depend on z_min
+    # a fixed grid, so that the objects do not depend on z_min within a 50 m cell
+    start = math.floor(z_min / 50.0) * 50.0 - 50.0
 
     def stream(cat, side):
         return np.random.default_rng([p.seed, 1000 + cat, 0 if side < 0 else 1, int(start) + 10**6])
@@ -687,8 +722,13 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
                 b.box(DARK, (x0 + 0.1, -0.35, z + 0.5), (x1 - 0.1, 0.0, z + length - 0.5))
                 b.box(CAR, (x0, -1.0 - r.uniform(0, 0.1), z), (x1, -0.3, z + length), col, off)
                 cz0 = z + r.uniform(0.8, 1.4)
-                b.box(GLASS, (x0 + 0.12, -1.45 - r.uniform(0, 0.2), cz0),
-                      (x1 - 0.12, -0.98, z + length - r.uniform(0.7, 1.3)), (1, 1, 1), off)
+                b.box(
+                    GLASS,
+                    (x0 + 0.12, -1.45 - r.uniform(0, 0.2), cz0),
+                    (x1 - 0.12, -0.98, z + length - r.uniform(0.7, 1.3)),
+                    (1, 1, 1),
+                    off,
+                )
             z += length + max(0.5, r.exponential(mean_gap - 4.3))
         # poles (street lights / sign posts) near the kerb
         r = stream(3, side)
@@ -701,8 +741,13 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
             if r.random() < 0.5:  # sign board facing the traffic
                 w = r.uniform(0.5, 0.9)
                 y0 = top + r.uniform(0.2, 1.0)
-                b.box(SIGN, (x - w / 2, y0, z - rad - 0.04), (x + w / 2, y0 + w, z - rad),
-                      (1, 1, 1), r.uniform(0, 1, 2))
+                b.box(
+                    SIGN,
+                    (x - w / 2, y0, z - rad - 0.04),
+                    (x + w / 2, y0 + w, z - rad),
+                    (1, 1, 1),
+                    r.uniform(0, 1, 2),
+                )
             z += r.uniform(0.4, 1.6) * 100.0 / p.num_poles
         # trees on the sidewalk
         r = stream(4, side)
@@ -711,8 +756,16 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
             x = side * (hw + sw * r.uniform(0.45, 0.75))
             trunk_h = r.uniform(2.2, 3.5)
             crown = r.uniform(1.3, 2.4)
-            b.cylinder(BARK, x, z, r.uniform(0.1, 0.2), -trunk_h - crown * 0.5, -kh,
-                       (1, 1, 1), r.uniform(0, 2, 2))
+            b.cylinder(
+                BARK,
+                x,
+                z,
+                r.uniform(0.1, 0.2),
+                -trunk_h - crown * 0.5,
+                -kh,
+                (1, 1, 1),
+                r.uniform(0, 2, 2),
+            )
             tint = np.array([1, 1, 1]) * r.uniform(0.8, 1.2) + r.uniform(-0.1, 0.1, 3)
             b.sphere(FOLIAGE, (x, -trunk_h - crown * 0.8, z), crown, tint, r.uniform(0, 8, 2))
             z += r.uniform(0.4, 1.6) * 100.0 / p.num_trees
@@ -827,7 +880,6 @@ def _intersect(scene: _Scene, kind: int, oid, rays, Cx, Cy, Cz):
 
     Returns ``(t, hit, face)``: depth along the ray (``D_cam`` has z = 1), validity, face code.
     """
-    f32 = np.float32
     dx, dy, dz, ix, iy, iz = rays
     if kind == BOX:
         lo, hi = scene.lo32[oid], scene.hi32[oid]
@@ -862,7 +914,7 @@ def _intersect(scene: _Scene, kind: int, oid, rays, Cx, Cy, Cz):
     if kind == CYLINDER:
         y = Cy + t * dy
         hit &= (y >= scene.lo32[oid, 1]) & (y <= scene.hi32[oid, 1])
-    return t, hit, f32(_FACE_CURVED).astype(np.int8)
+    return t, hit, np.int8(_FACE_CURVED)
 
 
 def _cast_batch(scene: _Scene, rects: np.ndarray, rays, C, T, OID, FACE) -> None:
@@ -887,8 +939,10 @@ def _cast_batch(scene: _Scene, rects: np.ndarray, rays, C, T, OID, FACE) -> None
         pr = [r.ravel()[pix] for r in rays]
         t, hit, face = _intersect(scene, kind, o, pr, *C)
         hit &= t < Tf[pix]
-        face = face[hit] if isinstance(face, np.ndarray) and face.ndim else np.full(
-            int(hit.sum()), face, np.int8
+        face = (
+            face[hit]
+            if isinstance(face, np.ndarray) and face.ndim
+            else np.full(int(hit.sum()), face, np.int8)
         )
         found.append((pix[hit], t[hit], o[hit], face))
     if not found:

@@ -1,0 +1,585 @@
+"""Online SfM-TTR over a stream of frames: keyframes, sliding windows, back-pressure, accounting.
+
+ROS-free: the ROS node feeds it from its subscription callbacks and publishes what comes out; the
+benchmark feeds it from files. Same code path, no ROS transport.
+
+Model of the stream
+-------------------
+* :meth:`StreamProcessor.submit` (thread-safe, cheap) puts a frame and its intrinsics in a
+  bounded input queue. :meth:`StreamProcessor.step` (one worker thread) takes frames out and
+  does the heavy work. :meth:`StreamProcessor.push` = submit + process everything queued, for
+  synchronous callers (benchmark, tests).
+* Frame names are assigned here from a running counter (``f"{seq:010d}"``), so they are unique
+  per stream whatever the caller put in ``Frame.name`` (stamps are not unique enough, and SfM
+  caches features by name). ``Frame.index``, ``stamp`` and ``header`` are left as given.
+* Keyframes: a frame is a keyframe when at least ``min_keyframe_interval_s`` has passed since
+  the last keyframe (stamps) and, when ``min_keyframe_motion`` > 0, the mean absolute grey-level
+  difference (0-255) between 64-pixel-wide thumbnails of it and of the last keyframe is at least
+  that much. Other frames are published at once, unrefined (``not_keyframe``), predicted with
+  the latest weights - so outputs are not always in stamp order; each carries its own header.
+* Windows: keyframes collect in a window buffer. When it holds ``window_size`` keyframes of
+  which at least ``window_stride`` are new (not yet published), one SfM-TTR window runs over the
+  last ``window_size`` of them. Its new frames are published (refined, or unrefined with the
+  window's reason); the last ``window_size - window_stride`` stay as overlap for the next window
+  and are NOT published again.
+* Back-pressure: ``max_pending`` bounds the input queue; when it is full the OLDEST queued frame
+  is dropped (counted under ``dropped["overflow"]`` and logged, throttled): the newest images
+  matter most for a live robot. When a window is due while more than ``overload_pending``
+  frames wait in the queue (0 = never), refinement is skipped for that window: its new frames are
+  published unrefined (``overload``) so the queue drains, and refinement resumes later.
+* Resolution / intrinsics change: every unpublished keyframe is published unrefined
+  (``resolution_change`` / ``intrinsics_change``) and a new window starts with the new frame.
+  A frame whose intrinsics are for another image size is published unrefined
+  (``intrinsics_mismatch``) and kept out of the windows.
+* Stamps: a frame with the same stamp as the previous frame is rejected (a duplicated message):
+  dropped and counted (``dropped["duplicate_stamp"]``). A stamp earlier than the previous one
+  (a bag restarted, a clock reset) is counted (``non_monotonic_stamps``), logged, the unpublished
+  keyframes are published unrefined (``stamp_jump_back``) and a new window starts with it.
+* Idle flush: when no frame arrived for ``idle_flush_s`` (> 0) and frames are waiting in an
+  incomplete window, :meth:`step` runs :meth:`flush` (end of a bag, a paused camera).
+* :meth:`flush` (end of stream) runs a final partial window over the buffer when it holds at
+  least 2 frames with something unpublished, else publishes the rest unrefined (``end_of_stream``).
+  A node shutting down does NOT flush (it must exit fast): what is still pending then is only
+  counted (``pending`` in :meth:`counters`).
+
+Every frame given to :meth:`submit` / :meth:`reject` is accounted for exactly once: refined,
+unrefined with a reason key (:data:`UNREFINED_REASONS`), or dropped with a reason key
+(:data:`DROP_REASONS`); until then it is pending, so at any time
+``received == refined + sum(unrefined) + sum(dropped) + pending``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .frames import Frame, InputError, Intrinsics
+from .pipeline import SfmTTR, TTRConfig, WindowResult
+from .sfm import SfmCancelled
+
+#: Reason keys of frames published without refinement.
+UNREFINED_REASONS = {
+    "not_keyframe": "not a keyframe",
+    "sfm_failed": "SfM failed",
+    "too_few_points": "too few supervision points",
+    "overload": "overload: refinement skipped",
+    "resolution_change": "image resolution changed",
+    "intrinsics_change": "intrinsics changed",
+    "intrinsics_mismatch": "intrinsics are for another image size",
+    "stamp_jump_back": "stamp went back: window reset",
+    "cancelled": "refinement cancelled",
+    "window_error": "window failed with an error",
+    "end_of_stream": "end of stream with a single frame",
+}
+#: Reason keys of frames that were never published.
+DROP_REASONS = {
+    "overflow": "input queue full: oldest pending frame dropped",
+    "duplicate_stamp": "same stamp as the previous frame",
+    "bad_image": "image could not be converted",
+    "no_intrinsics": "held too long without intrinsics",
+    "prediction_error": "the network failed on the frame",
+}
+
+THUMB_WIDTH = 64
+
+
+@dataclass
+class StreamSettings:
+    """Options of the online windowing (the node's parameters of the same names)."""
+
+    window_size: int = 10
+    window_stride: int = 5
+    min_keyframe_interval_s: float = 0.0
+    min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
+    max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
+    overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
+    idle_flush_s: float = 0.0  # > 0: flush an incomplete window after this long without input
+
+    def __post_init__(self) -> None:
+        if self.window_size < 2:
+            raise InputError(f"window_size must be >= 2, got {self.window_size}")
+        if not 1 <= self.window_stride <= self.window_size:
+            raise InputError(f"window_stride must be in [1, window_size={self.window_size}], "
+                             f"got {self.window_stride}")
+        if self.max_pending < 1:
+            raise InputError(f"max_pending must be >= 1, got {self.max_pending}")
+        for name in ("min_keyframe_interval_s", "min_keyframe_motion", "idle_flush_s"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be a finite number >= 0, got {v}")
+        if self.overload_pending < 0:
+            raise InputError(f"overload_pending must be >= 0, got {self.overload_pending}")
+
+
+@dataclass
+class WindowStats:
+    """What one window did (for diagnostics); ``result`` is the full core result."""
+
+    index: int
+    names: list[str]
+    new_frames: int
+    refined: bool
+    reason_key: str = ""
+    reason: str = ""
+    registered: int = 0
+    points: int = 0
+    inlier_ratio: float = float("nan")
+    selected_points: int = 0
+    scale: float = float("nan")
+    loss_before: float = float("nan")
+    loss_after: float = float("nan")
+    steps: int = 0  # configured refinement steps for this window
+    steps_done: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+    cloud_frame: Frame | None = field(default=None, repr=False)
+    cloud_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32),
+                                  repr=False)
+    cloud_error: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+    result: WindowResult | None = field(default=None, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return self.refined
+
+
+@dataclass
+class FrameOutput:
+    """One published frame: its depth (network units, image size) and whether it was refined."""
+
+    frame: Frame
+    depth: np.ndarray
+    refined: bool
+    reason_key: str = ""
+    reason: str = ""
+    window: int | None = None  # index of the window that produced it
+
+
+@dataclass
+class _Entry:
+    frame: Frame
+    published: bool = False
+
+
+def reason_key_of(result: WindowResult) -> str:
+    """Reason key of an unrefined window from the core's free-text reason."""
+    r = result.reason
+    if r.startswith("SfM failed"):
+        return "sfm_failed"
+    if r.startswith("too few supervision") or r.startswith("no usable frame"):
+        return "too_few_points"
+    if r.startswith("refinement cancelled"):
+        return "cancelled"
+    return "window_error"
+
+
+def _thumb(image: np.ndarray) -> np.ndarray:
+    h, w = image.shape[:2]
+    tw = min(THUMB_WIDTH, w)
+    th = max(1, round(h * tw / w))
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return cv2.resize(grey, (tw, th), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+class StreamProcessor:
+    """Sliding-window SfM-TTR over a stream (see the module docstring for the rules).
+
+    ``config_provider`` (optional) is called at the start of every window and its TTRConfig
+    handed to ``ttr.set_config`` (live parameters take effect at the next window);
+    ``settings_provider`` likewise for :class:`StreamSettings`, read at every frame.
+    Sinks: ``on_output(FrameOutput)``, ``on_window(WindowStats)`` (after the window's outputs),
+    ``on_drop(frame_or_None, reason_key, message)``. ``logger``: anything with ``info``,
+    ``warning`` and ``error`` taking one string (a logging.Logger, an rclpy logger).
+    """
+
+    def __init__(
+        self,
+        ttr: SfmTTR,
+        settings: StreamSettings | None = None,
+        *,
+        config_provider: Callable[[], TTRConfig] | None = None,
+        settings_provider: Callable[[], StreamSettings] | None = None,
+        on_output: Callable[[FrameOutput], None] | None = None,
+        on_window: Callable[[WindowStats], None] | None = None,
+        on_drop: Callable[[Frame | None, str, str], None] | None = None,
+        logger=None,
+        history: int = 100,
+    ):
+        self.ttr = ttr
+        self.settings = settings or StreamSettings()
+        self.config_provider = config_provider
+        self.settings_provider = settings_provider
+        self.on_output = on_output
+        self.on_window = on_window
+        self.on_drop = on_drop
+        self.log = logger or logging.getLogger(__name__)
+        self.windows: deque[WindowStats] = deque(maxlen=history)
+
+        self._cv = threading.Condition()
+        self._queue: deque[tuple[Frame, Intrinsics]] = deque()
+        self._seq = 0
+        self._received = 0
+        self._refined = 0
+        self._unrefined: Counter[str] = Counter()
+        self._dropped: Counter[str] = Counter()
+        self._windows_ok = 0
+        self._windows_failed = 0
+        self._windows_skipped = 0
+        self._non_monotonic = 0
+        self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
+        self._cancelled = False
+        self._last_input = time.monotonic()
+        self._warned: dict[str, float] = {}
+
+        # worker-side state (only touched by the thread that calls step / push / flush)
+        self._buffer: list[_Entry] = []
+        self._intr: Intrinsics | None = None
+        self._last_stamp: float | None = None
+        self._kf_stamp: float | None = None
+        self._kf_thumb: np.ndarray | None = None
+        self._window_index = 0
+
+    # -- input (any thread) ----------------------------------------------------------------------
+    def submit(self, frame: Frame, intrinsics: Intrinsics) -> None:
+        """Queue a frame (thread-safe, never blocks on heavy work)."""
+        dropped = None
+        with self._cv:
+            self._received += 1
+            frame.name = f"{self._seq:010d}"
+            self._seq += 1
+            if len(self._queue) >= max(1, self.settings.max_pending):
+                dropped, _ = self._queue.popleft()
+                self._dropped["overflow"] += 1
+            self._queue.append((frame, intrinsics))
+            self._last_input = time.monotonic()
+            self._cv.notify_all()
+        if dropped is not None:
+            self._emit_drop(dropped, "overflow",
+                            f"input queue full (max_pending={self.settings.max_pending}): dropped "
+                            f"the oldest pending frame (stamp {dropped.stamp:.6f}); "
+                            f"{self._dropped['overflow']} dropped so far")
+
+    def reject(self, reason_key: str, message: str, frame: Frame | None = None) -> None:
+        """Count a received frame that is not processed at all (bad image, no intrinsics...)."""
+        with self._cv:
+            self._received += 1
+            self._dropped[reason_key] += 1
+        self._emit_drop(frame, reason_key, message)
+
+    def cancel(self) -> None:
+        """Stop: the running window ends at its next step, :meth:`step` returns at once."""
+        with self._cv:
+            self._cancelled = True
+            self._cv.notify_all()
+        self.ttr.cancel()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled
+
+    # -- processing (one worker thread) ----------------------------------------------------------
+    def push(self, frame: Frame, intrinsics: Intrinsics) -> list[FrameOutput]:
+        """Synchronous use: submit one frame and process everything queued."""
+        self.submit(frame, intrinsics)
+        return self.process_available()
+
+    def process_available(self) -> list[FrameOutput]:
+        outs: list[FrameOutput] = []
+        while not self._cancelled:
+            got = self._take(timeout=0.0)
+            if got is None:
+                break
+            outs += self._consume(*got)
+        return outs
+
+    def step(self, timeout: float | None = None) -> list[FrameOutput]:
+        """Wait up to ``timeout`` s for a frame and process it; flush when idle (settings)."""
+        got = self._take(timeout)
+        if got is not None:
+            return self._consume(*got)
+        idle = self.settings.idle_flush_s
+        if (idle > 0 and self._n_unpublished and not self._cancelled
+                and time.monotonic() - self._last_input >= idle):
+            self.log.info(f"no input for {idle:g} s: flushing {self._n_unpublished} pending "
+                          "frame(s) as a final window")
+            self._last_input = time.monotonic()
+            return self.flush()
+        return []
+
+    def flush(self, refine: bool = True) -> list[FrameOutput]:
+        """End of stream: process the queue, then a final partial window (>= 2 frames) or the
+        remaining frames unrefined. The stream can go on afterwards (new windows)."""
+        outs = self.process_available()
+        if self._n_unpublished and not self._cancelled:
+            if refine and len(self._buffer) >= 2:
+                outs += self._run_window(self._buffer)
+            else:
+                outs += self._flush_unrefined("end_of_stream", "end of stream: a single frame "
+                                              "cannot make a window")
+        self._buffer = []
+        self._kf_stamp = self._kf_thumb = None
+        return outs
+
+    # -- introspection ---------------------------------------------------------------------------
+    @property
+    def _n_unpublished(self) -> int:
+        return sum(not e.published for e in self._buffer)
+
+    def pending(self) -> int:
+        with self._cv:
+            return len(self._queue) + len(self._taken)
+
+    def queued(self) -> int:
+        with self._cv:
+            return len(self._queue)
+
+    def counters(self) -> dict[str, object]:
+        """Snapshot of the accounting (consistent under the lock)."""
+        with self._cv:
+            return {
+                "received": self._received,
+                "refined": self._refined,
+                "unrefined": sum(self._unrefined.values()),
+                "unrefined_by_reason": dict(self._unrefined),
+                "dropped": sum(self._dropped.values()),
+                "dropped_by_reason": dict(self._dropped),
+                "pending": len(self._queue) + len(self._taken),
+                "queued": len(self._queue),
+                "windows_ok": self._windows_ok,
+                "windows_failed": self._windows_failed,
+                "windows_skipped": self._windows_skipped,
+                "non_monotonic_stamps": self._non_monotonic,
+            }
+
+    @property
+    def last_window(self) -> WindowStats | None:
+        return self.windows[-1] if self.windows else None
+
+    # -- internals -------------------------------------------------------------------------------
+    def _take(self, timeout: float | None) -> tuple[Frame, Intrinsics] | None:
+        with self._cv:
+            if not self._queue and not self._cancelled and timeout != 0.0:
+                self._cv.wait(timeout)
+            if not self._queue or self._cancelled:
+                return None
+            frame, intr = self._queue.popleft()
+            self._taken.add(id(frame))
+            return frame, intr
+
+    def _refresh_settings(self) -> None:
+        if self.settings_provider is not None:
+            try:
+                self.settings = self.settings_provider()
+            except Exception as exc:  # keep the last good settings
+                self._warn("settings", f"stream settings not updated: {exc}")
+
+    def _consume(self, frame: Frame, intr: Intrinsics) -> list[FrameOutput]:
+        self._refresh_settings()
+        s = self.settings
+        outs: list[FrameOutput] = []
+        if self._last_stamp is not None and frame.stamp == self._last_stamp:
+            with self._cv:
+                self._dropped["duplicate_stamp"] += 1
+                self._taken.discard(id(frame))
+            self._emit_drop(frame, "duplicate_stamp",
+                            f"frame with the same stamp as the previous one ({frame.stamp:.9f}) "
+                            "rejected")
+            return outs
+        if self._last_stamp is not None and frame.stamp < self._last_stamp:
+            with self._cv:
+                self._non_monotonic += 1
+            self.log.warning(f"stamp went back from {self._last_stamp:.6f} to {frame.stamp:.6f} "
+                             f"s: {self._n_unpublished} pending frame(s) published unrefined and "
+                             "a new window started")
+            outs += self._flush_unrefined("stamp_jump_back", "stamp went back: window reset")
+            self._kf_stamp = self._kf_thumb = None
+        self._last_stamp = frame.stamp
+
+        if frame.size != (intr.width, intr.height):
+            outs += self._unrefined([frame], "intrinsics_mismatch",
+                                    f"intrinsics are for {intr.width}x{intr.height}, the image is "
+                                    f"{frame.size[0]}x{frame.size[1]}")
+            return outs
+        if self._intr is not None and intr != self._intr:
+            size_changed = (intr.width, intr.height) != (self._intr.width, self._intr.height)
+            key = "resolution_change" if size_changed else "intrinsics_change"
+            what = (f"image size changed from {self._intr.width}x{self._intr.height} to "
+                    f"{intr.width}x{intr.height}" if size_changed else
+                    f"intrinsics changed from {self._intr} to {intr}")
+            self.log.warning(f"{what}: {self._n_unpublished} pending frame(s) published "
+                             "unrefined and a new window started")
+            outs += self._flush_unrefined(key, what)
+            self._kf_stamp = self._kf_thumb = None
+        self._intr = intr
+
+        if not self._is_keyframe(frame, s):
+            outs += self._unrefined([frame], "not_keyframe", "not a keyframe")
+            return outs
+        self._buffer.append(_Entry(frame))
+        n_new = self._n_unpublished
+        if len(self._buffer) >= s.window_size and n_new >= min(s.window_stride, s.window_size):
+            outs += self._run_window(self._buffer[-max(s.window_size, n_new):])
+            keep = s.window_size - s.window_stride
+            self._buffer = self._buffer[len(self._buffer) - keep:] if keep > 0 else []
+        return outs
+
+    def _is_keyframe(self, frame: Frame, s: StreamSettings) -> bool:
+        thumb = _thumb(frame.image)
+        if self._kf_stamp is not None:
+            if (s.min_keyframe_interval_s > 0
+                    and frame.stamp - self._kf_stamp < s.min_keyframe_interval_s):
+                return False
+            if (s.min_keyframe_motion > 0 and self._kf_thumb is not None
+                    and self._kf_thumb.shape == thumb.shape
+                    and float(np.mean(np.abs(thumb - self._kf_thumb))) < s.min_keyframe_motion):
+                return False
+        self._kf_stamp, self._kf_thumb = frame.stamp, thumb
+        return True
+
+    def _overloaded(self) -> int:
+        limit = self.settings.overload_pending
+        q = self.queued()
+        return q if limit > 0 and q > limit else 0
+
+    def _run_window(self, entries: Sequence[_Entry]) -> list[FrameOutput]:
+        """One window over ``entries``; publishes its unpublished frames."""
+        if self.config_provider is not None:
+            try:
+                self.ttr.set_config(self.config_provider())
+            except Exception as exc:  # keep the last good config
+                self._warn("config", f"SfM-TTR options not updated: {exc}")
+        frames = [e.frame for e in entries]
+        new = [e.frame for e in entries if not e.published]
+        index = self._window_index
+        self._window_index += 1
+        stats = WindowStats(index, [f.name for f in frames], len(new), refined=False,
+                            steps=self.ttr.config.refinement.steps)
+        queued = self._overloaded()
+        if queued:
+            stats.reason_key = "overload"
+            stats.reason = (f"overload: {queued} frames queued > overload_pending="
+                            f"{self.settings.overload_pending}: refinement skipped")
+            self._warn("overload", stats.reason)
+            outs = self._unrefined(new, "overload", stats.reason, window=index)
+            with self._cv:
+                self._windows_skipped += 1
+            self._finish_window(entries, stats)
+            return outs
+
+        try:
+            res = self.ttr.process_window(frames, self._intr,
+                                          should_stop=lambda: self._cancelled)
+        except SfmCancelled:
+            res = None
+            stats.reason_key, stats.reason = "cancelled", "SfM cancelled"
+        except Exception as exc:  # never let one window kill the stream
+            res = None
+            stats.reason_key = "window_error"
+            stats.reason = f"window failed: {type(exc).__name__}: {exc}"
+            self.log.error(stats.reason)
+        if self._cancelled:  # shutting down: publish nothing more
+            return []
+        if res is None:
+            outs = self._unrefined(new, stats.reason_key, stats.reason, window=index)
+        else:
+            self._fill_stats(stats, res)
+            outs = []
+            for f in new:
+                out = FrameOutput(f, res.depths[f.name], res.refined,
+                                  "" if res.refined else stats.reason_key,
+                                  "" if res.refined else stats.reason, window=index)
+                outs.append(out)
+            self._account(outs)
+        with self._cv:
+            if stats.refined:
+                self._windows_ok += 1
+            else:
+                self._windows_failed += 1
+        if not stats.refined:
+            self._warn(f"window:{stats.reason_key}",
+                       f"window {index} not refined ({stats.reason}): {len(new)} frame(s) "
+                       "published unrefined")
+        self._finish_window(entries, stats)
+        return outs
+
+    def _finish_window(self, entries: Sequence[_Entry], stats: WindowStats) -> None:
+        for e in entries:
+            e.published = True
+        self.windows.append(stats)
+        if self.on_window is not None:
+            self.on_window(stats)
+
+    @staticmethod
+    def _fill_stats(stats: WindowStats, res: WindowResult) -> None:
+        stats.refined = res.refined
+        if not res.refined:
+            stats.reason_key, stats.reason = reason_key_of(res), res.reason
+        if res.sfm is not None:
+            stats.registered, stats.points = res.sfm.num_registered, res.sfm.num_points
+        if res.alignment is not None and res.alignment.ransac_inliers.size:
+            stats.inlier_ratio = float(np.mean(res.alignment.ransac_inliers))
+            stats.selected_points = int(res.alignment.selected.sum())
+        stats.scale, stats.loss_before, stats.loss_after = res.scale, res.loss_before, \
+            res.loss_after
+        stats.steps_done = res.refinement.steps_done if res.refinement is not None else 0
+        stats.timings = dict(res.timings)
+        stats.result = res
+        if res.cloud_frame:
+            stats.cloud_xyz, stats.cloud_error = res.cloud_xyz, res.cloud_error
+
+    def _flush_unrefined(self, key: str, reason: str) -> list[FrameOutput]:
+        new = [e.frame for e in self._buffer if not e.published]
+        self._buffer = []
+        return self._unrefined(new, key, reason) if new else []
+
+    def _unrefined(self, frames: Sequence[Frame], key: str, reason: str,
+                   window: int | None = None) -> list[FrameOutput]:
+        """Publish ``frames`` unrefined, predicted with the latest weights."""
+        if not frames:
+            return []
+        try:
+            depths = self.ttr.predict([f.image for f in frames])
+        except Exception as exc:
+            msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
+            self.log.error(msg)
+            with self._cv:
+                self._dropped["prediction_error"] += len(frames)
+                self._taken.difference_update(id(f) for f in frames)
+            for f in frames:
+                self._emit_drop(f, "prediction_error", msg)
+            return []
+        outs = [FrameOutput(f, d, False, key, reason, window)
+                for f, d in zip(frames, depths, strict=True)]
+        self._account(outs)
+        return outs
+
+    def _account(self, outs: list[FrameOutput]) -> None:
+        with self._cv:
+            for o in outs:
+                if o.refined:
+                    self._refined += 1
+                else:
+                    self._unrefined[o.reason_key] += 1
+                self._taken.discard(id(o.frame))
+        for o in outs:
+            if self.on_output is not None:
+                self.on_output(o)
+
+    def _emit_drop(self, frame: Frame | None, key: str, message: str) -> None:
+        self._warn(f"drop:{key}", message)
+        if self.on_drop is not None:
+            self.on_drop(frame, key, message)
+
+    def _warn(self, key: str, message: str, period: float = 5.0) -> None:
+        """Log a warning at most once per ``period`` s per key."""
+        now = time.monotonic()
+        if now - self._warned.get(key, -1e9) >= period:
+            self._warned[key] = now
+            self.log.warning(message)
+
