@@ -138,7 +138,8 @@ PARAMS: tuple[ParamSpec, ...] = (
        "has not improved for N steps; 0 = off.", "refinement.early_stop_patience", 0,
        1_000_000),
     _P("reset_each_window", False, "True: every window starts from the original weights; "
-       "False: refinement continues from the previous window.", "ttr.reset_each_window"),
+       "False (default, provisional until the benchmark settles it): refinement continues "
+       "from the previous window's weights.", "ttr.reset_each_window"),
     _P("seed", 0, "Random seed of SfM, RANSAC and refinement.",
        "sfm.seed,alignment.seed,refinement.seed", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------

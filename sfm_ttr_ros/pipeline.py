@@ -162,6 +162,9 @@ class SfmTTR:
         t0 = time.perf_counter()
         res.refinement = refine_encoder(self.model, sup, cfg.refinement, should_stop=stop)
         t["refine"] = time.perf_counter() - t0
+        if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
+            res.reason = "refinement cancelled"
+            return res
 
         t0 = time.perf_counter()
         res.depths = dict(zip(names, self.predict([f.image for f in frames]), strict=True))

@@ -226,7 +226,7 @@ class StreamProcessor:
         self._seq = 0
         self._received = 0
         self._refined = 0
-        self._unrefined: Counter[str] = Counter()
+        self._unrefined_n: Counter[str] = Counter()
         self._dropped: Counter[str] = Counter()
         self._windows_ok = 0
         self._windows_failed = 0
@@ -345,8 +345,8 @@ class StreamProcessor:
             return {
                 "received": self._received,
                 "refined": self._refined,
-                "unrefined": sum(self._unrefined.values()),
-                "unrefined_by_reason": dict(self._unrefined),
+                "unrefined": sum(self._unrefined_n.values()),
+                "unrefined_by_reason": dict(self._unrefined_n),
                 "dropped": sum(self._dropped.values()),
                 "dropped_by_reason": dict(self._dropped),
                 "pending": len(self._queue) + len(self._taken),
@@ -489,6 +489,7 @@ class StreamProcessor:
             outs = self._unrefined(new, stats.reason_key, stats.reason, window=index)
         else:
             self._fill_stats(stats, res)
+            stats.cloud_frame = next((f for f in frames if f.name == res.cloud_frame), None)
             outs = []
             for f in new:
                 out = FrameOutput(f, res.depths[f.name], res.refined,
@@ -565,7 +566,7 @@ class StreamProcessor:
                 if o.refined:
                     self._refined += 1
                 else:
-                    self._unrefined[o.reason_key] += 1
+                    self._unrefined_n[o.reason_key] += 1
                 self._taken.discard(id(o.frame))
         for o in outs:
             if self.on_output is not None:

