@@ -56,7 +56,6 @@ setup(
         "pycolmap>=4.0,<5",
         "pyyaml",
         "rosbags>=0.10",
-        "matplotlib",
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for machines without a ROS install.

@@ -1,44 +1,45 @@
 """Conversions between ROS 2 messages and the ROS-free core: the only code in the project that
-knows ROS message layouts (sensor_msgs Image / CameraInfo / PointCloud2, diagnostic_msgs)."""
+knows ROS message layouts (sensor_msgs Image / CameraInfo / PointCloud2, diagnostic_msgs).
 
-from msg_adapters.camera_info import (
-    CameraInfoError,
-    camera_info_to_intrinsics,
-    intrinsics_to_camera_info,
-)
-from msg_adapters.diagnostics import diagnostic_values, format_value, make_diagnostic_array
-from msg_adapters.image import (
-    SUPPORTED_ENCODINGS,
-    ImageConversionError,
-    depth_to_colored_image,
-    depth_to_image,
-    image_to_numpy,
-    image_to_rgb8,
-    numpy_to_image,
-)
-from msg_adapters.pointcloud import (
-    PointCloudError,
-    numpy_to_pointcloud2,
-    pointcloud2_to_numpy,
-    pointcloud2_to_xyz,
-)
+Importing the package is cheap and needs no ROS: the names are loaded on first use (PEP 562),
+and decoding an Image (``image_to_numpy``) works on any object with the Image fields (rclpy or
+rosbags messages) without sensor_msgs installed.
+"""
 
-__all__ = [
-    "SUPPORTED_ENCODINGS",
-    "CameraInfoError",
-    "ImageConversionError",
-    "PointCloudError",
-    "camera_info_to_intrinsics",
-    "depth_to_colored_image",
-    "depth_to_image",
-    "diagnostic_values",
-    "format_value",
-    "image_to_numpy",
-    "image_to_rgb8",
-    "intrinsics_to_camera_info",
-    "make_diagnostic_array",
-    "numpy_to_image",
-    "numpy_to_pointcloud2",
-    "pointcloud2_to_numpy",
-    "pointcloud2_to_xyz",
-]
+from __future__ import annotations
+
+import importlib
+
+_LOCATIONS = {
+    "CameraInfoError": "msg_adapters.camera_info",
+    "ImageConversionError": "msg_adapters.image",
+    "PointCloudError": "msg_adapters.pointcloud",
+    "SUPPORTED_ENCODINGS": "msg_adapters.image",
+    "camera_info_to_intrinsics": "msg_adapters.camera_info",
+    "depth_to_colored_image": "msg_adapters.image",
+    "depth_to_image": "msg_adapters.image",
+    "diagnostic_values": "msg_adapters.diagnostics",
+    "format_value": "msg_adapters.diagnostics",
+    "image_to_numpy": "msg_adapters.image",
+    "image_to_rgb8": "msg_adapters.image",
+    "intrinsics_to_camera_info": "msg_adapters.camera_info",
+    "make_diagnostic_array": "msg_adapters.diagnostics",
+    "numpy_to_image": "msg_adapters.image",
+    "numpy_to_pointcloud2": "msg_adapters.pointcloud",
+    "pointcloud2_to_numpy": "msg_adapters.pointcloud",
+    "pointcloud2_to_xyz": "msg_adapters.pointcloud",
+}
+
+__all__ = sorted(_LOCATIONS)
+
+
+def __getattr__(name: str):
+    if name in _LOCATIONS:
+        value = getattr(importlib.import_module(_LOCATIONS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'msg_adapters' has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import array
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from sensor_msgs.msg import Image
-from std_msgs.msg import Header
 
 from sfm_ttr_ros.frames import InputError
 from sfm_ttr_ros.visualize import colorize_depth
+
+if TYPE_CHECKING:  # decoding is duck-typed (rclpy and rosbags messages); only encoding needs ROS
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Header
 
 
 class ImageConversionError(InputError):
@@ -146,6 +149,8 @@ def numpy_to_image(array_: np.ndarray, encoding: str, header: Header | None = No
     elif a.dtype != enc.dtype:
         raise ImageConversionError(f"{name} needs a {enc.dtype} array, got {a.dtype}")
     le = np.ascontiguousarray(a, dtype=enc.dtype.newbyteorder("<"))
+    from sensor_msgs.msg import Image
+
     msg = Image()
     if header is not None:
         msg.header = header

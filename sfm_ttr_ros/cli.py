@@ -99,14 +99,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .pipeline import SfmTTR
     from .visualize import colorize_depth, write_ply
 
+    config = ttr_config_from_args(args)  # bad options fail before any image is read
     seq = open_sequence(args)
+    if not 0 <= args.start < len(seq):
+        raise InputError(f"--start {args.start} is outside the sequence's {len(seq)} frames "
+                         f"(0 .. {len(seq) - 1})")
     stop = len(seq) if args.max_frames <= 0 else min(len(seq), args.start + args.max_frames)
     frames = seq.frames(args.start, stop)
     out = Path(args.out)
-    for sub in ("before", "after"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
+    try:
+        for sub in ("before", "after"):
+            (out / sub).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder {out}: {exc}") from exc
     model = build_model_from_args(args)
-    ttr = SfmTTR(model, ttr_config_from_args(args))
+    ttr = SfmTTR(model, config)
     t0 = time.perf_counter()
     try:
         res = ttr.process_window(frames, seq.intrinsics)
@@ -197,6 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--drive-number", type=int, default=1)
     g.set_defaults(func=cmd_generate)
+
+    from .cli_bag import add_commands as add_bag_commands
+    from .cli_benchmark import add_commands as add_benchmark_commands
+    from .demo import add_commands as add_demo_commands
+
+    add_benchmark_commands(sub)
+    add_bag_commands(sub)
+    add_demo_commands(sub)
     return p
 
 

@@ -33,13 +33,30 @@ class Intrinsics:
     height: int
 
     def __post_init__(self) -> None:
-        vals = (self.fx, self.fy, self.cx, self.cy)
-        if not all(math.isfinite(float(v)) for v in vals):
-            raise InputError(f"intrinsics must be finite, got fx,fy,cx,cy = {vals}")
-        if self.fx <= 0 or self.fy <= 0:
-            raise InputError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise InputError(f"image size must be positive, got {self.width}x{self.height}")
+        given = (self.fx, self.fy, self.cx, self.cy)
+        try:
+            fx, fy, cx, cy = (float(v) for v in given)
+            w, h = float(self.width), float(self.height)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"intrinsics must be numbers, got fx,fy,cx,cy = {given}, size "
+                             f"{self.width!r} x {self.height!r}") from exc
+        if not all(math.isfinite(v) for v in (fx, fy, cx, cy)):
+            raise InputError(f"intrinsics must be finite, got fx,fy,cx,cy = {given}")
+        if fx <= 0 or fy <= 0:
+            raise InputError(f"focal lengths must be positive, got fx={fx}, fy={fy}")
+        if not (math.isfinite(w) and math.isfinite(h) and w.is_integer() and h.is_integer()
+                and w > 0 and h > 0):
+            raise InputError(f"image size must be positive whole numbers, got "
+                             f"{self.width}x{self.height}")
+        w, h = int(w), int(h)
+        # Pixel centres at integers: the image spans [-0.5, w - 0.5] x [-0.5, h - 0.5]. A
+        # principal point outside it almost always means a K meant for another image size.
+        if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
+            raise InputError(f"principal point (cx, cy) = ({cx:g}, {cy:g}) lies outside the "
+                             f"{w}x{h} image: are these intrinsics for another image size?")
+        for name, value in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy), ("width", w),
+                            ("height", h)):
+            object.__setattr__(self, name, value)  # plain float / int (numpy scalars, strings)
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual name of the matrix
@@ -111,11 +128,22 @@ def check_rgb_image(image: np.ndarray, what: str = "image") -> np.ndarray:
 
 
 def check_window(frames: Sequence[Frame], intrinsics: Intrinsics) -> None:
-    """Raise :class:`InputError` unless ``frames`` is a usable window for ``intrinsics``."""
+    """Raise :class:`InputError` unless ``frames`` is a usable window for ``intrinsics``.
+
+    Grayscale (H x W) images are expanded to RGB in place (``frame.image`` is replaced), so every
+    later stage sees H x W x 3 uint8.
+    """
+    if not isinstance(intrinsics, Intrinsics):
+        raise InputError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
+    if not isinstance(frames, Sequence):
+        raise InputError(f"a window must be a sequence (list, tuple) of Frame, got "
+                         f"{type(frames).__name__}")
     if len(frames) == 0:
         raise InputError("empty window: no frames given")
-    for f in frames:
-        check_rgb_image(f.image, f"frame {f.name}")
+    for i, f in enumerate(frames):
+        if not isinstance(f, Frame):
+            raise InputError(f"window item {i} is a {type(f).__name__}, not a Frame")
+        f.image = check_rgb_image(f.image, f"frame {f.name}")
         if f.size != (intrinsics.width, intrinsics.height):
             raise InputError(
                 f"frame {f.name} is {f.size[0]}x{f.size[1]} but the intrinsics are for "
@@ -132,10 +160,31 @@ def load_rgb(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"image file not found: {path}")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read image file {path}: {exc}") from exc
+    problem = _truncated(data)
+    if problem:
+        raise InputError(f"corrupt image file {path}: {problem}")
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise InputError(f"cannot decode image file: {path}")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _truncated(data: bytes) -> str:
+    """Why a PNG / JPEG file is cut short ("" if it is not, or is another format).
+
+    OpenCV decodes a truncated JPEG silently (the missing part grey) and reports a truncated PNG
+    only through libpng's message on stderr; a whole file has its end marker (a JPEG may carry
+    more data after it, e.g. a motion photo's video, so the marker is looked for anywhere).
+    """
+    if data.startswith(b"\x89PNG\r\n\x1a\n") and data.rfind(b"IEND") < 0:
+        return "truncated PNG (no IEND chunk)"
+    if data.startswith(b"\xff\xd8") and data.rfind(b"\xff\xd9") < 0:
+        return "truncated JPEG (no end-of-image marker)"
+    return ""
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff")

@@ -18,6 +18,7 @@ their new frames.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import shutil
 import tempfile
@@ -122,9 +123,11 @@ class SfmCancelled(RuntimeError):
 class SfmReconstructor:
     """Reconstructs windows of a stream, caching features and matches across windows.
 
-    Frame names must identify frames across the stream (the same name = the same image).
-    The workspace (a temporary folder unless given) holds ``images/`` and ``database.db``.
-    Changing the intrinsics (e.g. a resolution change) starts a fresh database.
+    Frame names identify frames across the stream. A name that comes back with different pixels
+    (e.g. a second sequence whose frames are again named by index) starts a fresh database, so
+    stale features are never reused. The workspace (a temporary folder unless given) holds
+    ``images/`` and ``database.db``. Changing the intrinsics (e.g. a resolution change) starts a
+    fresh database too. ``frames_extracted`` counts the frames whose features were extracted.
     """
 
     def __init__(self, config: SfmConfig | None = None, workspace: str | Path | None = None,
@@ -136,6 +139,8 @@ class SfmReconstructor:
         self._intrinsics: Intrinsics | None = None
         self._camera_id: int | None = None
         self._names: list[str] = []  # frames in the database, in insertion order
+        self._digests: dict[str, bytes] = {}  # name -> digest of the pixels it was extracted from
+        self.frames_extracted = 0
         self._generation = 0
         self._lock = threading.Lock()
         self._token = None
@@ -160,6 +165,7 @@ class SfmReconstructor:
         shutil.rmtree(self.workspace, ignore_errors=True)
         self._generation += 1
         self._names = []
+        self._digests = {}
         self._camera_id = None
 
     def close(self) -> None:
@@ -196,6 +202,11 @@ class SfmReconstructor:
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))
+        digests = {f.name: _digest(f.image) for f in frames}
+        changed = [n for n, d in digests.items() if self._digests.get(n, d) != d]
+        if changed:
+            log.info("frame %s came back with other pixels: new SfM database", changed[0])
+            self.reset()
         self._prune_cache(keep=set(names))
 
         token = pycolmap.CancellationToken()
@@ -203,8 +214,9 @@ class SfmReconstructor:
             self._token = token
         try:
             t0 = time.perf_counter()
-            new = [f for f in frames if f.name not in self._names]
+            new = [f for f in frames if f.name not in self._digests]
             self._extract(new, intrinsics, token)
+            self._digests.update((f.name, digests[f.name]) for f in new)
             timings["extract"] = time.perf_counter() - t0
             self._check_cancel(token)
 
@@ -263,6 +275,7 @@ class SfmReconstructor:
             if self._camera_id is None:
                 self._camera_id = int(db.read_all_cameras()[0].camera_id)
         self._names.extend(f.name for f in frames)
+        self.frames_extracted += len(frames)
 
     def _match(self, token) -> None:
         import pycolmap
@@ -401,6 +414,14 @@ class SfmReconstructor:
         """Bound the database: past ``max_cached_frames`` cached frames, start a fresh one."""
         if len(self._names) > self.max_cached_frames and not keep.issuperset(self._names):
             self.reset()
+
+
+def _digest(image: np.ndarray) -> bytes:
+    """Identity of a frame's pixels (a few ms for a full KITTI frame)."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(repr((image.shape, image.dtype.str)).encode())
+    h.update(np.ascontiguousarray(image).data)
+    return h.digest()
 
 
 def _point_colours(result: SfmResult, images: dict[str, np.ndarray]) -> np.ndarray:

@@ -26,7 +26,7 @@ EXEC_DEPENDS = {
     "python3-opencv",
     "python3-torch",
     "python3-yaml",
-    "python3-matplotlib",
+    "rosgraph_msgs",
 }
 EXECUTABLES = {"refiner": "sfm_ttr_ros.node", "sfm-ttr": "sfm_ttr_ros.cli"}
 

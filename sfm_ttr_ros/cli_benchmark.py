@@ -1,0 +1,312 @@
+"""``sfm-ttr benchmark`` and ``sfm-ttr evaluate`` (folder mode; the bag mode lives in
+:mod:`sfm_ttr_ros.cli_bag`). :func:`add_commands` registers both on the ``sfm-ttr`` parser.
+
+Benchmark settings: the node's parameter file (``--params-file``, default the installed or the
+repository's ``params/kitti.yaml``) gives the windows, keyframes and SfM-TTR options, so the
+online mode runs as the node would with that file; any method or model flag given on the command
+line overrides the file's value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from .cli import add_method_args, add_model_args, add_sequence_args, open_sequence
+from .frames import InputError
+
+#: Command-line flags (argparse dest) → the node parameter they override.
+FLAG_PARAMS = {
+    "steps": "refinement.steps",
+    "lr": "refinement.lr",
+    "bn_mode": "refinement.bn_mode",
+    "weighting": "refinement.weighting",
+    "ransac_iterations": "alignment.ransac_iterations",
+    "tau": "alignment.tau",
+    "sfm_max_image_size": "sfm.max_image_size",
+    "seed": "seed",
+    "window_size": "window_size",
+    "window_stride": "window_stride",
+    "reset_each_window": "reset_each_window",
+    "model": "model_type",
+    "encoder": "encoder_path",
+    "decoder": "decoder_path",
+    "num_layers": "num_layers",
+    "device": "device",
+}
+
+DEFAULT_PRED_TOPIC = "/refiner/depth"
+DEFAULT_GT_TOPIC = "/kitti/camera_color_left/depth_gt"
+
+
+def _bool(text: str) -> bool:
+    t = str(text).strip().lower()
+    if t in ("true", "1", "yes", "on"):
+        return True
+    if t in ("false", "0", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+
+
+def _add_eval_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("evaluation (KITTI protocol)")
+    g.add_argument("--eigen-crop", action="store_true",
+                   help="evaluate inside the Eigen (Garg) crop only")
+    g.add_argument("--no-median-scaling", dest="median_scaling", action="store_false",
+                   help="no per-image median scaling (metric predictions)")
+    g.add_argument("--max-depth", type=float, default=80.0, help="depth cap in metres")
+    g.add_argument("--min-depth", type=float, default=1e-3, help="smallest valid GT depth")
+
+
+def _eval_config(args: argparse.Namespace):
+    from .evaluation import EvalConfig
+
+    return EvalConfig(min_depth=args.min_depth, max_depth=args.max_depth,
+                      eigen_crop=args.eigen_crop, median_scaling=args.median_scaling)
+
+
+def _command_line() -> str:
+    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "sfm-ttr"
+    if prog in ("__main__.py", "-m", "-c"):
+        prog = "python -m sfm_ttr_ros"
+    return shlex.join([prog, *sys.argv[1:]])
+
+
+# ---------------------------------------------------------------------------------------------
+# benchmark
+# ---------------------------------------------------------------------------------------------
+
+
+def add_benchmark_parser(sub) -> argparse.ArgumentParser:
+    from .benchmark import MODES
+
+    b = sub.add_parser(
+        "benchmark",
+        help="no TTR vs SfM-TTR online (the node's windows) vs offline (whole sequence)",
+        description="Run, on the same frames with the same network, (a) no test-time "
+                    "refinement, (b) SfM-TTR online in the node's sliding windows (same code "
+                    "path, no ROS transport), (c) SfM-TTR offline over the whole sequence (the "
+                    "paper's setting); evaluate every frame with ground truth and write "
+                    "OUT/results.json, results.md, per_frame.csv and figure.png.")
+    add_sequence_args(b)
+    add_model_args(b)
+    add_method_args(b)
+    g = b.add_argument_group("benchmark")
+    g.add_argument("--out", required=True, help="output folder")
+    g.add_argument("--params-file", default="",
+                   help="the node's parameter file for windows and SfM-TTR options (default: "
+                        "params/kitti.yaml, installed or from the repository)")
+    g.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                   help="which modes to run (default: all three)")
+    g.add_argument("--window-size", type=int, help="override the file's window_size")
+    g.add_argument("--window-stride", type=int, help="override the file's window_stride")
+    g.add_argument("--reset-each-window", type=_bool, metavar="{true,false}",
+                   help="override the file's reset_each_window")
+    g.add_argument("--offline-max-frames", type=int, default=0,
+                   help="offline mode in chunks of at most N frames, each from the original "
+                        "weights (0 = the whole sequence in one window, as the paper)")
+    g.add_argument("--figure-frames", type=int, default=2,
+                   help="frames shown in figure.png (evenly spaced among the GT frames)")
+    g.add_argument("--save-depth", action="store_true",
+                   help="also write every depth as OUT/depth/<mode>/<frame>.npy")
+    _add_eval_args(b)
+    # Method and model flags override the parameter file only when given.
+    b.set_defaults(func=cmd_benchmark, **{k: None for k in FLAG_PARAMS})
+    return b
+
+
+def benchmark_values(args: argparse.Namespace) -> tuple[Path, dict]:
+    """(parameter file, node parameter values): the file's, then the flags given."""
+    from .benchmark import default_params_file, read_params_file
+
+    path = Path(args.params_file) if args.params_file else default_params_file()
+    values = read_params_file(path)
+    if getattr(args, "model", None) is not None:  # another model: the file's paths do not apply
+        values["encoder_path"], values["decoder_path"] = "", ""
+    for flag, name in FLAG_PARAMS.items():
+        v = getattr(args, flag, None)
+        if v is not None:
+            values[name] = v
+    return path, values
+
+
+def _load_encoder(model, path: str) -> None:
+    import torch
+
+    if not Path(path).is_file():
+        raise InputError(f"load_weights_path: file not found: {path}")
+    try:
+        model.encoder.load_state_dict(torch.load(path, map_location=model.device,
+                                                 weights_only=True))
+    except Exception as exc:
+        raise InputError(f"load_weights_path: cannot load encoder weights from {path}: "
+                         f"{type(exc).__name__}: {exc}") from exc
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    import torch
+
+    from .benchmark import run_benchmark, settings_from_params
+    from .models import build_model
+
+    params_path, values = benchmark_values(args)
+    ttr_config, stream_settings, model_config = settings_from_params(values)
+    if args.offline_max_frames < 0 or args.figure_frames < 0:
+        raise InputError("--offline-max-frames and --figure-frames must be >= 0")
+    seq = open_sequence(args)
+    torch.set_num_threads(max(1, args.threads))
+    base = build_model(model_config)
+    weights = str(values.get("load_weights_path", "") or "")
+    if weights:  # as the node does at start-up: these become the "original" weights
+        _load_encoder(base, weights)
+
+    def factory():
+        return copy.deepcopy(base)  # the original weights, untouched by earlier modes
+
+    description = {"type": model_config.type, "encoder_path": model_config.encoder_path,
+                   "decoder_path": model_config.decoder_path, "device": model_config.device,
+                   "load_weights_path": weights}
+    results = run_benchmark(
+        seq, factory, ttr_config, stream_settings, args.out, args.modes, _eval_config(args),
+        start=args.start, max_frames=args.max_frames,
+        offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
+        save_depth=args.save_depth, model_description=description,
+        settings_info={"params_file": str(params_path), "torch_threads": args.threads},
+        command=_command_line())
+    from .benchmark import results_markdown
+
+    print(results_markdown(results).split("Command:")[0].rstrip())
+    print(f"\nresults in {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# evaluate
+# ---------------------------------------------------------------------------------------------
+
+
+def add_evaluate_parser(sub) -> argparse.ArgumentParser:
+    e = sub.add_parser(
+        "evaluate",
+        help="KITTI depth metrics of a folder of predictions, or of a recorded bag",
+        description="KITTI metrics (Abs Rel, Sq Rel, RMSE, RMSE log, d<1.25^k) of predicted "
+                    "depths against ground truth: folders (--pred DIR... --gt DIR, matched by "
+                    "file name) or a recorded bag of the node's depth against the GT topic "
+                    "(--bag BAG, matched by stamp).")
+    f = e.add_argument_group("folder mode")
+    f.add_argument("--pred", nargs="+", metavar="DIR",
+                   help="prediction folder(s): NAME.npy (float depth) or NAME.png (uint16 "
+                        "depth x pred-scale); several folders are compared row by row, gains "
+                        "against the first")
+    f.add_argument("--gt", metavar="DIR",
+                   help="ground-truth folder: NAME.png, uint16 depth x gt-scale, 0 = none "
+                        "(improved or raw-LiDAR GT exported the same way)")
+    f.add_argument("--gt-scale", type=float, default=256.0,
+                   help="GT PNG value per metre (KITTI: 256; hololens_000: 1000)")
+    f.add_argument("--pred-format", choices=["auto", "npy", "png"], default="auto",
+                   help="auto: npy when the folder holds .npy files, else png")
+    f.add_argument("--pred-scale", type=float, default=None,
+                   help="PNG prediction value per metre (default: --gt-scale)")
+    try:  # the bag mode's own options, from the module that implements it
+        from .cli_bag import add_evaluate_bag_arguments
+    except ImportError:
+        bag = e.add_argument_group("bag mode")
+        bag.add_argument("--bag", help="rosbag2 holding the node's depth (and the GT topic)")
+        bag.add_argument("--gt-bag", help="another bag holding the GT topic (default: --bag)")
+        bag.add_argument("--pred-topic", default=DEFAULT_PRED_TOPIC)
+        bag.add_argument("--gt-topic", default=DEFAULT_GT_TOPIC)
+    else:
+        add_evaluate_bag_arguments(e)
+    _add_eval_args(e)
+    e.add_argument("--out", help="write the full results (per frame too) to this JSON file")
+    e.set_defaults(func=cmd_evaluate)
+    return e
+
+
+def _pred_format(folder: Path, wanted: str) -> str:
+    if wanted != "auto":
+        return wanted
+    return "npy" if folder.is_dir() and any(folder.glob("*.npy")) else "png"
+
+
+def evaluate_folder_command(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate_folders, format_table, relative_gain
+
+    if not args.pred or not args.gt:
+        raise InputError("folder mode needs both --pred DIR and --gt DIR")
+    cfg = _eval_config(args)
+    folders = [Path(p) for p in args.pred]
+    labels = [p.name or str(p) for p in folders]
+    if len(set(labels)) != len(labels):
+        labels = [str(p) for p in folders]
+    results: dict[str, dict] = {}
+    for label, folder in zip(labels, folders, strict=True):
+        res = evaluate_folders(folder, args.gt, args.gt_scale, _pred_format(folder,
+                               args.pred_format), cfg, args.pred_scale)
+        if res["frames"] == 0 and res["skipped"] == 0:
+            raise InputError(f"no prediction in {folder} matches a ground-truth file of "
+                             f"{args.gt} by name ({res['missing_pred']} GT frames without one)")
+        results[label] = res
+    print(format_table(results, decimals=4).rstrip())
+    for label, res in results.items():
+        notes = [f"{res['frames']} frames evaluated"]
+        for key, what in (("skipped", "skipped (no valid GT / prediction)"),
+                          ("missing_pred", "GT frames without a prediction"),
+                          ("missing_gt", "predictions without GT"),
+                          ("invalid_pred", "non-finite predicted pixels at GT")):
+            if res.get(key):
+                notes.append(f"{res[key]} {what}")
+        print(f"{label}: " + ", ".join(notes))
+    gains = {}
+    if len(results) > 1:
+        first = labels[0]
+        for label in labels[1:]:
+            gains[label] = relative_gain(results[first], results[label])
+            g = gains[label]
+            print(f"{label} vs {first}: abs rel {100 * g['abs_rel']:+.1f} %, "
+                  f"RMSE {100 * g['rmse']:+.1f} % (positive = better)")
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        from .benchmark import json_safe
+
+        doc = {"gt": str(args.gt), "gt_scale": args.gt_scale,
+               "eval": {"min_depth": cfg.min_depth, "max_depth": cfg.max_depth,
+                        "eigen_crop": cfg.eigen_crop, "median_scaling": cfg.median_scaling},
+               "results": results, "relative_gain": gains, "command": _command_line()}
+        out.write_text(json.dumps(json_safe(doc), indent=2) + "\n")
+        print(f"results in {out}")
+    empty = [label for label, res in results.items() if res["frames"] == 0]
+    if empty:
+        print(f"evaluate: no frame could be evaluated for {', '.join(empty)} (no valid GT "
+              "pixel or no usable prediction in any frame)", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.bag:
+        if args.pred or args.gt:
+            raise InputError("give either --bag (bag mode) or --pred/--gt (folder mode), "
+                             "not both")
+        try:
+            from .cli_bag import evaluate_bag_command
+        except ImportError as exc:
+            raise InputError(f"bag evaluation is not available in this installation "
+                             f"(sfm_ttr_ros.cli_bag: {exc})") from exc
+        return int(evaluate_bag_command(args) or 0)
+    if args.gt_bag:
+        raise InputError("--gt-bag needs --bag")
+    if not args.pred and not args.gt:
+        raise InputError("give --pred DIR --gt DIR (folder mode) or --bag BAG (bag mode)")
+    return evaluate_folder_command(args)
+
+
+def add_commands(subparsers) -> None:
+    """Register ``benchmark`` and ``evaluate`` on the ``sfm-ttr`` sub-command parser."""
+    add_benchmark_parser(subparsers)
+    add_evaluate_parser(subparsers)

@@ -1,0 +1,330 @@
+"""``sfm-ttr demo``: KITTI drive → rosbag2 → the ``refiner`` node → evaluation, with nothing to
+download.
+
+Steps (each printed as it runs):
+
+1. the drive: with no arguments a synthetic KITTI-format drive of the held-out domain "B"
+   (:mod:`sfm_ttr_ros.synthetic`, written in the real KITTI raw + improved-GT layouts), or a real
+   one with ``--kitti-raw/--kitti-gt/--drive``;
+2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.bag.kitti_to_bag`);
+3. the unrefined network's depth for every image of the bag (same model, same weights) → a
+   ``no_ttr`` bag with the same stamps;
+4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``-p`` overrides),
+   remapped to the bag's topics; the bag played into it (:func:`sfm_ttr_ros.player.play_bag`)
+   while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.player.TopicRecorder`) until every
+   image came back; then SIGINT;
+5. both bags evaluated against the GT topic matched by stamp (:func:`sfm_ttr_ros.bag.evaluate_bag`),
+   the before/after table printed and written (``results.md`` / ``results.json``) with a
+   qualitative figure (``figure.png``).
+
+ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) on a random
+``ROS_DOMAIN_ID`` unless one is set.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .frames import InputError
+
+DEPTH_TOPIC = "/refiner/depth"
+
+
+def _say(msg: str) -> None:
+    print(f"[demo] {msg}", file=sys.stderr, flush=True)
+
+
+@dataclass
+class DemoOptions:
+    out: Path = Path("sfm_ttr_demo")
+    kitti_raw: str | None = None
+    kitti_gt: str | None = None
+    drive: str | None = None
+    frames: int = 30  # synthetic drive length
+    width: int = 1242
+    height: int = 375
+    domain: str = "B"
+    seed: int = 0
+    gt_skip_ends: int = 5  # synthetic drive: frames without GT at each end (KITTI: 5)
+    max_frames: int = 0  # real drive: 0 = all
+    params_file: str | None = None  # default: params/kitti.yaml
+    overrides: list[str] = field(default_factory=list)  # extra -p name:=value for the node
+    rate: float = 1.0
+    timeout_s: float = 1800.0
+    threads: int = 2
+    storage: str = "mcap"
+    eigen_crop: bool = False
+    overwrite: bool = False
+
+
+def _prepare_out(opts: DemoOptions) -> Path:
+    out = Path(opts.out)
+    if out.exists():
+        if not opts.overwrite:
+            raise InputError(f"{out} exists: choose another --out or pass --overwrite")
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    return out
+
+
+def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
+    if opts.kitti_raw or opts.kitti_gt or opts.drive:
+        if not (opts.kitti_raw and opts.kitti_gt and opts.drive):
+            raise InputError("a real drive needs all of --kitti-raw, --kitti-gt and --drive")
+        return opts.kitti_raw, opts.kitti_gt, opts.drive
+    from .kitti import write_kitti_drive
+    from .synthetic import make_sequence
+
+    _say(f"1/5 generating a synthetic KITTI drive: {opts.frames} frames {opts.width}x"
+         f"{opts.height}, domain {opts.domain} (seed {opts.seed})")
+    seq = make_sequence(seed=opts.seed, domain=opts.domain, num_frames=opts.frames,
+                        width=opts.width, height=opts.height)
+    raw, gt = out / "kitti_raw", out / "kitti_gt"
+    drive = write_kitti_drive(seq, raw, gt, gt_skip_ends=opts.gt_skip_ends)
+    return str(raw), str(gt), drive
+
+
+def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str) -> int:
+    """The unrefined network's depth for every image of ``bag``, same stamps, into ``out_bag``."""
+    from .bag import (
+        IMAGE_MSGTYPE,
+        IMAGE_TOPIC,
+        BagRecorder,
+        depth_msg,
+        image_msg_to_array,
+        read_bag,
+    )
+
+    n = 0
+    with BagRecorder(out_bag, storage) as rec:
+        rec.add_topic(DEPTH_TOPIC, IMAGE_MSGTYPE)
+        for _, _, stamp_ns, msg in read_bag(bag, [IMAGE_TOPIC]):
+            rgb = image_msg_to_array(msg)
+            depth = model.predict(rgb)[0]
+            rec.write(DEPTH_TOPIC, depth_msg(depth, stamp_ns, msg.header.frame_id))
+            n += 1
+    return n
+
+
+def _ros_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+def refiner_command(params_file: Path, overrides: list[str]) -> list[str]:
+    """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag."""
+    from .bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+
+    cmd = [sys.executable, "-m", "sfm_ttr_ros.node", "--ros-args", "--params-file",
+           str(params_file), "-r", f"image:={IMAGE_TOPIC}", "-r",
+           f"camera_info:={CAMERA_INFO_TOPIC}"]
+    for o in overrides:
+        cmd += ["-p", o]
+    return cmd
+
+
+def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
+    """Start the node, play the bag into it, record ``/refiner/depth`` until all frames are back."""
+    from .bag import CAMERA_INFO_TOPIC, IMAGE_MSGTYPE, IMAGE_TOPIC
+    from .benchmark import default_params_file
+    from .player import TopicRecorder, play_bag
+
+    params = Path(opts.params_file) if opts.params_file else default_params_file()
+    if not params.is_file():
+        raise InputError(f"params file not found: {params}")
+    env = _ros_env()
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
+    cmd = refiner_command(params, opts.overrides)
+    log_path = out / "refiner.log"
+    _say(f"4/5 starting refiner ({params.name}; log {log_path}) and playing the bag into it")
+    t0 = time.perf_counter()
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            with TopicRecorder(out / "refined_bag", {DEPTH_TOPIC: IMAGE_MSGTYPE},
+                               storage=opts.storage) as rec:
+                played = play_bag(bag, rate=opts.rate, wait_topics=[IMAGE_TOPIC,
+                                                                     CAMERA_INFO_TOPIC],
+                                  wait_timeout=120.0, progress=True)
+                _say(f"   played {played.total} messages; waiting for the refined depth of "
+                     f"{expected} frames")
+                last, t_wait = -1, time.monotonic()
+                while time.monotonic() - t_wait < opts.timeout_s:
+                    if rec.wait_for({DEPTH_TOPIC: expected}, timeout=10.0):
+                        break
+                    if proc.poll() is not None:
+                        raise InputError(f"refiner exited with code {proc.returncode} "
+                                         f"before publishing every frame; see {log_path}")
+                    got = rec.counts.get(DEPTH_TOPIC, 0)
+                    if got != last:
+                        _say(f"   {got}/{expected} refined depth images received")
+                        last = got
+                received = rec.counts.get(DEPTH_TOPIC, 0)
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+    seconds = time.perf_counter() - t0
+    if received < expected:
+        raise InputError(f"only {received} of {expected} depth images came back from refiner "
+                         f"within {opts.timeout_s:.0f} s; see {log_path}")
+    return {"received": received, "seconds": seconds, "exit_code": proc.returncode,
+            "command": " ".join(cmd)}
+
+
+def run_demo(opts: DemoOptions) -> dict:
+    """Run the whole demo; returns the results written to ``out/results.json``."""
+    import cv2
+    import torch
+
+    from .bag import (
+        DEPTH_GT_TOPIC,
+        IMAGE_TOPIC,
+        bag_topics,
+        evaluate_bag,
+        image_msg_to_array,
+        image_msg_to_depth,
+        kitti_to_bag,
+        read_bag,
+    )
+    from .benchmark import (
+        default_params_file,
+        qualitative_figure,
+        read_params_file,
+        settings_from_params,
+    )
+    from .evaluation import EvalConfig, format_table, relative_gain
+    from .models import build_model
+
+    t_start = time.perf_counter()
+    out = _prepare_out(opts)
+    raw, gt_root, drive = _make_drive(opts, out)
+    _say(f"2/5 converting {drive} to a rosbag2 ({opts.storage})")
+    bag = out / "drive_bag"
+    conv = kitti_to_bag(raw, drive, bag, gt_root, storage=opts.storage,
+                        max_frames=opts.max_frames)
+    expected = bag_topics(bag)[IMAGE_TOPIC].count
+    _say(f"   {conv.frames} images, {conv.gt_frames} with ground truth")
+    if conv.gt_frames == 0:
+        raise InputError(f"{drive} has no frame with ground truth: nothing to evaluate (a "
+                         f"synthetic drive needs more than 2 x {opts.gt_skip_ends} frames)")
+
+    torch.set_num_threads(max(1, opts.threads))
+    params = Path(opts.params_file) if opts.params_file else default_params_file()
+    _, _, model_config = settings_from_params(read_params_file(params))
+    _say(f"3/5 unrefined depth (model {model_config.type!r} of {params.name}, no refinement)")
+    model = build_model(model_config)
+    _predict_no_ttr(bag, out / "no_ttr_bag", model, opts.storage)
+
+    node = _run_refiner(opts, bag, out, expected)
+
+    _say("5/5 evaluating against the ground truth topic (matched by stamp)")
+    cfg = EvalConfig(eigen_crop=opts.eigen_crop)
+    evals = {}
+    for key, pred_bag in (("no_ttr", out / "no_ttr_bag"), ("sfm_ttr", out / "refined_bag")):
+        evals[key] = evaluate_bag(pred_bag, bag, DEPTH_TOPIC, DEPTH_GT_TOPIC, cfg)
+    metrics = {k: {m: v for m, v in e.items() if not isinstance(v, list | dict)}
+               for k, e in evals.items()}
+    gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr"])
+    table = format_table(metrics)
+
+    # figure: the middle GT frame
+    gts = {s: m for _, _, s, m in read_bag(bag, [DEPTH_GT_TOPIC])}
+    stamp = sorted(gts)[len(gts) // 2] if gts else None
+    fig_path = None
+    if stamp is not None:
+        image = next(image_msg_to_array(m) for _, _, s, m in read_bag(bag, [IMAGE_TOPIC])
+                     if s == stamp)
+        preds = {k: next(image_msg_to_depth(m) for _, _, s, m in read_bag(p, [DEPTH_TOPIC])
+                         if s == stamp)
+                 for k, p in (("no_ttr", out / "no_ttr_bag"), ("sfm_ttr", out / "refined_bag"))}
+        gt = np.nan_to_num(image_msg_to_depth(gts[stamp]), nan=0.0)
+        fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
+        fig_path = out / "figure.png"
+        cv2.imwrite(str(fig_path), fig)
+
+    results = {
+        "drive": drive, "frames": expected, "gt_frames": conv.gt_frames,
+        "metrics": metrics, "relative_gain": gain, "refiner": node,
+        "seconds_total": time.perf_counter() - t_start,
+        "figure": str(fig_path) if fig_path else None,
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=_json_default))
+    gain_line = ", ".join(f"{k} {v:+.1%}" for k, v in gain.items() if k in ("abs_rel", "rmse"))
+    (out / "results.md").write_text(f"# sfm-ttr demo: {drive}\n\n{table}\n\nRelative change "
+                                    f"(negative = better): {gain_line}\n")
+    print(table)
+    print(f"SfM-TTR vs no TTR: {gain_line} (negative = lower error)")
+    print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
+          f"total {results['seconds_total']:.0f} s")
+    if fig_path:
+        print(f"figure: {fig_path}")
+    print(f"results: {out / 'results.md'}")
+    return results
+
+
+def _json_default(o):
+    if isinstance(o, float | np.floating):
+        return None if not np.isfinite(o) else float(o)
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    opts = DemoOptions(out=Path(args.out), kitti_raw=args.kitti_raw, kitti_gt=args.kitti_gt,
+                       drive=args.drive, frames=args.frames, width=args.width,
+                       height=args.height, domain=args.domain, seed=args.seed,
+                       max_frames=args.max_frames, params_file=args.params_file,
+                       overrides=list(args.param or []), rate=args.rate,
+                       timeout_s=args.timeout, threads=args.threads, storage=args.storage,
+                       eigen_crop=args.eigen_crop, overwrite=args.overwrite)
+    run_demo(opts)
+    return 0
+
+
+def add_commands(sub) -> None:
+    d = sub.add_parser("demo", help="generate (or read) a KITTI drive, replay it through refiner "
+                       "and print the before/after table")
+    d.add_argument("--out", default="sfm_ttr_demo", help="output folder (default sfm_ttr_demo)")
+    d.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    d.add_argument("--kitti-raw", help="real drive: KITTI raw root")
+    d.add_argument("--kitti-gt", help="real drive: KITTI depth (improved GT) root")
+    d.add_argument("--drive", help="real drive: <date>_drive_XXXX_sync")
+    d.add_argument("--max-frames", type=int, default=0, help="real drive: first N frames")
+    d.add_argument("--frames", type=int, default=30, help="synthetic drive length")
+    d.add_argument("--width", type=int, default=1242)
+    d.add_argument("--height", type=int, default=375)
+    d.add_argument("--domain", default="B", help="synthetic domain (B = held out from training)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--params-file", help="refiner parameters (default params/kitti.yaml)")
+    d.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE",
+                   help="extra refiner parameter, e.g. -p refinement.steps:=50")
+    d.add_argument("--rate", type=float, default=1.0, help="bag playback rate")
+    d.add_argument("--timeout", type=float, default=1800.0,
+                   help="seconds to wait for the refined depth after playback")
+    d.add_argument("--threads", type=int, default=2, help="torch threads for no-TTR prediction")
+    d.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
+    d.add_argument("--eigen-crop", action="store_true")
+    d.set_defaults(func=cmd_demo)

@@ -1,0 +1,358 @@
+"""``sfm-ttr benchmark`` and the folder mode of ``sfm-ttr evaluate`` on a tiny generated drive.
+
+The benchmark runs once per module (8 frames at 320x96, a tiny random network, 5 steps,
+3 online windows): ~20 s on 2 cores."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import json
+import math
+import shlex
+import sys
+import textwrap
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sfm_ttr_ros.frames import InputError
+
+REPO = Path(__file__).resolve().parents[1]
+DRIVE = "2011_09_26_drive_0001_sync"
+N_FRAMES, GT_SKIP = 8, 1
+N_GT = N_FRAMES - 2 * GT_SKIP
+MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
+KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "frames", "seconds_per_frame",
+        "refined_frames", "timings")
+
+TINY_MODEL = """
+import torch
+from torch import nn
+from sfm_ttr_ros.models.base import EncoderDecoder
+
+def factory(config=None):
+    torch.manual_seed(0)
+    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
+    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
+    return EncoderDecoder(enc, dec, (64, 192)).eval()
+"""
+
+
+def cli(argv: list[str]) -> int:
+    """``sfm-ttr ARGV``: through ``cli.main`` once the commands are wired into it, else through
+    a parser holding only this module's commands, with the same error handling."""
+    from sfm_ttr_ros import cli as cli_mod
+    from sfm_ttr_ros.cli_benchmark import add_commands
+
+    sub = next(a for a in cli_mod.build_parser()._actions
+               if isinstance(a, argparse._SubParsersAction))
+    if "benchmark" in sub.choices:
+        return cli_mod.main(argv)
+    p = argparse.ArgumentParser(prog="sfm-ttr")
+    add_commands(p.add_subparsers(dest="command", required=True))
+    args = p.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"sfm-ttr: error: {exc}", file=sys.stderr)
+        return 2
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    from sfm_ttr_ros.kitti import write_kitti_drive
+    from sfm_ttr_ros.synthetic import make_sequence
+
+    root = tmp_path_factory.mktemp("bench")
+    seq = make_sequence(seed=1, domain="B", num_frames=N_FRAMES, width=320, height=96)
+    write_kitti_drive(seq, root / "raw", root / "gt", gt_skip_ends=GT_SKIP)
+    (root / "bench_tiny_model.py").write_text(TINY_MODEL)
+    # The node's KITTI file with small windows and a lower point threshold for tiny images.
+    text = (REPO / "params" / "kitti.yaml").read_text()
+    text = text.replace("window_size: 10", "window_size: 4").replace("window_stride: 5",
+                                                                     "window_stride: 2")
+    text += "    min_supervision_points: 20\n    sfm.max_num_features: 2048\n"
+    (root / "small.yaml").write_text(text)
+    sys.path.insert(0, str(root))
+    yield root
+    sys.path.remove(str(root))
+
+
+def gt_dir(root: Path) -> Path:
+    return root / "gt" / "val" / DRIVE / "proj_depth" / "groundtruth" / "image_02"
+
+
+def kitti_args(root: Path, out: Path, *extra: str) -> list[str]:
+    return ["benchmark", "--kitti-raw", str(root / "raw"), "--kitti-gt", str(root / "gt"),
+            "--drive", DRIVE, "--out", str(out), "--model", "python:bench_tiny_model:factory",
+            *extra]
+
+
+@pytest.fixture(scope="module")
+def bench(data):
+    out = data / "out"
+    argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "5",
+                      "--lr", "1e-3", "--save-depth")
+    saved, sys.argv = sys.argv, ["sfm-ttr", *argv]  # what results.json records as the command
+    try:
+        assert cli(argv) == 0
+    finally:
+        sys.argv = saved
+    res = json.loads((out / "results.json").read_text())
+    assert res["command"] == shlex.join(["sfm-ttr", *argv])
+    return out, res
+
+
+@pytest.mark.slow
+def test_results_json_has_every_mode_and_key(bench, data):
+    out, res = bench
+    assert res["modes"] == list(MODES)
+    assert res["frames_total"] == N_FRAMES and res["frames_with_gt"] == N_GT
+    for m in MODES:
+        r = res[m]
+        assert set(KEYS) <= set(r), f"{m} lacks {set(KEYS) - set(r)}"
+        assert r["frames"] == N_GT and r["processed_frames"] == N_FRAMES and r["lost_frames"] == 0
+        for k in ("abs_rel", "sq_rel", "rmse", "rmse_log"):
+            assert r[k] > 0 and math.isfinite(r[k])
+        assert 0 <= r["a1"] <= r["a2"] <= r["a3"] <= 1
+        assert r["seconds_per_frame"] > 0
+    assert res["no_ttr"]["refined_frames"] == 0 and set(res["no_ttr"]["timings"]) == {"predict"}
+    for m in MODES[1:]:
+        assert res[m]["refined_frames"] > 0
+        assert {"sfm", "align", "refine", "predict_before", "predict_after"} <= \
+            set(res[m]["timings"])
+        assert set(res["relative_gain"][m]) == {"abs_rel", "sq_rel", "rmse", "rmse_log", "a1",
+                                                "a2", "a3"}
+        gain = res["relative_gain"][m]["abs_rel"]
+        before, after = res["no_ttr"]["abs_rel"], res[m]["abs_rel"]
+        assert gain == pytest.approx((before - after) / before)
+    # online: the node's windows from the parameter file (4 frames, 2 new), every frame once
+    online = res["sfm_ttr_online"]
+    assert online["windows"] == 3 and online["stream_counters"]["received"] == N_FRAMES
+    assert online["stream_counters"]["pending"] == 0
+    assert res["sfm_ttr_offline"]["windows"] == 1
+    assert res["sfm_ttr_offline"]["offline_windows"][0]["frames"] == N_FRAMES
+    # settings: the file's values (kitti.yaml's overload_pending 50), the flags over them
+    s = res["settings"]
+    assert s["params_file"] == str(data / "small.yaml")
+    assert s["stream"]["window_size"] == 4 and s["stream"]["window_stride"] == 2
+    assert s["stream"]["overload_pending"] == 50 and s["ttr"]["min_supervision_points"] == 20
+    assert s["ttr"]["refinement"]["steps"] == 5 and s["ttr"]["refinement"]["lr"] == 1e-3
+    assert res["model"]["type"] == "python:bench_tiny_model:factory"
+    assert res["model"]["class"] == "EncoderDecoder"
+
+
+@pytest.mark.slow
+def test_markdown_csv_and_figure(bench):
+    out, res = bench
+    md = (out / "results.md").read_text()
+    for m in MODES:
+        assert f"| {m} | {res[m]['abs_rel']:.4f} |" in md
+    assert "figure.png" in md
+    rows = list(csv.DictReader(open(out / "per_frame.csv")))
+    assert len(rows) == N_GT
+    mean = np.mean([float(r["sfm_ttr_online_abs_rel"]) for r in rows])
+    assert mean == pytest.approx(res["sfm_ttr_online"]["abs_rel"], rel=1e-5)
+    fig = cv2.imread(str(out / "figure.png"))
+    assert fig is not None and fig.ndim == 3
+    # two frames, each: a depth row (96 px), an error row, a scatter row (>= 256 px)
+    assert fig.shape[0] >= 2 * (96 * 2 + 256) and fig.shape[1] == 4 * 320
+    assert fig.std() > 10  # not blank
+
+
+@pytest.mark.slow
+def test_saved_depth_evaluates_to_the_same_numbers(bench, data):
+    """The saved depths through ``sfm-ttr evaluate`` give results.json's metrics, and the
+    refined depths differ from the unrefined ones."""
+    out, res = bench
+    js = data / "eval.json"
+    preds = [str(out / "depth" / m) for m in MODES]
+    assert cli(["evaluate", "--pred", *preds, "--gt", str(gt_dir(data)), "--out", str(js)]) == 0
+    ev = json.loads(js.read_text())
+    for m in MODES:
+        for k in ("abs_rel", "rmse", "a1"):
+            assert ev["results"][m][k] == pytest.approx(res[m][k], rel=1e-6)
+        assert ev["results"][m]["frames"] == N_GT and ev["results"][m]["missing_gt"] == 2
+    name = "0000000003.npy"
+    before = np.load(out / "depth" / "no_ttr" / name)
+    for m in MODES[1:]:
+        after = np.load(out / "depth" / m / name)
+        assert after.shape == before.shape == (96, 320)
+        assert np.abs(after - before).max() > 0
+
+
+def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_path):
+    """Without settings, run_benchmark uses params/kitti.yaml; offline_max_frames splits."""
+    from bench_tiny_model import factory
+
+    from sfm_ttr_ros import node_params
+    from sfm_ttr_ros.benchmark import (
+        default_params_file,
+        read_params_file,
+        run_benchmark,
+        settings_from_params,
+    )
+    from sfm_ttr_ros.sequence import open_kitti
+
+    path = default_params_file()
+    assert path == REPO / "params" / "kitti.yaml"
+    values = read_params_file(path)
+    assert values["window_size"] == 10 and values["overload_pending"] == 50
+    ttr, stream, model = settings_from_params(values)
+    full = {**node_params.DEFAULTS, **values}
+    assert stream == node_params.build_stream_settings(full)
+    assert ttr == node_params.build_ttr_config(full)
+    assert model.type == "default"
+
+    seq = open_kitti(data / "raw", DRIVE, data / "gt")
+    res = run_benchmark(seq, factory, out_dir=tmp_path / "a", modes=["no_ttr"],
+                        figure_frames=0, progress=None)
+    assert res["settings"]["stream"] == asdict(stream)
+    assert res["settings"]["ttr"] == asdict(ttr)
+    assert res["settings"]["ttr"]["refinement"]["steps"] == 200
+    assert res["no_ttr"]["frames"] == N_GT and res["relative_gain"] == {}
+    assert not (tmp_path / "a" / "figure.png").exists()
+
+    small = copy.deepcopy(ttr)
+    small.refinement.steps, small.min_supervision_points = 3, 20
+    lines: list[str] = []
+    res = run_benchmark(seq, factory, small, out_dir=tmp_path / "b",
+                        modes=["no_ttr", "sfm_ttr_offline"], offline_max_frames=5,
+                        figure_frames=1, progress=lines.append)
+    assert res["settings"]["stream"]["window_size"] == 10
+    off = res["sfm_ttr_offline"]
+    assert off["windows"] == 2 and [w["frames"] for w in off["offline_windows"]] == [5, 3]
+    assert off["processed_frames"] == N_FRAMES and off["frames"] == N_GT
+    assert "sfm_ttr_online" not in res and set(res["relative_gain"]) == {"sfm_ttr_offline"}
+    assert any("sfm_ttr_offline: window 2/2" in x for x in lines)
+    assert (tmp_path / "b" / "figure.png").is_file()
+
+
+def test_params_file_is_checked_like_the_node(tmp_path):
+    from sfm_ttr_ros.benchmark import read_params_file
+
+    def write(body: str) -> Path:
+        p = tmp_path / "p.yaml"
+        p.write_text(textwrap.dedent(body))
+        return p
+
+    nested = write("""
+        /**:
+          ros__parameters:
+            window_size: 6
+        refiner:
+          ros__parameters:
+            window_stride: 3
+            refinement: {steps: 7}
+    """)
+    assert read_params_file(nested) == {"window_size": 6, "window_stride": 3,
+                                        "refinement.steps": 7}
+    for body, msg in (
+        ("refiner:\n  ros__parameters:\n    refinement.lr: 1\n", "doubles"),
+        ("refiner:\n  ros__parameters:\n    no_such_param: 1\n", "not a parameter"),
+        ("refiner:\n  ros__parameters:\n    window_size: 1\n", "out of range"),
+        ("other_node:\n  ros__parameters:\n    window_size: 4\n", "no ros__parameters"),
+    ):
+        with pytest.raises(InputError, match=msg):
+            read_params_file(write(body))
+    with pytest.raises(InputError, match="not found"):
+        read_params_file(tmp_path / "missing.yaml")
+
+
+def _write_png16(path: Path, depth_m: np.ndarray, scale: float = 256.0) -> None:
+    assert cv2.imwrite(str(path), np.round(depth_m * scale).astype(np.uint16))
+
+
+def test_evaluate_folder_matches_hand_computed_metrics(tmp_path):
+    gt, pred = tmp_path / "gt", tmp_path / "pred"
+    gt.mkdir()
+    pred.mkdir()
+    # frame a: 4 valid pixels, gt 2, 4, 8, 16 m; prediction 1, 4, 10, 16
+    _write_png16(gt / "a.png", np.array([[2.0, 4.0], [8.0, 16.0]]))
+    np.save(pred / "a.npy", np.array([[1.0, 4.0], [10.0, 16.0]], np.float32))
+    # frame b: gt 5, 5 and two pixels out of range (0 = none, 100 m > 80 m cap)
+    _write_png16(gt / "b.png", np.array([[5.0, 5.0], [0.0, 100.0]]))
+    np.save(pred / "b.npy", np.array([[5.0, 10.0], [3.0, 3.0]], np.float32))
+    js = tmp_path / "r.json"
+    assert cli(["evaluate", "--pred", str(pred), "--gt", str(gt), "--no-median-scaling",
+                "--out", str(js)]) == 0
+    r = json.loads(js.read_text())["results"]["pred"]
+    a = {"abs_rel": (0.5 + 0 + 0.25 + 0) / 4, "sq_rel": (0.5 + 0 + 0.5 + 0) / 4,
+         "rmse": math.sqrt(5 / 4), "rmse_log": math.sqrt((math.log(2) ** 2
+                                                          + math.log(0.8) ** 2) / 4),
+         "a1": 0.5, "a2": 0.75, "a3": 0.75}
+    b = {"abs_rel": 0.5, "sq_rel": 2.5, "rmse": math.sqrt(12.5),
+         "rmse_log": math.sqrt(math.log(2) ** 2 / 2), "a1": 0.5, "a2": 0.5, "a3": 0.5}
+    for k in a:
+        assert r[k] == pytest.approx((a[k] + b[k]) / 2), k
+    assert r["frames"] == 2
+    # per-image median scaling: a × 6/7 (medians 6 and 7), b × 2/3 (medians 5 and 7.5)
+    assert cli(["evaluate", "--pred", str(pred), "--gt", str(gt), "--out", str(js)]) == 0
+    r = json.loads(js.read_text())["results"]["pred"]
+    assert r["abs_rel"] == pytest.approx((13 / 56 + 1 / 3) / 2)
+    # a 1.5 m cap leaves no valid pixel in either frame: both skipped, exit status 1
+    assert cli(["evaluate", "--pred", str(pred), "--gt", str(gt), "--max-depth", "1.5",
+                "--out", str(js)]) == 1
+    r = json.loads(js.read_text())["results"]["pred"]
+    assert r["frames"] == 0 and r["skipped"] == 2
+
+
+def test_evaluate_eigen_crop(tmp_path):
+    """10 x 10 frame, prediction wrong by 100 % in row 0 only: 0.1 abs rel without the crop,
+    0 inside it (rows int(0.408 * 10) = 4 to int(0.992 * 10) = 9)."""
+    gt, pred = tmp_path / "gt", tmp_path / "pred"
+    gt.mkdir()
+    pred.mkdir()
+    _write_png16(gt / "f.png", np.full((10, 10), 10.0))
+    p = np.full((10, 10), 10.0, np.float32)
+    p[0] = 20.0
+    np.save(pred / "f.npy", p)
+    js = tmp_path / "r.json"
+    base = ["evaluate", "--pred", str(pred), "--gt", str(gt), "--no-median-scaling", "--out",
+            str(js)]
+    assert cli(base) == 0
+    assert json.loads(js.read_text())["results"]["pred"]["abs_rel"] == pytest.approx(0.1)
+    assert cli([*base, "--eigen-crop"]) == 0
+    r = json.loads(js.read_text())["results"]["pred"]
+    assert r["abs_rel"] == 0 and r["per_frame"][0]["pixels"] == 5 * 9
+
+
+def test_bad_input_is_a_clear_error(data, tmp_path, capsys):
+    images = tmp_path / "images"
+    images.mkdir()
+    k = tmp_path / "K.txt"
+    k.write_text("100 100 160 48\n")
+    model = ["--model", "python:bench_tiny_model:factory"]
+    cases = [
+        # no frames
+        ["benchmark", "--images", str(images), "--intrinsics", str(k), "--out",
+         str(tmp_path / "o"), *model],
+        # a missing GT folder
+        ["benchmark", "--images", str(data / "raw" / "2011_09_26" / DRIVE / "image_02" / "data"),
+         "--intrinsics", str(k), "--gt-depth", str(tmp_path / "nope"), "--out",
+         str(tmp_path / "o"), *model],
+        # a drive without GT
+        kitti_args(data, tmp_path / "o")[:4] + [str(tmp_path), "--drive", DRIVE, "--out",
+                                                str(tmp_path / "o"), *model],
+        # start past the end, a bad parameter file
+        kitti_args(data, tmp_path / "o", "--start", "100"),
+        kitti_args(data, tmp_path / "o", "--params-file", str(tmp_path / "none.yaml")),
+        # evaluate: nothing given, a missing GT folder, no matching names, a missing bag
+        ["evaluate"],
+        ["evaluate", "--pred", str(tmp_path), "--gt", str(tmp_path / "nope")],
+        ["evaluate", "--pred", str(images), "--gt", str(gt_dir(data))],
+        ["evaluate", "--bag", str(tmp_path / "none.bag")],
+        ["evaluate", "--bag", str(tmp_path / "none.bag"), "--pred", str(images)],
+    ]
+    for argv in cases:
+        assert cli(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "error" in err and "Traceback" not in err, (argv, err)
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(SystemExit):
+        cli(kitti_args(data, tmp_path / "o", "--modes", "sideways"))

@@ -1,0 +1,244 @@
+"""Stage 1, sparse SfM with pycolmap: accuracy against exact ground truth (generated street and
+the real hololens_000 video), what a result holds, the feature cache across windows, and
+windows that cannot be reconstructed.
+
+Depth error = median over all observations of |s·D_sfm − D_gt| / D_gt after ONE scale
+s = median(D_gt / D_sfm) for the whole window (a reconstruction has its own arbitrary scale).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sfm_ttr_ros.frames import Frame, Intrinsics
+from sfm_ttr_ros.sfm import SfmConfig, SfmReconstructor, SfmResult, reconstruct_window
+
+# 640 x 192 is the smallest size that registered every window we tried: at 416 x 128 seed 1
+# "succeeded" with a wrong reconstruction (camera path 32 degrees off, depth error 33 %),
+# while at 640 x 192 seeds 0-5 all gave 0.5-1.0 % depth error.
+W, H = 640, 192
+
+
+def depth_errors(result: SfmResult, frames: list[Frame], gt: dict[str, np.ndarray]):
+    """(relative errors after one median scale, the scale, fraction of observations with GT)."""
+    d_sfm, d_gt = [], []
+    for f in frames:
+        obs = result.frames.get(f.name)
+        if obs is None:
+            continue
+        px = np.rint(obs.pixels).astype(int)  # pixel centres at integers (OpenCV convention)
+        g = gt[f.name][px[:, 1], px[:, 0]]
+        d_sfm.append(obs.depths[g > 0])
+        d_gt.append(g[g > 0])
+    d_sfm, d_gt = np.concatenate(d_sfm), np.concatenate(d_gt)
+    total = sum(len(o) for o in result.frames.values())
+    s = float(np.median(d_gt / d_sfm))
+    return np.abs(s * d_sfm - d_gt) / d_gt, s, d_gt.size / total
+
+
+@pytest.fixture(scope="module")
+def street():
+    from sfm_ttr_ros.synthetic import make_sequence
+
+    seq = make_sequence(seed=0, domain="A", num_frames=12, width=W, height=H)
+    frames = [Frame(i, im, stamp=s) for i, (im, s) in
+              enumerate(zip(seq.images, seq.stamps, strict=True))]
+    gt = {f.name: seq.depths[f.index] for f in frames}
+    return SimpleNamespace(seq=seq, frames=frames, gt=gt, intr=seq.intrinsics)
+
+
+@pytest.fixture(scope="module")
+def windows(street):
+    """Three windows through ONE reconstructor (its default options), extraction spied on:
+    frames 0-9; frames 4-11 (overlap 4-9); then 6 frames whose names were used before but whose
+    pixels are other frames' (frames 2-7 renamed 0-5: a second sequence named by index)."""
+    extracted: list[list[str]] = []
+    real = pycolmap.extract_features
+
+    def spy(*args, image_names=None, **kwargs):
+        extracted.append([n.removesuffix(".png") for n in image_names])
+        return real(*args, image_names=image_names, **kwargs)
+
+    f = street.frames
+    renamed = [Frame(i, f[i + 2].image, name=f[i].name) for i in range(6)]
+    out = SimpleNamespace(extracted=extracted, counts=[], renamed=renamed)
+    with pytest.MonkeyPatch.context() as mp, SfmReconstructor() as rec:
+        mp.setattr(pycolmap, "extract_features", spy)
+        out.first = rec.reconstruct(f[0:10], street.intr)
+        out.counts.append(rec.frames_extracted)
+        out.second = rec.reconstruct(f[4:12], street.intr)
+        out.counts.append(rec.frames_extracted)
+        out.third = rec.reconstruct(renamed, street.intr)
+        out.counts.append(rec.frames_extracted)
+    return out
+
+
+@pytest.mark.slow
+def test_registers_the_window_and_depths_match_exact_ground_truth(street, windows):
+    res = windows.first
+    assert res.ok and res.reason == "" and res.num_frames == 10
+    assert res.num_registered >= 9  # >= 90 % of the frames
+    rel, scale, with_gt = depth_errors(res, street.frames[:10], street.gt)
+    # Measured: 10/10 registered, 1463 points, 7855 observations, median error 0.80 %
+    # (seeds 0-5: 0.5-1.0 %); 90th percentile 6.9 % (keypoints on depth edges read the other
+    # side's GT at the rounded pixel); 0.4 % of the observations fall on sky (GT 0).
+    assert np.median(rel) <= 0.02
+    assert with_gt >= 0.95 and scale > 0
+    # The poses carry the same scale: camera baselines scaled by s match the true ones.
+    names = [fr.name for fr in street.frames[:10] if fr.name in res.frames]
+
+    def centre(T):
+        return -T[:3, :3].T @ T[:3, 3]
+
+    c_sfm = np.array([centre(res.frames[n].cam_from_world) for n in names])
+    c_gt = np.array([centre(street.seq.cam_from_world[int(n)]) for n in names])
+    base_sfm = np.linalg.norm(c_sfm - c_sfm[0], axis=1)[1:] * scale
+    base_gt = np.linalg.norm(c_gt - c_gt[0], axis=1)[1:]
+    np.testing.assert_allclose(base_sfm, base_gt, rtol=0.03)
+
+
+def test_fixed_intrinsics_are_unchanged(street, windows):
+    for res in (windows.first, windows.second, windows.third):
+        got, want = res.intrinsics, street.intr
+        assert (got.width, got.height) == (want.width, want.height)
+        assert (got.fx, got.fy) == (want.fx, want.fy)  # never touched, bit for bit
+        assert got.cx == pytest.approx(want.cx, abs=1e-9)  # through COLMAP's +0.5 convention
+        assert got.cy == pytest.approx(want.cy, abs=1e-9)
+
+
+def test_observations_points_and_reprojection_errors_are_consistent(street, windows):
+    res = windows.first
+    K = street.intr.K
+    assert res.points_xyz.shape == (res.num_points, 3)
+    assert res.points_rgb.shape == (res.num_points, 3) and res.points_rgb.dtype == np.uint8
+    assert res.points_error.shape == (res.num_points,)
+    assert np.all(np.isfinite(res.points_xyz)) and np.all(res.points_error >= 0)
+    assert len(np.unique(res.point_ids)) == res.num_points
+    row = {int(p): i for i, p in enumerate(res.point_ids)}
+    all_err, dups = [], 0
+    for name, obs in res.frames.items():
+        n = len(obs)
+        assert n > 50 and obs.name == name
+        assert obs.pixels.shape == (n, 2) and obs.depths.shape == (n,)
+        assert obs.reproj_errors.shape == obs.track_errors.shape == obs.point_ids.shape == (n,)
+        dups += n - len(np.unique(obs.point_ids))
+        assert set(obs.point_ids.tolist()) <= set(row)
+        assert np.all((obs.pixels >= -0.5) & (obs.pixels <= [W - 0.5, H - 0.5]))
+        assert np.all(np.isfinite(obs.depths)) and np.all(obs.depths > 0)
+        # Depth = z of the 3D point in this camera; the reprojection error recomputed here with
+        # the known K in the OpenCV pixel convention (COLMAP's is shifted by 0.5).
+        X = res.points_in_frame(name)[[row[int(p)] for p in obs.point_ids]]
+        np.testing.assert_allclose(obs.depths, X[:, 2], rtol=1e-9)
+        proj = (X @ K.T)[:, :2] / X[:, 2:]
+        np.testing.assert_allclose(obs.reproj_errors, np.linalg.norm(proj - obs.pixels, axis=1),
+                                   atol=1e-3)
+        assert np.all(np.isfinite(obs.reproj_errors)) and np.all(obs.track_errors >= 0)
+        all_err.append(obs.reproj_errors)
+    err = np.concatenate(all_err)
+    # COLMAP may keep two keypoints of one image (SIFT detections < 1-2 px apart) in one track:
+    # measured 96 of 7855 observations (1.2 %), each with its own small reprojection error.
+    assert dups <= 0.05 * err.size
+    # Measured: median 0.15 px, 99th percentile 1.9 px, max 3.6 px (COLMAP filters at 4 px).
+    assert np.median(err) < 0.5 and np.percentile(err, 99) < 4.0
+
+
+@pytest.mark.slow
+def test_overlapping_windows_reuse_features(street, windows):
+    first, second = windows.extracted[:2]
+    assert first == [f.name for f in street.frames[0:10]]
+    assert second == [street.frames[10].name, street.frames[11].name]  # only the new frames
+    assert windows.counts[:2] == [10, 12]
+    res = windows.second
+    assert res.ok and res.num_registered >= 7 and res.num_frames == 8  # measured 8/8, 0.78 %
+    assert res.timings["extract"] < windows.first.timings["extract"]
+    rel, _, _ = depth_errors(res, street.frames[4:12], street.gt)
+    assert np.median(rel) <= 0.02
+
+
+@pytest.mark.slow
+def test_reused_names_with_new_pixels_are_extracted_again(street, windows):
+    # Regression: the cache used to be keyed by name only, so this window silently got the
+    # features of the first window's frames 0-5 (its depth error against the true frames 2-7
+    # was 16 %, against frames 0-5 0.95 %). Now: 6/6 registered, 0.67 %.
+    assert windows.extracted[2] == [f.name for f in windows.renamed]
+    assert windows.counts[2] == 18
+    res = windows.third
+    assert res.ok and res.num_registered >= 5
+    truth = {f.name: street.gt[street.frames[f.index + 2].name] for f in windows.renamed}
+    rel, _, _ = depth_errors(res, windows.renamed, truth)
+    assert np.median(rel) <= 0.02
+
+
+# ------------------------------------------------------------------ windows that fail
+def small(street) -> tuple[list[np.ndarray], Intrinsics]:
+    """Quarter-size frames (cheap) with matching intrinsics."""
+    import cv2
+
+    intr = street.intr.scaled(W // 2, H // 2)
+    return [cv2.resize(f.image, (W // 2, H // 2), interpolation=cv2.INTER_AREA)
+            for f in street.frames[:4]], intr
+
+
+def failed(result: SfmResult, n: int, reason: str) -> None:
+    assert not result.ok and result.num_frames == n
+    assert reason in result.reason, result.reason
+    assert result.num_registered == 0 and result.num_points == 0
+
+
+def test_one_frame_is_a_failed_window_not_an_error(street):
+    res = reconstruct_window(street.frames[:1], street.intr)
+    failed(res, 1, "at least 2 frames")
+
+
+def test_no_motion_fails_with_a_reason(street):
+    images, intr = small(street)
+    frames = [Frame(i, images[0].copy()) for i in range(4)]
+    res = reconstruct_window(frames, intr)
+    failed(res, 4, "too little motion")
+    assert "map" not in res.timings  # the pre-check spared the mapper (5-13 s on such input)
+
+
+def test_textureless_frames_fail_with_a_reason(street):
+    images, intr = small(street)
+    flat = [np.full_like(images[0], 90 + 20 * i) for i in range(4)]
+    failed(reconstruct_window([Frame(i, im) for i, im in enumerate(flat)], intr), 4,
+           "too few features")
+
+
+def test_unrelated_frames_fail_with_a_reason(street):
+    _, intr = small(street)
+    rng = np.random.default_rng(0)
+    noise = [rng.integers(0, 255, (H // 2, W // 2, 3), np.uint8) for _ in range(3)]
+    res = reconstruct_window([Frame(i, im) for i, im in enumerate(noise)], intr,
+                             SfmConfig(max_num_features=1024))
+    failed(res, 3, "no frame pair of the window could be matched")
+
+
+# -------------------------------------------------------------------------- real data
+@pytest.mark.slow
+def test_real_hololens_window(shared_data):
+    from sfm_ttr_ros.sequence import open_image_folder
+
+    root = shared_data / "hololens_000"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    seq = open_image_folder(root / "images", root / "K.txt", root / "depth", gt_scale=1000.0)
+    assert (seq.intrinsics.width, seq.intrinsics.height) == (540, 360)
+    frames = seq.frames(55, 65)  # files 00058 .. 00067: ~0.95 m of hand-held motion, 23 deg
+    gt = {f.name: seq.gt(f.name) for f in frames}
+    assert all(g is not None for g in gt.values())
+    res = reconstruct_window(frames, seq.intrinsics)
+    assert res.ok, res.reason
+    assert res.num_registered >= 8
+    rel, scale, with_gt = depth_errors(res, frames, gt)
+    # Measured: 10/10 registered, ~2460 points, ~9800 observations with GT (78 %; the GT has
+    # holes), median error 1.05 % (other 10-frame windows starting at 45-65: 0.7-1.9 %; one
+    # starting at 42, where the camera mostly rotates (62 deg over 0.35 m), gave 30 %).
+    assert np.median(rel) <= 0.05
+    assert with_gt >= 0.5 and scale > 0
+    med = float(np.median(np.concatenate([g[g > 0] for g in gt.values()])))
+    assert 0.5 < med < 10.0  # GT read in metres (PNG millimetres / 1000)
