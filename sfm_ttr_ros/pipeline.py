@@ -7,7 +7,9 @@ encoder continued from the previous window or reset to the original weights).
 
 from __future__ import annotations
 
+import itertools
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -29,7 +31,10 @@ from .refinement import (
     sample_depth,
     snapshot_encoder,
 )
-from .sfm import SfmConfig, SfmReconstructor, SfmResult
+from .sfm import SfmConfig, SfmReconstructor, SfmResult, _digest
+
+#: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
+PREDICTION_CACHE_FRAMES = 16
 
 
 @dataclass
@@ -40,6 +45,12 @@ class TTRConfig:
     reset_each_window: bool = False  # True: every window starts from the original weights
     min_supervision_points: int = 50  # fewer selected points in the window: do not refine
     predict_batch: int = 8
+    # Reuse a prediction made with the same weights for the same pixels instead of running the
+    # network again (the overlap frames of consecutive windows: the previous window's refined
+    # prediction is the next window's "before"). The same numbers as computing it again (up to
+    # the last bits a different batch composition gives; bit for bit with predict_batch 1).
+    # False: always recompute.
+    reuse_predictions: bool = True
 
 
 @dataclass
@@ -81,6 +92,11 @@ class SfmTTR:
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._original = snapshot_encoder(model)
         self._stop = False
+        # (weights key, pixel digest -> depth) of the latest predictions, see predict()
+        self._pred_key: tuple | None = None
+        self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
+        self.predictions_computed = 0  # images the network actually ran on
+        self.predictions_reused = 0  # images answered from the cache
 
     # -- state ---------------------------------------------------------------------------
     def reset_model(self) -> None:
@@ -102,12 +118,65 @@ class SfmTTR:
 
     # -- prediction ----------------------------------------------------------------------
     def predict(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """Depth (H x W float32, network units) of each image with the current weights."""
+        """Depth (H x W float32, network units) of each image with the current weights.
+
+        With ``config.reuse_predictions`` an image whose pixels were predicted before with the
+        same weights is not run through the network again (each call returns new arrays; at
+        most max(PREDICTION_CACHE_FRAMES, len(images)) depth maps are kept). The weights are
+        identified by every parameter and buffer of the model (storage and in-place version
+        counter), so an optimizer step, ``load_state_dict``, a BatchNorm statistics update or
+        a move to another device all invalidate the cache. Call
+        :meth:`clear_prediction_cache` after changing anything else the network's output
+        depends on."""
+        key = self._weights_key() if self.config.reuse_predictions else None
+        if key is None:
+            self.clear_prediction_cache()
+            self.predictions_computed += len(images)
+            return self._run_network(images)
+        if key != self._pred_key:
+            self.clear_prediction_cache()
+            self._pred_key = key
+        cache = self._pred_cache
+        digests = [_digest(np.asarray(im)) for im in images]
+        todo: dict[bytes, int] = {}
+        for i, d in enumerate(digests):
+            if d not in cache and d not in todo:
+                todo[d] = i
+        fresh = dict(zip(todo, self._run_network([images[i] for i in todo.values()]),
+                         strict=True))
+        self.predictions_computed += len(fresh)
+        self.predictions_reused += len(images) - len(fresh)
+        out = []
+        for d in digests:
+            depth = fresh[d] if d in fresh else cache[d]
+            cache[d] = depth
+            cache.move_to_end(d)
+            out.append(depth.copy())
+        while len(cache) > max(PREDICTION_CACHE_FRAMES, len(images)):
+            cache.popitem(last=False)
+        return out
+
+    def clear_prediction_cache(self) -> None:
+        self._pred_key = None
+        self._pred_cache.clear()
+
+    def _run_network(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
         out: list[np.ndarray] = []
         b = max(1, self.config.predict_batch)
         for i in range(0, len(images), b):
             out.extend(self.model.predict(list(images[i:i + b])))
         return out
+
+    def _weights_key(self) -> tuple | None:
+        """Changes whenever a tensor of the model is replaced or modified in place."""
+        m = self.model
+        try:
+            tensors = tuple((t.data_ptr(), t._version)
+                            for t in itertools.chain(m.parameters(), m.buffers()))
+        except (RuntimeError, AttributeError):  # e.g. inference tensors: no version counter
+            return None
+        return (id(m), tuple(getattr(m, "input_size", ())), str(m.device),
+                getattr(m, "min_depth", None), getattr(m, "max_depth", None), tensors)
 
     # -- one window ----------------------------------------------------------------------
     def process_window(self, frames: Sequence[Frame], intrinsics: Intrinsics,

@@ -8,6 +8,7 @@ s = median(D_gt / D_sfm) for the whole window (a reconstruction has its own arbi
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -53,9 +54,10 @@ def street():
 
 @pytest.fixture(scope="module")
 def windows(street):
-    """Three windows through ONE reconstructor (its default options), extraction spied on:
-    frames 0-9; frames 4-11 (overlap 4-9); then 6 frames whose names were used before but whose
-    pixels are other frames' (frames 2-7 renamed 0-5: a second sequence named by index)."""
+    """Windows through ONE reconstructor (its default options), extraction spied on: frames
+    0-9; the same again with ``refine_intrinsics`` on (cached features: mapping only); frames
+    4-11 (overlap 4-9); then 6 frames whose names were used before but whose pixels are other
+    frames' (frames 2-7 renamed 0-5: a second sequence named by index)."""
     extracted: list[list[str]] = []
     real = pycolmap.extract_features
 
@@ -69,6 +71,10 @@ def windows(street):
     with pytest.MonkeyPatch.context() as mp, SfmReconstructor() as rec:
         mp.setattr(pycolmap, "extract_features", spy)
         out.first = rec.reconstruct(f[0:10], street.intr)
+        out.counts.append(rec.frames_extracted)
+        rec.config = replace(rec.config, refine_intrinsics=True)
+        out.free_focal = rec.reconstruct(f[0:10], street.intr)
+        rec.config = replace(rec.config, refine_intrinsics=False)
         out.counts.append(rec.frames_extracted)
         out.second = rec.reconstruct(f[4:12], street.intr)
         out.counts.append(rec.frames_extracted)
@@ -108,6 +114,12 @@ def test_fixed_intrinsics_are_unchanged(street, windows):
         assert (got.fx, got.fy) == (want.fx, want.fy)  # never touched, bit for bit
         assert got.cx == pytest.approx(want.cx, abs=1e-9)  # through COLMAP's +0.5 convention
         assert got.cy == pytest.approx(want.cy, abs=1e-9)
+    # The check can fail: with refine_intrinsics on, bundle adjustment does move the focal
+    # lengths, and far (measured fx 360.8 -> 575.9, fy -> 222.0 on this 10-frame forward
+    # drive: why they are held fixed by default); only the principal point stays.
+    free = windows.free_focal
+    assert free.ok and free.intrinsics.fx != street.intr.fx
+    assert free.intrinsics.cx == pytest.approx(street.intr.cx, abs=1e-9)
 
 
 def test_observations_points_and_reprojection_errors_are_consistent(street, windows):
@@ -151,7 +163,7 @@ def test_overlapping_windows_reuse_features(street, windows):
     first, second = windows.extracted[:2]
     assert first == [f.name for f in street.frames[0:10]]
     assert second == [street.frames[10].name, street.frames[11].name]  # only the new frames
-    assert windows.counts[:2] == [10, 12]
+    assert windows.counts[:3] == [10, 10, 12]
     res = windows.second
     assert res.ok and res.num_registered >= 7 and res.num_frames == 8  # measured 8/8, 0.78 %
     assert res.timings["extract"] < windows.first.timings["extract"]
@@ -165,7 +177,7 @@ def test_reused_names_with_new_pixels_are_extracted_again(street, windows):
     # features of the first window's frames 0-5 (its depth error against the true frames 2-7
     # was 16 %, against frames 0-5 0.95 %). Now: 6/6 registered, 0.67 %.
     assert windows.extracted[2] == [f.name for f in windows.renamed]
-    assert windows.counts[2] == 18
+    assert windows.counts[3] == 18
     res = windows.third
     assert res.ok and res.num_registered >= 5
     truth = {f.name: street.gt[street.frames[f.index + 2].name] for f in windows.renamed}

@@ -1,0 +1,167 @@
+"""SfmTTR.predict reuses a prediction made with the same weights for the same pixels
+(``TTRConfig.reuse_predictions``): the overlap frames of consecutive windows are predicted once
+per weights instead of twice, with the same numbers: bit for bit when every image is its own
+batch (``predict_batch`` 1); otherwise a frame may be computed in another batch than it would
+have been, which changes the last bits (~2e-7 relative here), as any ``predict_batch`` does.
+
+A tiny network and a stand-in for the SfM stage (sparse depths read off the original network's
+prediction, scaled and perturbed) keep the windows fast and deterministic."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from sfm_ttr_ros.frames import Frame, Intrinsics
+from sfm_ttr_ros.models.base import EncoderDecoder
+from sfm_ttr_ros.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig, sample_at
+from sfm_ttr_ros.refinement import RefinementConfig
+from sfm_ttr_ros.sfm import FrameObservations, SfmResult
+
+W, H = 160, 64
+INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)
+
+
+def tiny_model() -> EncoderDecoder:
+    torch.manual_seed(0)
+    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.BatchNorm2d(8), nn.ReLU(),
+                        nn.Conv2d(8, 8, 3, 1, 1))
+    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
+    return EncoderDecoder(enc, dec, (32, 96)).eval()
+
+
+def images(n: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(1)
+    base = rng.integers(0, 255, (H, W + 3 * n, 3), np.uint8)
+    return [np.ascontiguousarray(base[:, 3 * i:3 * i + W]) for i in range(n)]  # a panning view
+
+
+class FakeReconstructor:
+    """Sparse 'SfM' depths: the ORIGINAL network's depth at fixed pixels / 3, +-20 % noise."""
+
+    def __init__(self):
+        self.model = tiny_model()
+
+    def reconstruct(self, frames, intrinsics) -> SfmResult:
+        res = SfmResult(True, "", len(frames), timings={"extract": 0.0})
+        pts = []
+        for k, f in enumerate(frames):
+            rng = np.random.default_rng(f.index)
+            px = np.stack([rng.uniform(0, W - 1, 300), rng.uniform(0, H - 1, 300)], 1)
+            d = sample_at(self.model.predict([f.image])[0], px) / 3.0
+            d = d * rng.uniform(0.8, 1.2, d.size)
+            res.frames[f.name] = FrameObservations(
+                f.name, px.astype(np.float32), d.astype(np.float64), np.full(d.size, 0.3),
+                np.full(d.size, 0.3), np.arange(d.size) + 1000 * k, np.eye(4))
+            pts.append(np.column_stack([px, d]))
+        res.points_xyz = np.concatenate(pts)
+        res.point_ids = np.arange(res.points_xyz.shape[0])
+        res.points_error = np.full(res.points_xyz.shape[0], 0.3)
+        return res
+
+    def close(self) -> None:
+        pass
+
+
+def make_ttr(reuse: bool, reset_each_window: bool = False, batch: int = 1) -> SfmTTR:
+    cfg = TTRConfig(refinement=RefinementConfig(steps=3, lr=1e-2),
+                    reuse_predictions=reuse, reset_each_window=reset_each_window,
+                    predict_batch=batch)
+    ttr = SfmTTR(tiny_model(), cfg)
+    ttr.reconstructor.close()
+    ttr.reconstructor = FakeReconstructor()
+    return ttr
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def windows(ttr: SfmTTR, imgs: list[np.ndarray]):
+    frames = [Frame(index=i, image=im) for i, im in enumerate(imgs)]
+    return [ttr.process_window(frames[0:10], INTR), ttr.process_window(frames[5:15], INTR)]
+
+
+@pytest.mark.parametrize("batch", [1, 4])
+def test_overlapping_windows_predict_the_overlap_once_with_the_same_numbers(one_thread, batch):
+    imgs = images(15)
+    on, off = make_ttr(True, batch=batch), make_ttr(False, batch=batch)
+    res_on, res_off = windows(on, imgs), windows(off, imgs)
+    same = np.array_equal if batch == 1 else lambda a, b: np.allclose(a, b, rtol=1e-5, atol=0)
+    for a, b in zip(res_on, res_off, strict=True):
+        assert a.refined and b.refined
+        for name in a.names:
+            assert same(a.depths_before[name], b.depths_before[name])
+            assert same(a.depths[name], b.depths[name])
+    # the refinement did change the weights between the two predictions of a window
+    assert not np.array_equal(res_on[0].depths["0000000005"], res_on[0].depths_before["0000000005"])
+    # off: 4 passes of 10 frames; on: window 2's "before" of frames 5-9 = window 1's "after"
+    assert (off.predictions_computed, off.predictions_reused) == (40, 0)
+    assert (on.predictions_computed, on.predictions_reused) == (35, 5)
+
+
+def test_reset_each_window_recomputes(one_thread):
+    ttr = make_ttr(True, reset_each_window=True)
+    windows(ttr, images(15))
+    assert (ttr.predictions_computed, ttr.predictions_reused) == (40, 0)
+
+
+def test_cache_follows_the_pixels_and_the_weights(one_thread):
+    ttr = make_ttr(True)
+    imgs = images(3)
+    first = ttr.predict(imgs)
+    assert ttr.predictions_computed == 3
+    again = ttr.predict([im.copy() for im in imgs])  # same pixels, other arrays: reused
+    assert (ttr.predictions_computed, ttr.predictions_reused) == (3, 3)
+    assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
+    again[0][:] = -1.0  # callers get their own arrays
+    assert np.array_equal(ttr.predict(imgs[:1])[0], first[0])
+    assert ttr.predictions_computed == 3
+
+    changed = imgs[1].copy()
+    changed[0, 0] ^= 1  # one pixel
+    ttr.predict([changed])
+    assert ttr.predictions_computed == 4
+
+    with torch.no_grad():  # any in-place change of the weights
+        next(ttr.model.encoder.parameters()).add_(0.5)
+    moved = ttr.predict(imgs[:1])[0]
+    assert ttr.predictions_computed == 5 and not np.array_equal(moved, first[0])
+    ttr.reset_model()  # load_state_dict: back to the original weights, recomputed
+    assert np.array_equal(ttr.predict(imgs[:1])[0], first[0]) and ttr.predictions_computed == 6
+
+    ttr.model.encoder.train()  # a BatchNorm statistics update (bn_mode "train" refinement)
+    ttr.model.encoder(ttr.model.preprocess(imgs[2]))
+    ttr.model.eval()
+    ttr.predict(imgs[:1])
+    assert ttr.predictions_computed == 7
+
+
+def test_cache_is_bounded_and_can_be_off(one_thread):
+    ttr = make_ttr(True)
+    imgs = images(40)
+    ttr.predict(imgs[:30])  # one large call keeps all of its frames
+    assert len(ttr._pred_cache) == 30
+    ttr.predict(imgs[30:31])  # later small calls trim it to the latest PREDICTION_CACHE_FRAMES
+    assert len(ttr._pred_cache) == PREDICTION_CACHE_FRAMES
+    computed = ttr.predictions_computed
+    ttr.predict(imgs[30:31] + imgs[29:30])  # the most recent frames are the ones kept
+    assert ttr.predictions_computed == computed
+    for im in imgs[31:]:
+        ttr.predict([im])
+    assert len(ttr._pred_cache) == PREDICTION_CACHE_FRAMES
+    off = copy.deepcopy(ttr.config)
+    off.reuse_predictions = False
+    ttr.set_config(off)
+    before = ttr.predictions_computed
+    ttr.predict(imgs[:2])
+    ttr.predict(imgs[:2])
+    assert ttr.predictions_computed == before + 4 and len(ttr._pred_cache) == 0
