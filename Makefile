@@ -21,7 +21,7 @@ test: setup lint
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 demo: setup
-	$(VENV)/bin/sfm-ttr demo
+	$(VENV)/bin/sfm-ttr demo --overwrite
 
 clean:
-	rm -rf build install log .pytest_cache .ruff_cache *.egg-info
+	rm -rf build install log .pytest_cache .ruff_cache *.egg-info sfm_ttr_demo

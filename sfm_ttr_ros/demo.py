@@ -271,9 +271,9 @@ def run_demo(opts: DemoOptions) -> dict:
     (out / "results.json").write_text(json.dumps(results, indent=2, default=_json_default))
     gain_line = ", ".join(f"{k} {v:+.1%}" for k, v in gain.items() if k in ("abs_rel", "rmse"))
     (out / "results.md").write_text(f"# sfm-ttr demo: {drive}\n\n{table}\n\nRelative change "
-                                    f"(negative = better): {gain_line}\n")
+                                    f"(positive = lower error than no TTR): {gain_line}\n")
     print(table)
-    print(f"SfM-TTR vs no TTR: {gain_line} (negative = lower error)")
+    print(f"SfM-TTR vs no TTR: {gain_line} (gain; positive = lower error)")
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if fig_path:

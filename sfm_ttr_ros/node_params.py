@@ -137,9 +137,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _P("refinement.early_stop_patience", 0, "Stop a window's refinement when the running loss "
        "has not improved for N steps; 0 = off.", "refinement.early_stop_patience", 0,
        1_000_000),
-    _P("reset_each_window", False, "True: every window starts from the original weights; "
-       "False (default, provisional until the benchmark settles it): refinement continues "
-       "from the previous window's weights.", "ttr.reset_each_window"),
+    _P("reset_each_window", True, "True (default, measured better: BENCHMARKS.md): every "
+       "window starts from the original weights; False: refinement continues from the "
+       "previous window's weights.", "ttr.reset_each_window"),
     _P("seed", 0, "Random seed of SfM, RANSAC and refinement.",
        "sfm.seed,alignment.seed,refinement.seed", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------

@@ -42,7 +42,9 @@ class TTRConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
-    reset_each_window: bool = False  # True: every window starts from the original weights
+    # True: every window starts from the original weights (measured better than continuing
+    # from the previous window's: BENCHMARKS.md); False: continue.
+    reset_each_window: bool = True
     min_supervision_points: int = 50  # fewer selected points in the window: do not refine
     predict_batch: int = 8
     # Reuse a prediction made with the same weights for the same pixels instead of running the
@@ -95,6 +97,10 @@ class SfmTTR:
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
         self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
+        # Predictions of the ORIGINAL weights survive refinement and the next reset: with
+        # reset_each_window the overlap frames' "before" depths are those of the previous window.
+        self._original_key: tuple | None = self._weights_key()
+        self._original_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
         self.predictions_computed = 0  # images the network actually ran on
         self.predictions_reused = 0  # images answered from the cache
 
@@ -102,6 +108,7 @@ class SfmTTR:
     def reset_model(self) -> None:
         """Back to the original encoder weights."""
         restore_encoder(self.model, self._original)
+        self._original_key = self._weights_key()
 
     def set_config(self, config: TTRConfig) -> None:
         """New options, used from the next window on."""
@@ -125,7 +132,9 @@ class SfmTTR:
         most max(PREDICTION_CACHE_FRAMES, len(images)) depth maps are kept). The weights are
         identified by every parameter and buffer of the model (storage and in-place version
         counter), so an optimizer step, ``load_state_dict``, a BatchNorm statistics update or
-        a move to another device all invalidate the cache. Call
+        a move to another device all invalidate the cache. The predictions of the original
+        weights are kept apart and found again after :meth:`reset_model` (with
+        ``reset_each_window`` the overlap frames' "before" depths are reused). Call
         :meth:`clear_prediction_cache` after changing anything else the network's output
         depends on."""
         key = self._weights_key() if self.config.reuse_predictions else None
@@ -133,10 +142,13 @@ class SfmTTR:
             self.clear_prediction_cache()
             self.predictions_computed += len(images)
             return self._run_network(images)
-        if key != self._pred_key:
-            self.clear_prediction_cache()
-            self._pred_key = key
-        cache = self._pred_cache
+        if key == self._original_key:
+            cache = self._original_cache
+        else:
+            if key != self._pred_key:
+                self._pred_key = key
+                self._pred_cache.clear()
+            cache = self._pred_cache
         digests = [_digest(np.asarray(im)) for im in images]
         todo: dict[bytes, int] = {}
         for i, d in enumerate(digests):
@@ -159,6 +171,8 @@ class SfmTTR:
     def clear_prediction_cache(self) -> None:
         self._pred_key = None
         self._pred_cache.clear()
+        self._original_cache.clear()
+        self._original_key = None  # until the next reset_model(): nothing is known original
 
     def _run_network(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
         out: list[np.ndarray] = []
@@ -200,6 +214,9 @@ class SfmTTR:
         res = WindowResult(names, dict(before), before, refined=False, timings=t)
         if not refine:
             res.reason = "refinement skipped"
+            return res
+        if cfg.refinement.steps == 0:  # nothing to refine: do not spend time on SfM either
+            res.reason = "refinement disabled: refinement.steps is 0"
             return res
 
         t0 = time.perf_counter()

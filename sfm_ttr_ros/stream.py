@@ -50,6 +50,7 @@ unrefined with a reason key (:data:`UNREFINED_REASONS`), or dropped with a reaso
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -75,6 +76,7 @@ UNREFINED_REASONS = {
     "intrinsics_mismatch": "intrinsics are for another image size",
     "stamp_jump_back": "stamp went back: window reset",
     "cancelled": "refinement cancelled",
+    "disabled": "refinement disabled (refinement.steps = 0)",
     "window_error": "window failed with an error",
     "end_of_stream": "end of stream with a single frame",
 }
@@ -176,6 +178,8 @@ def reason_key_of(result: WindowResult) -> str:
         return "too_few_points"
     if r.startswith("refinement cancelled"):
         return "cancelled"
+    if r.startswith("refinement disabled"):
+        return "disabled"
     return "window_error"
 
 
@@ -500,9 +504,11 @@ class StreamProcessor:
         with self._cv:
             if stats.refined:
                 self._windows_ok += 1
+            elif stats.reason_key == "disabled":
+                self._windows_skipped += 1
             else:
                 self._windows_failed += 1
-        if not stats.refined:
+        if not stats.refined and stats.reason_key != "disabled":
             self._warn(f"window:{stats.reason_key}",
                        f"window {index} not refined ({stats.reason}): {len(new)} frame(s) "
                        "published unrefined")
@@ -530,7 +536,9 @@ class StreamProcessor:
             res.loss_after
         stats.steps_done = res.refinement.steps_done if res.refinement is not None else 0
         stats.timings = dict(res.timings)
-        stats.result = res
+        # The history keeps the SfM/alignment summary but not the per-frame depth maps: a deque of
+        # 100 windows x 10 full-size maps each would grow memory for the whole first 100 windows.
+        stats.result = dataclasses.replace(res, depths={}, depths_before={})
         if res.cloud_frame:
             stats.cloud_xyz, stats.cloud_error = res.cloud_xyz, res.cloud_error
 

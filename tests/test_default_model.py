@@ -20,10 +20,11 @@ from sfm_ttr_ros.models.registry import (
 )
 from sfm_ttr_ros.synthetic import make_sequence
 
-# Measured with scripts/train_default_model.py --seed 0 (see MODEL_CARD.md): median-scaled abs
-# rel 0.10-0.16 on single KITTI-size frames of held-out domain B. The bound leaves room for
-# frame-to-frame spread; an untrained network scores 0.35-0.6 here.
-HELD_OUT_ABS_REL_BOUND = 0.22
+# Measured with the weights of scripts/train_default_model.py --seed 0 (see MODEL_CARD.md):
+# median-scaled abs rel 0.149 on this frame (domain B, seed 4242, 1242x375), 0.15-0.25 on seeds
+# 11-15; an untrained network scores 0.44-0.91 on the same frames. The frame is deterministic, so
+# the margin only absorbs numerical differences between CPUs / torch builds.
+HELD_OUT_ABS_REL_BOUND = 0.18
 
 pytestmark = pytest.mark.skipif(not default_weights_available(),
                                 reason="default weights not trained yet")

@@ -15,16 +15,31 @@ import pytest  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
+import yaml  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter, parameter_dict_from_yaml_file  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
 
 from sfm_ttr_ros import node_params  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FILES = sorted((REPO / "params").glob("*.yaml"))
 pytestmark = pytest.mark.ros
+
+
+def parameter_dict_from_yaml_file(path: str, target_nodes: list[str]) -> dict:
+    """The file's parameters as rcl reads ``--params-file``: YAML types kept as they are.
+
+    (rclpy's own ``parameter_dict_from_yaml_file`` turns every value into a string and guesses
+    its type back, so a double below 1e-4 - ``3e-05`` once printed - comes back as a string;
+    the node, which reads the file through rcl's C parser, gets the double.)"""
+    data = yaml.safe_load(Path(path).read_text())
+    out = {}
+    for node in target_nodes:
+        for name, value in data[node]["ros__parameters"].items():
+            out[name] = Parameter(name, value=value).to_parameter_msg()
+    return out
 
 
 @pytest.fixture(scope="module")

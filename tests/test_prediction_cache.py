@@ -108,10 +108,21 @@ def test_overlapping_windows_predict_the_overlap_once_with_the_same_numbers(one_
     assert (on.predictions_computed, on.predictions_reused) == (35, 5)
 
 
-def test_reset_each_window_recomputes(one_thread):
+def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
     ttr = make_ttr(True, reset_each_window=True)
-    windows(ttr, images(15))
-    assert (ttr.predictions_computed, ttr.predictions_reused) == (40, 0)
+    res = windows(ttr, images(15))
+    assert all(r.refined for r in res)
+    # window 2 starts from the original weights again: the "before" of its overlap frames 5-9
+    # is window 1's "before" (original weights), not its refined "after"
+    assert (ttr.predictions_computed, ttr.predictions_reused) == (35, 5)
+    for name in ("0000000005", "0000000009"):
+        assert np.array_equal(res[1].depths_before[name], res[0].depths_before[name])
+        assert not np.array_equal(res[1].depths_before[name], res[0].depths[name])
+    fresh = make_ttr(False, reset_each_window=True)
+    recomputed = windows(fresh, images(15))
+    for name in res[1].names:
+        assert np.array_equal(res[1].depths_before[name], recomputed[1].depths_before[name])
+        assert np.array_equal(res[1].depths[name], recomputed[1].depths[name])
 
 
 def test_cache_follows_the_pixels_and_the_weights(one_thread):
@@ -135,7 +146,9 @@ def test_cache_follows_the_pixels_and_the_weights(one_thread):
         next(ttr.model.encoder.parameters()).add_(0.5)
     moved = ttr.predict(imgs[:1])[0]
     assert ttr.predictions_computed == 5 and not np.array_equal(moved, first[0])
-    ttr.reset_model()  # load_state_dict: back to the original weights, recomputed
+    ttr.reset_model()  # back to the original weights: their predictions are still known
+    assert np.array_equal(ttr.predict(imgs[:1])[0], first[0]) and ttr.predictions_computed == 5
+    ttr.clear_prediction_cache()
     assert np.array_equal(ttr.predict(imgs[:1])[0], first[0]) and ttr.predictions_computed == 6
 
     ttr.model.encoder.train()  # a BatchNorm statistics update (bn_mode "train" refinement)
@@ -148,20 +161,21 @@ def test_cache_follows_the_pixels_and_the_weights(one_thread):
 def test_cache_is_bounded_and_can_be_off(one_thread):
     ttr = make_ttr(True)
     imgs = images(40)
+    # untouched weights are the original ones: their predictions live in the original cache
     ttr.predict(imgs[:30])  # one large call keeps all of its frames
-    assert len(ttr._pred_cache) == 30
+    assert len(ttr._original_cache) == 30
     ttr.predict(imgs[30:31])  # later small calls trim it to the latest PREDICTION_CACHE_FRAMES
-    assert len(ttr._pred_cache) == PREDICTION_CACHE_FRAMES
+    assert len(ttr._original_cache) == PREDICTION_CACHE_FRAMES
     computed = ttr.predictions_computed
     ttr.predict(imgs[30:31] + imgs[29:30])  # the most recent frames are the ones kept
     assert ttr.predictions_computed == computed
     for im in imgs[31:]:
         ttr.predict([im])
-    assert len(ttr._pred_cache) == PREDICTION_CACHE_FRAMES
+    assert len(ttr._original_cache) == PREDICTION_CACHE_FRAMES
     off = copy.deepcopy(ttr.config)
     off.reuse_predictions = False
     ttr.set_config(off)
     before = ttr.predictions_computed
     ttr.predict(imgs[:2])
     ttr.predict(imgs[:2])
-    assert ttr.predictions_computed == before + 4 and len(ttr._pred_cache) == 0
+    assert ttr.predictions_computed == before + 4 and len(ttr._original_cache) == 0

@@ -109,7 +109,8 @@ def test_results_hold_the_issue_figures(run):
         assert r["seconds_per_frame"] == pytest.approx(r["seconds_total"] / N)
         lat = r["latency_s"]
         assert lat["n"] == 3 and 0 < lat["median"] <= lat["max"] <= r["seconds_total"]
-        assert r["queued_latency_at_input_rate_s"]["max"] >= lat["max"] - 1e-9
+        # latency_s is rounded to 0.1 ms in the results
+        assert r["queued_latency_at_input_rate_s"]["max"] >= lat["max"] - 1e-4
         assert 2 * N + 3 <= r["messages"] <= 2 * N + 6  # 2 per frame; diagnostics, cloud
         acc = r["accuracy"]
         assert acc["frames"] == N and 0 < acc["abs_rel"] < 1 and acc["rmse"] > 0

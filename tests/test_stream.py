@@ -351,3 +351,17 @@ def test_static_camera_is_published_unrefined_with_the_sfm_reason(sequence):
     assert all(o.reason.startswith("SfM failed: ") and len(o.reason) > len("SfM failed: ")
                for o in outs)
     assert c["windows_failed"] == 1
+
+
+def test_zero_steps_publishes_unrefined_as_disabled_without_running_sfm(sequence):
+    ttr = SfmTTR(tiny_model(), small_config(steps=0))
+    try:
+        stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))
+        fs = [Frame(i, im, stamp=float(i)) for i, im in enumerate(sequence.images[:4])]
+        outs = run(stream, fs, sequence.intrinsics)
+    finally:
+        ttr.close()
+    c = check_accounting(stream, outs, 4)
+    assert c["unrefined_by_reason"] == {"disabled": 4}
+    assert c["windows_failed"] == 0
+    assert stream.windows[0].result.sfm is None  # no time spent on SfM
