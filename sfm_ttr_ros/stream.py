@@ -470,6 +470,7 @@ class StreamProcessor:
             stats.reason = (f"overload: {queued} frames queued > overload_pending="
                             f"{self.settings.overload_pending}: refinement skipped")
             self._warn("overload", stats.reason)
+            self.windows.append(stats)  # before any output: a consumer sees the window first
             outs = self._unrefined(new, "overload", stats.reason, window=index)
             with self._cv:
                 self._windows_skipped += 1
@@ -490,10 +491,12 @@ class StreamProcessor:
         if self._cancelled:  # shutting down: publish nothing more
             return []
         if res is None:
+            self.windows.append(stats)
             outs = self._unrefined(new, stats.reason_key, stats.reason, window=index)
         else:
             self._fill_stats(stats, res)
             stats.cloud_frame = next((f for f in frames if f.name == res.cloud_frame), None)
+            self.windows.append(stats)
             outs = []
             for f in new:
                 out = FrameOutput(f, res.depths[f.name], res.refined,
@@ -516,9 +519,10 @@ class StreamProcessor:
         return outs
 
     def _finish_window(self, entries: Sequence[_Entry], stats: WindowStats) -> None:
+        """Mark the window's frames published and report it (``stats`` is already in
+        :attr:`windows`: it goes there before the window's first output is published)."""
         for e in entries:
             e.published = True
-        self.windows.append(stats)
         if self.on_window is not None:
             self.on_window(stats)
 
