@@ -356,16 +356,7 @@ def _run_offline(run: _ModeRun, seq: ImageSequence, indices: Sequence[int], mode
             for f in frames:
                 run.add(f.index, res.depths[f.name], res.refined,
                         "" if res.refined else reason_key_of(res))
-            info.append({
-                "frames": len(frames),
-                "refined": res.refined,
-                "reason": res.reason,
-                "registered": res.sfm.num_registered if res.sfm else 0,
-                "points": res.sfm.num_points if res.sfm else 0,
-                "scale": res.scale,
-                "loss_before": res.loss_before,
-                "loss_after": res.loss_after,
-            })
+            info.append(res.summary())
             if progress:
                 what = "refined" if res.refined else f"not refined ({res.reason})"
                 progress(f"sfm_ttr_offline: {what}; {info[-1]['registered']}/{len(frames)} "

@@ -136,15 +136,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                   {"reprojection_error": res.cloud_error})
     summary = {
         "sequence": seq.name,
-        "frames": len(frames),
-        "refined": res.refined,
-        "reason": res.reason,
-        "registered": res.sfm.num_registered if res.sfm else 0,
-        "points": res.sfm.num_points if res.sfm else 0,
-        "scale": res.scale,
+        **res.summary(),
         "alignment": res.alignment.stats if res.alignment else {},
-        "loss_before": res.loss_before,
-        "loss_after": res.loss_after,
         "loss_history": res.refinement.loss_history if res.refinement else [],
         "cloud_frame": res.cloud_frame,
         "timings": res.timings,

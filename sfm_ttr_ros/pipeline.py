@@ -75,6 +75,19 @@ class WindowResult:
     cloud_error: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     timings: dict[str, float] = field(default_factory=dict)
 
+    def summary(self) -> dict:
+        """The window's outcome as plain numbers (for JSON reports)."""
+        return {
+            "frames": len(self.names),
+            "refined": self.refined,
+            "reason": self.reason,
+            "registered": self.sfm.num_registered if self.sfm else 0,
+            "points": self.sfm.num_points if self.sfm else 0,
+            "scale": self.scale,
+            "loss_before": self.loss_before,
+            "loss_after": self.loss_after,
+        }
+
 
 def sample_at(depth: np.ndarray, pixels: np.ndarray, mode: str = "bilinear") -> np.ndarray:
     """An image-resolution depth map read at pixels (OpenCV convention)."""

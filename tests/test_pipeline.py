@@ -9,6 +9,7 @@ sparse depths carry the right shape, so the refined encoder must come out closer
 
 from __future__ import annotations
 
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -242,3 +243,15 @@ def test_cancellation_between_steps(run, monkeypatch):
     res = ttr.process_window(run.window, run.intr, should_stop=cancel_at_third)
     assert res.refinement.cancelled and res.refinement.steps_done == 3
     assert res.reason == "refinement cancelled"
+
+
+@pytest.mark.slow
+def test_window_summary_is_plain_numbers(run):
+    res = run.res
+    s = res.summary()
+    assert s == {"frames": len(res.names), "refined": True, "reason": "",
+                 "registered": res.sfm.num_registered, "points": res.sfm.num_points,
+                 "scale": res.scale, "loss_before": res.loss_before,
+                 "loss_after": res.loss_after}
+    assert s["loss_after"] < s["loss_before"]
+    json.dumps(s)
