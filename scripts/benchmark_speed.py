@@ -287,9 +287,11 @@ def split_overrides(overrides: Sequence[str]) -> tuple[dict[str, Any], dict[str,
         value = _parse_value(text.strip())
         spec = node_params.SPECS.get(key)
         if spec is not None:
-            if isinstance(spec.default, float) and isinstance(value, int) \
-                    and not isinstance(value, bool):
-                value = float(value)
+            if isinstance(spec.default, float) and not isinstance(value, bool | float):
+                try:  # 1 and 3e-5 (YAML reads the latter as a string) are doubles here
+                    value = float(text)
+                except ValueError:
+                    pass  # left to the parameter check, which names the expected type
             if isinstance(spec.default, str) and not spec.dynamic_typing:
                 value = str(text.strip())
             node[key] = value

@@ -31,7 +31,7 @@ from .refinement import (
     sample_depth,
     snapshot_encoder,
 )
-from .sfm import SfmConfig, SfmReconstructor, SfmResult, _digest
+from .sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16
@@ -162,7 +162,7 @@ class SfmTTR:
                 self._pred_key = key
                 self._pred_cache.clear()
             cache = self._pred_cache
-        digests = [_digest(np.asarray(im)) for im in images]
+        digests = [image_digest(np.asarray(im)) for im in images]
         todo: dict[bytes, int] = {}
         for i, d in enumerate(digests):
             if d not in cache and d not in todo:

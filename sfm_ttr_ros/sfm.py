@@ -202,7 +202,7 @@ class SfmReconstructor:
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))
-        digests = {f.name: _digest(f.image) for f in frames}
+        digests = {f.name: image_digest(f.image) for f in frames}
         changed = [n for n, d in digests.items() if self._digests.get(n, d) != d]
         if changed:
             log.info("frame %s came back with other pixels: new SfM database", changed[0])
@@ -416,7 +416,7 @@ class SfmReconstructor:
             self.reset()
 
 
-def _digest(image: np.ndarray) -> bytes:
+def image_digest(image: np.ndarray) -> bytes:
     """Identity of a frame's pixels (a few ms for a full KITTI frame)."""
     h = hashlib.blake2b(digest_size=16)
     h.update(repr((image.shape, image.dtype.str)).encode())

@@ -42,3 +42,39 @@ def shared_data() -> Path:
         pytest.skip(f"shared data folder not found: {SHARED_DATA} (it lives beside the "
                     f"repository root as ../shared/data)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """Torch single-threaded for a module: a tiny network on a busy 2-core machine measured 9x
+    slower per step with 2 threads than with 1 (thread hand-offs dominate)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+TINY_PLUGIN = '''
+import torch
+from torch import nn
+from sfm_ttr_ros.models.base import EncoderDecoder
+
+def factory(config=None):
+    torch.manual_seed(0)
+    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
+    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
+    return EncoderDecoder(enc, dec, ({height}, {width})).eval()
+'''
+
+
+def write_tiny_plugin(path: Path, height: int, width: int) -> Path:
+    """A plug-in model module (``python:<module>:factory``) with a tiny network at the given
+    input size, written to ``path``."""
+    path.write_text(TINY_PLUGIN.format(height=height, width=width))
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_plugin():
+    """:func:`write_tiny_plugin`, for tests that hand the model to a CLI or a subprocess."""
+    return write_tiny_plugin

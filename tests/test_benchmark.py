@@ -30,18 +30,6 @@ MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
 KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "frames", "seconds_per_frame",
         "refined_frames", "timings")
 
-TINY_MODEL = """
-import torch
-from torch import nn
-from sfm_ttr_ros.models.base import EncoderDecoder
-
-def factory(config=None):
-    torch.manual_seed(0)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, (64, 192)).eval()
-"""
-
 
 def cli(argv: list[str]) -> int:
     """``sfm-ttr ARGV``: through ``cli.main`` once the commands are wired into it, else through
@@ -64,14 +52,14 @@ def cli(argv: list[str]) -> int:
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, tiny_plugin):
     from sfm_ttr_ros.kitti import write_kitti_drive
     from sfm_ttr_ros.synthetic import make_sequence
 
     root = tmp_path_factory.mktemp("bench")
     seq = make_sequence(seed=1, domain="B", num_frames=N_FRAMES, width=320, height=96)
     write_kitti_drive(seq, root / "raw", root / "gt", gt_skip_ends=GT_SKIP)
-    (root / "bench_tiny_model.py").write_text(TINY_MODEL)
+    tiny_plugin(root / "bench_tiny_model.py", 64, 192)
     # The node's KITTI file with small windows and a lower point threshold for tiny images.
     text = (REPO / "params" / "kitti.yaml").read_text()
     text = text.replace("window_size: 10", "window_size: 4").replace("window_stride: 5",

@@ -66,16 +66,6 @@ def tiny_model(state=None) -> EncoderDecoder:
 
 
 @pytest.fixture(scope="module")
-def one_thread():
-    # A tiny network on a busy 2-core machine: 2 torch threads measured 9x slower per step
-    # than 1 (thread hand-offs dominate), so this module runs torch single-threaded.
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
-@pytest.fixture(scope="module")
 def scene(one_thread):
     from sfm_ttr_ros.synthetic import make_sequence
 

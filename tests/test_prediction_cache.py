@@ -77,14 +77,6 @@ def make_ttr(reuse: bool, reset_each_window: bool = False, batch: int = 1) -> Sf
     return ttr
 
 
-@pytest.fixture(scope="module")
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def windows(ttr: SfmTTR, imgs: list[np.ndarray]):
     frames = [Frame(index=i, image=im) for i, im in enumerate(imgs)]
     return [ttr.process_window(frames[0:10], INTR), ttr.process_window(frames[5:15], INTR)]

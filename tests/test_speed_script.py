@@ -10,7 +10,6 @@ import importlib.util
 import json
 import math
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -21,17 +20,6 @@ from sfm_ttr_ros.frames import InputError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
-TINY_MODEL = """
-import torch
-from torch import nn
-from sfm_ttr_ros.models.base import EncoderDecoder
-
-def factory(config=None):
-    torch.manual_seed(0)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, (32, 96)).eval()
-"""
 W, H, N = 192, 64, 8
 SMALL = ["window_size=4", "window_stride=2", "refinement.steps=2", "min_supervision_points=5",
          "sfm.min_points=5"]
@@ -49,9 +37,9 @@ def bs():
 
 
 @pytest.fixture(scope="module")
-def tiny_model(tmp_path_factory):
+def tiny_model(tmp_path_factory, tiny_plugin):
     d = tmp_path_factory.mktemp("plugin")
-    (d / "tiny_speed_model.py").write_text(textwrap.dedent(TINY_MODEL))
+    tiny_plugin(d / "tiny_speed_model.py", 32, 96)
     sys.path.insert(0, str(d))
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -181,3 +169,13 @@ def test_memory_stream(bs, tiny_model):
     assert m["peak_ratio"] == pytest.approx(end["VmHWM_kib"] / first["VmHWM_kib"])
     assert [t["frame"] for t in m["rss_trace"]] == [2, 4, 6, 8]
     assert isinstance(m["within_10_percent"], bool)
+
+
+def test_overrides_are_typed_like_the_node_parameters(bs):
+    node, extra = bs.split_overrides(["refinement.lr=3e-5", "refinement.steps=40",
+                                      "fx=700", "sfm.min_tri_angle=1.0"])
+    assert node == {"refinement.lr": 3e-5, "refinement.steps": 40, "fx": 700.0}
+    assert isinstance(node["refinement.lr"], float) and isinstance(node["fx"], float)
+    assert extra == {"sfm": {"min_tri_angle": 1.0}}
+    with pytest.raises(InputError):
+        bs.split_overrides(["no_such_thing=1"])
