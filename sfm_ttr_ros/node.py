@@ -316,6 +316,7 @@ class RefinerNode(Node):
             "windows_ok": c["windows_ok"],
             "windows_failed": c["windows_failed"],
             "windows_skipped_overload": c["windows_skipped"],
+            "windows_disabled": c["windows_disabled"],
         })
         w = self.stream.last_window
         if w is not None:

@@ -235,6 +235,7 @@ class StreamProcessor:
         self._windows_ok = 0
         self._windows_failed = 0
         self._windows_skipped = 0
+        self._windows_disabled = 0
         self._non_monotonic = 0
         self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
         self._cancelled = False
@@ -358,6 +359,7 @@ class StreamProcessor:
                 "windows_ok": self._windows_ok,
                 "windows_failed": self._windows_failed,
                 "windows_skipped": self._windows_skipped,
+                "windows_disabled": self._windows_disabled,
                 "non_monotonic_stamps": self._non_monotonic,
             }
 
@@ -508,7 +510,7 @@ class StreamProcessor:
             if stats.refined:
                 self._windows_ok += 1
             elif stats.reason_key == "disabled":
-                self._windows_skipped += 1
+                self._windows_disabled += 1
             else:
                 self._windows_failed += 1
         if not stats.refined and stats.reason_key != "disabled":

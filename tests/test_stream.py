@@ -363,5 +363,6 @@ def test_zero_steps_publishes_unrefined_as_disabled_without_running_sfm(sequence
         ttr.close()
     c = check_accounting(stream, outs, 4)
     assert c["unrefined_by_reason"] == {"disabled": 4}
-    assert c["windows_failed"] == 0
+    assert c["windows_failed"] == 0 and c["windows_skipped"] == 0
+    assert c["windows_disabled"] == 1
     assert stream.windows[0].result.sfm is None  # no time spent on SfM
