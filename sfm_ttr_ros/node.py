@@ -173,6 +173,10 @@ class RefinerNode(Node):
         values.update({p.name: p.value for p in params})
         try:
             reason = node_params.validate(values)
+            if not reason:
+                self.ttr.check_config(node_params.build_ttr_config(values))
+        except InputError as exc:  # e.g. more frozen encoder stages than this model has
+            reason = str(exc)
         except Exception as exc:  # a value no check foresaw: refuse it, with the reason
             reason = f"{type(exc).__name__}: {exc}"
         return SetParametersResult(successful=not reason, reason=reason)

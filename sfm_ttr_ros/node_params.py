@@ -137,6 +137,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     _P("refinement.early_stop_patience", 0, "Stop a window's refinement when the running loss "
        "has not improved for N steps; 0 = off.", "refinement.early_stop_patience", 0,
        1_000_000),
+    _P("refinement.frozen_encoder_stages", 0, "Speed option: keep the encoder's first N "
+       "stages fixed too (computed once per frame, not per step); 0 = the paper's "
+       "whole-encoder refinement. Default network: stages 0-17 (14 = only the 1/32 blocks "
+       "train); ResNet: 0-4.", "refinement.frozen_encoder_stages", 0, 1_000),
     _P("reset_each_window", True, "True (default, measured better: BENCHMARKS.md): every "
        "window starts from the original weights; False: refinement continues from the "
        "previous window's weights.", "ttr.reset_each_window"),

@@ -23,6 +23,7 @@ from .refinement import (
     FrameSupervision,
     RefinementConfig,
     RefinementResult,
+    check_staged_encoder,
     frame_loss,
     normalized_grid,
     observation_weights,
@@ -104,6 +105,7 @@ class SfmTTR:
         for p in self.model.parameters():
             p.requires_grad_(False)
         self.config = config or TTRConfig()
+        self.check_config(self.config)
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._original = snapshot_encoder(model)
         self._stop = False
@@ -123,8 +125,15 @@ class SfmTTR:
         restore_encoder(self.model, self._original)
         self._original_key = self._weights_key()
 
+    def check_config(self, config: TTRConfig) -> None:
+        """InputError if ``config`` cannot run on this model (frozen encoder stages the encoder
+        does not have)."""
+        if config.refinement.frozen_encoder_stages:
+            check_staged_encoder(self.model.encoder, config.refinement.frozen_encoder_stages)
+
     def set_config(self, config: TTRConfig) -> None:
         """New options, used from the next window on."""
+        self.check_config(config)
         self.config = config
         self.reconstructor.config = config.sfm
 

@@ -12,6 +12,16 @@ BatchNorm is an explicit choice (``bn_mode``): ``"frozen"`` keeps the running st
 normalises with them (modules in eval mode, affine parameters still trained); ``"train"`` puts
 the encoder in train mode, so each single-image step normalises with its own statistics and
 updates the running ones, as the authors' release most likely did.
+
+Speed option (not in the paper): ``frozen_encoder_stages = K`` keeps the encoder's first K
+stages fixed as well. Their outputs (the image's early features and skip connections) then do
+not change between steps, so they are computed once per frame and each step runs only the
+remaining stages, the decoder and the backward pass through them. ``K = 0`` (the default) is the
+paper's whole-encoder refinement. The encoder must implement the staged-encoder protocol
+(``num_stages``, ``stage_modules(i)``, ``forward_stages(x, start, stop, features)``), as the
+MobileNetV2 and ResNet encoders here do. With ``bn_mode="train"`` the frozen stages normalise
+with the frame's own statistics once (their running statistics are updated once per frame, not
+once per step).
 """
 
 from __future__ import annotations
@@ -42,11 +52,15 @@ class RefinementConfig:
     sampling: str = "bilinear"  # how D_nn is read at the keypoints (the release: nearest)
     min_points: int = 10  # frames with fewer selected points are not used for training
     early_stop_patience: int = 0  # >0: stop when the running loss has not improved for N steps
+    frozen_encoder_stages: int = 0  # >0: the encoder's first K stages are not trained (speed)
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.steps < 0:
             raise InputError(f"steps must be >= 0, got {self.steps}")
+        if self.frozen_encoder_stages < 0:
+            raise InputError(f"frozen_encoder_stages must be >= 0, got "
+                             f"{self.frozen_encoder_stages}")
         if not (self.lr > 0 and np.isfinite(self.lr)):
             raise InputError(f"lr must be a positive number, got {self.lr}")
         for name, value, allowed in (("bn_mode", self.bn_mode, BN_MODES),
@@ -112,14 +126,37 @@ def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
         model.encoder.train()
 
 
-def freeze_decoder(model: DepthModel) -> list[torch.nn.Parameter]:
-    """requires_grad only on the encoder (no gradients are computed for the decoder)."""
+def freeze_decoder(model: DepthModel, frozen_stages: int = 0) -> list[torch.nn.Parameter]:
+    """requires_grad only on the encoder (no gradients are computed for the decoder), minus the
+    parameters of its first ``frozen_stages`` stages; returns the parameters to train."""
     for p in model.decoder.parameters():
         p.requires_grad_(False)
-    params = [p for p in model.encoder.parameters()]
-    for p in params:
-        p.requires_grad_(True)
+    frozen: set[int] = set()
+    if frozen_stages:
+        check_staged_encoder(model.encoder, frozen_stages)
+        for i in range(frozen_stages):
+            for module in model.encoder.stage_modules(i):
+                frozen.update(id(p) for p in module.parameters())
+    params = []
+    for p in model.encoder.parameters():
+        p.requires_grad_(id(p) not in frozen)
+        if id(p) not in frozen:
+            params.append(p)
     return params
+
+
+def check_staged_encoder(encoder: torch.nn.Module, frozen_stages: int) -> None:
+    """``frozen_stages`` leading stages can be kept fixed: the encoder implements the staged
+    protocol and at least one stage is left to train."""
+    missing = [a for a in ("num_stages", "stage_modules", "forward_stages")
+               if not hasattr(encoder, a)]
+    if missing:
+        raise InputError(f"frozen_encoder_stages = {frozen_stages} needs an encoder with "
+                         f"{', '.join(missing)} (the staged-encoder protocol); "
+                         f"{type(encoder).__name__} has none: use 0")
+    if frozen_stages >= encoder.num_stages:
+        raise InputError(f"frozen_encoder_stages must be below the encoder's "
+                         f"{encoder.num_stages} stages, got {frozen_stages}")
 
 
 def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
@@ -141,20 +178,26 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
 
-    # Everything per frame that does not change between steps is prepared once.
+    frozen = cfg.frozen_encoder_stages
+    params = freeze_decoder(model, frozen)
+    set_bn_mode(model, cfg.bn_mode)
+    # Everything per frame that does not change between steps is prepared once: the input, the
+    # sampling grid, targets, weights and, with frozen leading stages, their outputs.
     inputs, grids, targets, weights = [], [], [], []
     for s in usable:
         h, w = s.image.shape[:2]
-        inputs.append(model.preprocess(s.image))
+        x = model.preprocess(s.image)
+        if frozen:
+            with torch.no_grad():
+                x = model.encoder.forward_stages(x, 0, frozen, [])
+        inputs.append(x)
         grids.append(normalized_grid(s.pixels, w, h).to(device))
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
         weights.append(torch.as_tensor(s.weights, dtype=torch.float32, device=device))
 
-    params = freeze_decoder(model)
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
     if optimizer_state:
         optimizer.load_state_dict(optimizer_state)
-    set_bn_mode(model, cfg.bn_mode)
     order: list[int] = []
     best, since_best, running = float("inf"), 0, None
     try:
@@ -165,7 +208,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
             if not order:
                 order = list(rng.permutation(len(usable)))
             j = order.pop()
-            depth = model(inputs[j])
+            depth = _forward(model, inputs[j], frozen)
             pred = sample_depth(depth, grids[j], cfg.sampling)
             loss = weighted_l1(pred, targets[j], weights[j])
             optimizer.zero_grad(set_to_none=True)
@@ -189,6 +232,15 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
             p.requires_grad_(False)
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
+    """D_nn = h(g(I)); with frozen leading stages ``x`` is their cached (output, features)."""
+    if not frozen_stages:
+        return model(x)
+    enc = model.encoder
+    _, features = enc.forward_stages(x[0], frozen_stages, enc.num_stages, x[1])
+    return model.output_to_depth(model.decoder(features))
 
 
 def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -> float:

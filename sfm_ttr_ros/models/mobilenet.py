@@ -113,15 +113,31 @@ class MobileNetV2Encoder(nn.Module):
         if pretrained:
             load_imagenet_mobilenet_v2(self)
 
-    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        x = (x - self.mean) / self.std
-        out = []
-        taps = self.taps
-        for i, layer in enumerate(self.features):
-            x = layer(x)
-            if i in taps:
+    @property
+    def num_stages(self) -> int:
+        """Stages for :meth:`forward_stages`: the blocks ``features.0`` … ``features.17``."""
+        return len(self.features)
+
+    def stage_modules(self, index: int) -> list[nn.Module]:
+        return [self.features[index]]
+
+    def forward_stages(self, x: torch.Tensor, start: int, stop: int,
+                       features: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Run blocks ``start`` … ``stop − 1`` on ``x`` (the [0, 1] image when ``start`` is 0),
+        appending the tapped outputs to a copy of ``features``: the staged-encoder protocol
+        that lets SfM-TTR compute frozen leading blocks once per frame
+        (:mod:`sfm_ttr_ros.refinement`)."""
+        out = list(features)
+        if start == 0:
+            x = (x - self.mean) / self.std
+        for i in range(start, stop):
+            x = self.features[i](x)
+            if i in self.taps:
                 out.append(x)
-        return out
+        return x, out
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return self.forward_stages(x, 0, self.num_stages, [])[1]
 
 
 def imagenet_mobilenet_v2_path() -> Path:

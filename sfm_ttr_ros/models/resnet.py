@@ -147,15 +147,31 @@ class ResnetEncoder(nn.Module):
         if pretrained:
             load_torchvision_resnet(self, pretrained)
 
-    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+    num_stages = 5  # stem, layer1 (after the max-pool), layer2, layer3, layer4: one tap each
+
+    def stage_modules(self, index: int) -> list[nn.Module]:
         e = self.encoder
-        x = (x - 0.45) / 0.225
-        f0 = e.relu(e.bn1(e.conv1(x)))
-        f1 = e.layer1(e.maxpool(f0))
-        f2 = e.layer2(f1)
-        f3 = e.layer3(f2)
-        f4 = e.layer4(f3)
-        return [f0, f1, f2, f3, f4]
+        return [[e.conv1, e.bn1], [e.layer1], [e.layer2], [e.layer3], [e.layer4]][index]
+
+    def forward_stages(self, x: torch.Tensor, start: int, stop: int,
+                       features: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Run stages ``start`` … ``stop − 1`` (see :attr:`num_stages`) on ``x`` (the [0, 1]
+        image when ``start`` is 0), appending each stage's output to a copy of ``features``
+        (the staged-encoder protocol of :mod:`sfm_ttr_ros.refinement`)."""
+        e = self.encoder
+        out = list(features)
+        for i in range(start, stop):
+            if i == 0:
+                x = e.relu(e.bn1(e.conv1((x - 0.45) / 0.225)))
+            elif i == 1:
+                x = e.layer1(e.maxpool(x))
+            else:
+                x = (e.layer2, e.layer3, e.layer4)[i - 2](x)
+            out.append(x)
+        return x, out
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return self.forward_stages(x, 0, self.num_stages, [])[1]
 
 
 def load_torchvision_resnet(encoder: ResnetEncoder, path: str | Path) -> None:

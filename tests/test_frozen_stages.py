@@ -1,0 +1,111 @@
+"""refinement.frozen_encoder_stages: leading encoder stages kept fixed and computed once per
+frame (a speed option, issue 6) must give exactly the refinement of the remaining stages."""
+
+import numpy as np
+import pytest
+import torch
+
+from sfm_ttr_ros.frames import InputError
+from sfm_ttr_ros.models.mobilenet import MobileDepthNet
+from sfm_ttr_ros.models.monodepth2 import Monodepth2
+from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.refinement import (
+    FrameSupervision,
+    RefinementConfig,
+    normalized_grid,
+    refine_encoder,
+    sample_depth,
+    weighted_l1,
+)
+from tests.test_refinement import tiny_model
+
+
+def mobile(seed: int = 0) -> MobileDepthNet:
+    torch.manual_seed(seed)
+    return MobileDepthNet(input_size=(64, 96)).eval()
+
+
+def one_frame(seed: int = 0, points: int = 200) -> list[FrameSupervision]:
+    rng = np.random.default_rng(seed)
+    img = rng.integers(0, 255, (64, 96, 3), dtype=np.uint8)
+    px = np.c_[rng.uniform(0, 95, points), rng.uniform(0, 63, points)]
+    return [FrameSupervision("0000", img, px, rng.uniform(2.0, 30.0, points),
+                             rng.uniform(0.2, 1.0, points))]
+
+
+@pytest.mark.parametrize("make", [mobile, lambda: Monodepth2(18, input_size=(64, 96)).eval()])
+def test_staged_forward_equals_forward(make):
+    torch.manual_seed(0)
+    model = make()
+    enc = model.encoder
+    x = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        full = enc(x)
+        for k in (1, enc.num_stages // 2, enc.num_stages - 1):
+            mid, feats = enc.forward_stages(x, 0, k, [])
+            _, split = enc.forward_stages(mid, k, enc.num_stages, feats)
+            assert len(split) == len(full) == 5
+            for a, b in zip(split, full, strict=True):
+                assert torch.equal(a, b)
+
+
+def test_frozen_stages_train_exactly_the_remaining_stages():
+    """Same weights as plain Adam over the later stages' parameters on the full forward."""
+    k, steps, lr = 12, 6, 1e-3
+    sup = one_frame()
+    model, ref = mobile(), mobile()
+    start = {n: v.clone() for n, v in model.encoder.state_dict().items()}
+    res = refine_encoder(model, sup, RefinementConfig(steps=steps, lr=lr,
+                                                      frozen_encoder_stages=k))
+    assert res.steps_done == steps
+
+    # the reference: the whole network run every step, stages < k without gradients
+    for p in ref.parameters():
+        p.requires_grad_(False)
+    params = [p for i in range(k, ref.encoder.num_stages)
+              for m in ref.encoder.stage_modules(i) for p in m.parameters()]
+    for p in params:
+        p.requires_grad_(True)
+    opt = torch.optim.Adam(params, lr=lr)
+    s = sup[0]
+    x = ref.preprocess(s.image)
+    grid = normalized_grid(s.pixels, 96, 64)
+    target, w = torch.as_tensor(s.target).float(), torch.as_tensor(s.weights).float()
+    for _ in range(steps):
+        loss = weighted_l1(sample_depth(ref(x), grid), target, w)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    got, want = model.encoder.state_dict(), ref.encoder.state_dict()
+    frozen_names = {n for i in range(k) for n, _ in model.encoder.features[i].named_parameters(
+        prefix=f"features.{i}")}
+    assert frozen_names
+    changed = 0
+    for name, value in got.items():
+        assert torch.allclose(value, want[name], atol=1e-6), name
+        if name in frozen_names:
+            assert torch.equal(value, start[name]), name
+        elif not torch.equal(value, start[name]):
+            changed += 1
+    assert changed > 10
+
+
+def test_frozen_stages_validation():
+    sup = one_frame()
+    with pytest.raises(InputError, match=">= 0"):
+        RefinementConfig(frozen_encoder_stages=-1)
+    model = mobile()
+    with pytest.raises(InputError, match="below the encoder's 18 stages"):
+        refine_encoder(model, sup, RefinementConfig(steps=1, frozen_encoder_stages=18))
+    with pytest.raises(InputError, match="staged-encoder protocol"):
+        refine_encoder(tiny_model(), sup, RefinementConfig(steps=1, frozen_encoder_stages=1))
+    bad = TTRConfig(refinement=RefinementConfig(frozen_encoder_stages=2))
+    with pytest.raises(InputError, match="staged-encoder protocol"):
+        SfmTTR(tiny_model(), bad)
+    ttr = SfmTTR(model, TTRConfig())
+    with pytest.raises(InputError, match="below"):
+        ttr.set_config(TTRConfig(refinement=RefinementConfig(frozen_encoder_stages=99)))
+    assert ttr.config.refinement.frozen_encoder_stages == 0  # the old config stays
+    ttr.set_config(TTRConfig(refinement=RefinementConfig(frozen_encoder_stages=17)))
+    ttr.close()
