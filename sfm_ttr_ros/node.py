@@ -175,7 +175,7 @@ class RefinerNode(Node):
             reason = node_params.validate(values)
             if not reason:
                 self.ttr.check_config(node_params.build_ttr_config(values))
-        except InputError as exc:  # e.g. more frozen encoder stages than this model has
+        except InputError as exc:  # e.g. frozen encoder levels on a model without stages
             reason = str(exc)
         except Exception as exc:  # a value no check foresaw: refuse it, with the reason
             reason = f"{type(exc).__name__}: {exc}"

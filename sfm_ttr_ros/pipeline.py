@@ -23,8 +23,8 @@ from .refinement import (
     FrameSupervision,
     RefinementConfig,
     RefinementResult,
-    check_staged_encoder,
     frame_loss,
+    frozen_stage_count,
     normalized_grid,
     observation_weights,
     refine_encoder,
@@ -126,10 +126,9 @@ class SfmTTR:
         self._original_key = self._weights_key()
 
     def check_config(self, config: TTRConfig) -> None:
-        """InputError if ``config`` cannot run on this model (frozen encoder stages the encoder
-        does not have)."""
-        if config.refinement.frozen_encoder_stages:
-            check_staged_encoder(self.model.encoder, config.refinement.frozen_encoder_stages)
+        """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
+        without the staged-encoder protocol, or all of its levels)."""
+        frozen_stage_count(self.model.encoder, config.refinement.frozen_encoder_levels)
 
     def set_config(self, config: TTRConfig) -> None:
         """New options, used from the next window on."""

@@ -13,15 +13,17 @@ normalises with them (modules in eval mode, affine parameters still trained); ``
 the encoder in train mode, so each single-image step normalises with its own statistics and
 updates the running ones, as the authors' release most likely did.
 
-Speed option (not in the paper): ``frozen_encoder_stages = K`` keeps the encoder's first K
-stages fixed as well. Their outputs (the image's early features and skip connections) then do
-not change between steps, so they are computed once per frame and each step runs only the
-remaining stages, the decoder and the backward pass through them. ``K = 0`` (the default) is the
-paper's whole-encoder refinement. The encoder must implement the staged-encoder protocol
-(``num_stages``, ``stage_modules(i)``, ``forward_stages(x, start, stop, features)``), as the
-MobileNetV2 and ResNet encoders here do. With ``bn_mode="train"`` the frozen stages normalise
-with the frame's own statistics once (their running statistics are updated once per frame, not
-once per step).
+Speed option (not in the paper): ``frozen_encoder_levels = L`` keeps the encoder fixed up to
+and including its L-th feature map as well (L = 2: everything that produces the 1/2 and 1/4
+maps; at most 4, so that the 1/32 stages always train). Those outputs (the image's early
+features and skip connections) then do not change between steps, so they are computed once per
+frame and each step runs only the remaining stages, the decoder and the backward pass through
+them: at high resolution these are the costliest layers of a step. ``L = 0`` (the default) is
+the paper's whole-encoder refinement. The encoder must implement the staged-encoder protocol
+(``num_stages``, ``level_stages``, ``stage_modules(i)``, ``forward_stages(x, start, stop,
+features)``), as the MobileNetV2 and ResNet encoders here do. With ``bn_mode="train"`` the
+frozen stages normalise with the frame's own statistics once (their running statistics are
+updated once per frame, not once per step).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from .models.base import DepthModel
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
 SAMPLINGS = ("bilinear", "nearest")
+MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32 stages train
 
 
 @dataclass
@@ -52,15 +55,15 @@ class RefinementConfig:
     sampling: str = "bilinear"  # how D_nn is read at the keypoints (the release: nearest)
     min_points: int = 10  # frames with fewer selected points are not used for training
     early_stop_patience: int = 0  # >0: stop when the running loss has not improved for N steps
-    frozen_encoder_stages: int = 0  # >0: the encoder's first K stages are not trained (speed)
+    frozen_encoder_levels: int = 0  # 1..4: encoder fixed up to its 1/2^L feature map (speed)
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.steps < 0:
             raise InputError(f"steps must be >= 0, got {self.steps}")
-        if self.frozen_encoder_stages < 0:
-            raise InputError(f"frozen_encoder_stages must be >= 0, got "
-                             f"{self.frozen_encoder_stages}")
+        if not 0 <= self.frozen_encoder_levels <= MAX_FROZEN_LEVELS:
+            raise InputError(f"frozen_encoder_levels must lie in 0..{MAX_FROZEN_LEVELS}, got "
+                             f"{self.frozen_encoder_levels}")
         if not (self.lr > 0 and np.isfinite(self.lr)):
             raise InputError(f"lr must be a positive number, got {self.lr}")
         for name, value, allowed in (("bn_mode", self.bn_mode, BN_MODES),
@@ -133,7 +136,6 @@ def freeze_decoder(model: DepthModel, frozen_stages: int = 0) -> list[torch.nn.P
         p.requires_grad_(False)
     frozen: set[int] = set()
     if frozen_stages:
-        check_staged_encoder(model.encoder, frozen_stages)
         for i in range(frozen_stages):
             for module in model.encoder.stage_modules(i):
                 frozen.update(id(p) for p in module.parameters())
@@ -145,18 +147,28 @@ def freeze_decoder(model: DepthModel, frozen_stages: int = 0) -> list[torch.nn.P
     return params
 
 
-def check_staged_encoder(encoder: torch.nn.Module, frozen_stages: int) -> None:
-    """``frozen_stages`` leading stages can be kept fixed: the encoder implements the staged
-    protocol and at least one stage is left to train."""
-    missing = [a for a in ("num_stages", "stage_modules", "forward_stages")
+def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
+    """The number of leading encoder stages that ``frozen_levels`` feature maps need (0 for 0).
+
+    Raises :class:`InputError` when the encoder does not implement the staged-encoder protocol
+    or would have no stage left to train."""
+    if not frozen_levels:
+        return 0
+    missing = [a for a in ("num_stages", "level_stages", "stage_modules", "forward_stages")
                if not hasattr(encoder, a)]
     if missing:
-        raise InputError(f"frozen_encoder_stages = {frozen_stages} needs an encoder with "
+        raise InputError(f"frozen_encoder_levels = {frozen_levels} needs an encoder with "
                          f"{', '.join(missing)} (the staged-encoder protocol); "
-                         f"{type(encoder).__name__} has none: use 0")
-    if frozen_stages >= encoder.num_stages:
-        raise InputError(f"frozen_encoder_stages must be below the encoder's "
-                         f"{encoder.num_stages} stages, got {frozen_stages}")
+                         f"{type(encoder).__name__} lacks it: use 0")
+    levels = tuple(int(k) for k in encoder.level_stages)
+    if not 0 < frozen_levels < len(levels):
+        raise InputError(f"frozen_encoder_levels must be below the encoder's {len(levels)} "
+                         f"feature maps, got {frozen_levels}")
+    stages = levels[frozen_levels - 1]
+    if not 0 < stages < int(encoder.num_stages):
+        raise InputError(f"{type(encoder).__name__}.level_stages {levels} does not leave a "
+                         f"stage of its {encoder.num_stages} to train")
+    return stages
 
 
 def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
@@ -178,7 +190,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
 
-    frozen = cfg.frozen_encoder_stages
+    frozen = frozen_stage_count(model.encoder, cfg.frozen_encoder_levels)
     params = freeze_decoder(model, frozen)
     set_bn_mode(model, cfg.bn_mode)
     # Everything per frame that does not change between steps is prepared once: the input, the

@@ -2,7 +2,7 @@
 subprocess, as `ros2 run` starts it) → recorded ~/depth → evaluated against the GT topic.
 
 The refined depth must beat the unrefined one on abs rel and RMSE for that drive. Small frames
-and fewer refinement steps than params/kitti.yaml keep it near a minute on 2 cores; everything
+and windows (8 frames every 4) keep it near a minute on 2 cores; everything
 else (node, parameters file, QoS, player, recorder, evaluation) is what `sfm-ttr demo` runs."""
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""refinement.frozen_encoder_stages: leading encoder stages kept fixed and computed once per
-frame (a speed option, issue 6) must give exactly the refinement of the remaining stages."""
+"""refinement.frozen_encoder_levels: the encoder kept fixed up to its L-th feature map, computed
+once per frame (a speed option, issue 6), must give exactly the refinement of the remaining
+stages."""
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.refinement import (
     FrameSupervision,
     RefinementConfig,
+    frozen_stage_count,
     normalized_grid,
     refine_encoder,
     sample_depth,
@@ -47,16 +49,27 @@ def test_staged_forward_equals_forward(make):
             assert len(split) == len(full) == 5
             for a, b in zip(split, full, strict=True):
                 assert torch.equal(a, b)
+        # level L needs exactly the stages that produce the first L feature maps
+        for level, k in enumerate(enc.level_stages, start=1):
+            assert len(enc.forward_stages(x, 0, k, [])[1]) == level
+            assert len(enc.forward_stages(x, 0, k - 1, [])[1]) == level - 1
+
+
+def test_level_stages_of_the_shipped_encoders():
+    assert mobile().encoder.level_stages == (2, 4, 7, 14, 18)
+    assert Monodepth2(18, input_size=(64, 96)).encoder.level_stages == (1, 2, 3, 4, 5)
+    assert frozen_stage_count(mobile().encoder, 0) == 0
+    assert frozen_stage_count(mobile().encoder, 3) == 7
 
 
 def test_frozen_stages_train_exactly_the_remaining_stages():
     """Same weights as plain Adam over the later stages' parameters on the full forward."""
-    k, steps, lr = 12, 6, 1e-3
+    level, k, steps, lr = 3, 7, 6, 1e-3  # up to the 1/8 map: features.0 … features.6
     sup = one_frame()
     model, ref = mobile(), mobile()
     start = {n: v.clone() for n, v in model.encoder.state_dict().items()}
     res = refine_encoder(model, sup, RefinementConfig(steps=steps, lr=lr,
-                                                      frozen_encoder_stages=k))
+                                                      frozen_encoder_levels=level))
     assert res.steps_done == steps
 
     # the reference: the whole network run every step, stages < k without gradients
@@ -91,21 +104,31 @@ def test_frozen_stages_train_exactly_the_remaining_stages():
     assert changed > 10
 
 
-def test_frozen_stages_validation():
+def test_frozen_levels_validation():
     sup = one_frame()
-    with pytest.raises(InputError, match=">= 0"):
-        RefinementConfig(frozen_encoder_stages=-1)
-    model = mobile()
-    with pytest.raises(InputError, match="below the encoder's 18 stages"):
-        refine_encoder(model, sup, RefinementConfig(steps=1, frozen_encoder_stages=18))
+    for bad_level in (-1, 5):
+        with pytest.raises(InputError, match=r"0\.\.4"):
+            RefinementConfig(frozen_encoder_levels=bad_level)
     with pytest.raises(InputError, match="staged-encoder protocol"):
-        refine_encoder(tiny_model(), sup, RefinementConfig(steps=1, frozen_encoder_stages=1))
-    bad = TTRConfig(refinement=RefinementConfig(frozen_encoder_stages=2))
+        refine_encoder(tiny_model(), sup, RefinementConfig(steps=1, frozen_encoder_levels=1))
+    bad = TTRConfig(refinement=RefinementConfig(frozen_encoder_levels=2))
     with pytest.raises(InputError, match="staged-encoder protocol"):
         SfmTTR(tiny_model(), bad)
+    SfmTTR(tiny_model(), TTRConfig()).close()  # level 0 needs no protocol
+
+    class ThreeMaps(torch.nn.Module):  # a protocol encoder with fewer feature maps
+        num_stages, level_stages = 3, (1, 2, 3)
+        stage_modules = forward_stages = None
+    with pytest.raises(InputError, match="below the encoder's 3 feature maps"):
+        frozen_stage_count(ThreeMaps(), 3)
+
+    model = mobile()
     ttr = SfmTTR(model, TTRConfig())
-    with pytest.raises(InputError, match="below"):
-        ttr.set_config(TTRConfig(refinement=RefinementConfig(frozen_encoder_stages=99)))
-    assert ttr.config.refinement.frozen_encoder_stages == 0  # the old config stays
-    ttr.set_config(TTRConfig(refinement=RefinementConfig(frozen_encoder_stages=17)))
+    class NoStageLeft(torch.nn.Module):
+        num_stages, level_stages = 2, (1, 2, 2, 2, 2)
+        stage_modules = forward_stages = None
+    with pytest.raises(InputError, match="does not leave a stage"):
+        frozen_stage_count(NoStageLeft(), 2)
+    ttr.set_config(TTRConfig(refinement=RefinementConfig(frozen_encoder_levels=4)))
+    assert ttr.config.refinement.frozen_encoder_levels == 4
     ttr.close()

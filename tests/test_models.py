@@ -455,6 +455,17 @@ def test_build_random_and_from_files(r18_files, tiny_mobile_files):
     x = torch.rand(1, 3, *SMALL)
     with torch.no_grad():
         assert torch.equal(model(x.to(model.device)).cpu(), ref(x))
+    # channels-last: the same network (weights, outputs to float rounding), another layout,
+    # and it stays channels-last through a refinement step and a weights restore
+    cl = build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
+                                 decoder_path=str(dec_path), channels_last=True))
+    conv = cl.encoder.encoder.conv1.weight
+    assert conv.is_contiguous(memory_format=torch.channels_last) and not conv.is_contiguous()
+    assert torch.equal(conv, ref.encoder.encoder.conv1.weight)
+    with torch.no_grad():
+        torch.testing.assert_close(cl(x), ref(x), rtol=1e-4, atol=1e-5)
+    cl.encoder.load_state_dict(ref.encoder.state_dict())
+    assert cl.encoder.encoder.conv1.weight.is_contiguous(memory_format=torch.channels_last)
     with pytest.raises(InputError, match="both encoder_path and decoder_path"):
         build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path)))
     with pytest.raises(ModelLoadError, match="not a MobileNetV2 encoder"):

@@ -244,6 +244,8 @@ def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
         "window_stride": set_("window_stride", 4),  # > window_size
         "refinement.bn_mode": set_("refinement.bn_mode", "banana"),
         "refinement.lr ": set_("refinement.lr", 0.0),
+        # the tiny test model has no staged encoder: only the whole encoder can be refined
+        "refinement.frozen_encoder_levels": set_("refinement.frozen_encoder_levels", 2),
     }
     assert all(not r.successful for r in refused.values())
     assert "range" in refused["window_size"].reason
@@ -252,6 +254,7 @@ def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
     assert "window_stride" in refused["window_stride"].reason
     assert "bn_mode" in refused["refinement.bn_mode"].reason
     assert "lr" in refused["refinement.lr "].reason
+    assert "staged-encoder protocol" in refused["refinement.frozen_encoder_levels"].reason
     got = call(client.get_parameters(["refinement.steps", "window_size"])).values
     assert (got[0].integer_value, got[1].integer_value) == (3, 3)
 
@@ -391,6 +394,9 @@ def test_start_up_fails_cleanly_on_inconsistent_parameters(context):
     with pytest.raises(ValueError, match="window_stride"):
         RefinerNode(model=tiny_model(), context=context, parameter_overrides=[
             Parameter("window_size", value=3), Parameter("window_stride", value=4)])
+    with pytest.raises(ValueError, match="staged-encoder protocol"):
+        RefinerNode(model=tiny_model(), context=context, parameter_overrides=[
+            Parameter("refinement.frozen_encoder_levels", value=2)])
 
 
 # -- installed with colcon, started like `ros2 run`, stopped with SIGINT ---------------------

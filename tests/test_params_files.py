@@ -88,14 +88,12 @@ def test_every_key_is_declared_typed_and_in_range(path: Path, context):
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
 def test_the_node_starts_with_the_file(path: Path, context):
-    torch = pytest.importorskip("torch")
-    from sfm_ttr_ros.models.base import EncoderDecoder
+    pytest.importorskip("torch")
+    from sfm_ttr_ros.models.mobilenet import MobileDepthNet
     from sfm_ttr_ros.node import RefinerNode
 
-    model = EncoderDecoder(torch.nn.Conv2d(3, 4, 3, 2, 1),
-                           torch.nn.Sequential(torch.nn.Conv2d(4, 1, 1),
-                                               torch.nn.Upsample(scale_factor=2),
-                                               torch.nn.Sigmoid()), (32, 64))
+    # a small default-architecture network: kitti.yaml's frozen_encoder_levels needs its stages
+    model = MobileDepthNet(input_size=(64, 96))
     node = RefinerNode(model=model, context=context,
                        cli_args=["--ros-args", "--params-file", str(path)])
     try:

@@ -118,6 +118,12 @@ class MobileNetV2Encoder(nn.Module):
         """Stages for :meth:`forward_stages`: the blocks ``features.0`` … ``features.17``."""
         return len(self.features)
 
+    @property
+    def level_stages(self) -> tuple[int, ...]:
+        """Stages run to produce each of the 5 feature maps (1/2 … 1/32): ``features.0`` …
+        ``features.T`` for each tap T."""
+        return tuple(t + 1 for t in self.taps)
+
     def stage_modules(self, index: int) -> list[nn.Module]:
         return [self.features[index]]
 

