@@ -367,8 +367,7 @@ def build_configs(params_file: str | Path | None = None, tuned_set: Sequence[str
             extra.setdefault("model", {}).setdefault("input_height", 0)
             extra["model"].setdefault("input_width", 0)
             extra["model"].setdefault("channels_last", False)  # torch's default format
-            if "reuse_predictions" in {f.name for f in dataclasses.fields(TTRConfig)}:
-                extra.setdefault("ttr", {}).setdefault("reuse_predictions", False)
+            extra.setdefault("ttr", {}).setdefault("reuse_predictions", False)
         else:
             raise InputError(f"unknown configuration {name!r} (naive, tuned)")
         ttr, stream, model = settings_from_params(values)

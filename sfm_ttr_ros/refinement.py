@@ -129,20 +129,17 @@ def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
         model.encoder.train()
 
 
-def freeze_decoder(model: DepthModel, frozen_stages: int = 0) -> list[torch.nn.Parameter]:
-    """requires_grad only on the encoder (no gradients are computed for the decoder), minus the
-    parameters of its first ``frozen_stages`` stages; returns the parameters to train."""
+def trainable_parameters(model: DepthModel, frozen_stages: int = 0) -> list[torch.nn.Parameter]:
+    """The encoder's parameters minus those of its first ``frozen_stages`` stages, with
+    requires_grad on exactly them (no gradients are computed for the decoder or frozen stages)."""
+    frozen = {id(p) for i in range(frozen_stages)
+              for module in model.encoder.stage_modules(i) for p in module.parameters()}
     for p in model.decoder.parameters():
         p.requires_grad_(False)
-    frozen: set[int] = set()
-    if frozen_stages:
-        for i in range(frozen_stages):
-            for module in model.encoder.stage_modules(i):
-                frozen.update(id(p) for p in module.parameters())
     params = []
     for p in model.encoder.parameters():
         p.requires_grad_(id(p) not in frozen)
-        if id(p) not in frozen:
+        if p.requires_grad:
             params.append(p)
     return params
 
@@ -191,7 +188,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     rng = np.random.default_rng(cfg.seed)
 
     frozen = frozen_stage_count(model.encoder, cfg.frozen_encoder_levels)
-    params = freeze_decoder(model, frozen)
+    params = trainable_parameters(model, frozen)
     set_bn_mode(model, cfg.bn_mode)
     # Everything per frame that does not change between steps is prepared once: the input, the
     # sampling grid, targets, weights and, with frozen leading stages, their outputs.
@@ -251,8 +248,8 @@ def _forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
     if not frozen_stages:
         return model(x)
     enc = model.encoder
-    _, features = enc.forward_stages(x[0], frozen_stages, enc.num_stages, x[1])
-    return model.output_to_depth(model.decoder(features))
+    return model.depth_from_features(enc.forward_stages(x[0], frozen_stages, enc.num_stages,
+                                                        x[1])[1])
 
 
 def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -> float:

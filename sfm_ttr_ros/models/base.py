@@ -53,7 +53,11 @@ class DepthModel(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Depth N x 1 x h x w for an input batch N x 3 x h x w with values in [0, 1]."""
-        return self.output_to_depth(self.decoder(self.encoder(x)))
+        return self.depth_from_features(self.encoder(x))
+
+    def depth_from_features(self, features) -> torch.Tensor:
+        """D_nn = h(·) for the encoder's output g(I): decoder, then :meth:`output_to_depth`."""
+        return self.output_to_depth(self.decoder(features))
 
     # -- helpers shared by every model -------------------------------------------------------
     @property
