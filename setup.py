@@ -41,7 +41,7 @@ setup(
         exclude=["tests", "tests.*"],
     ),
     # The embedded default model's weights (installed when they have been trained).
-    package_data={"sfm_ttr_ros.models": ["weights/*.pth"]},
+    package_data={"sfm_ttr_ros.core.models": ["weights/*.pth"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
@@ -82,8 +82,8 @@ setup(
     zip_safe=False,
     entry_points={
         "console_scripts": [
-            "refiner = sfm_ttr_ros.node:main",
-            "sfm-ttr = sfm_ttr_ros.cli:main",
+            "refiner = sfm_ttr_ros.ros.node:main",
+            "sfm-ttr = sfm_ttr_ros.tools.cli:main",
         ],
     },
 )

@@ -1,4 +1,4 @@
-"""sensor_msgs/CameraInfo <-> :class:`sfm_ttr_ros.frames.Intrinsics`."""
+"""sensor_msgs/CameraInfo <-> :class:`sfm_ttr_ros.core.frames.Intrinsics`."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
-from sfm_ttr_ros.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.frames import InputError, Intrinsics
 
 
 class CameraInfoError(InputError):

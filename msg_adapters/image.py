@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.visualize import colorize_depth
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.visualize import colorize_depth
 
 if TYPE_CHECKING:  # decoding is duck-typed (rclpy and rosbags messages); only encoding needs ROS
     from sensor_msgs.msg import Image
@@ -184,7 +184,7 @@ def depth_to_colored_image(
     vmax: float | None = None,
 ) -> Image:
     """A depth map as a bgr8 Image coloured by inverse depth
-    (:func:`sfm_ttr_ros.visualize.colorize_depth`; invalid pixels black)."""
+    (:func:`sfm_ttr_ros.core.visualize.colorize_depth`; invalid pixels black)."""
     try:
         bgr = colorize_depth(depth, vmin=vmin, vmax=vmax)
     except InputError as exc:

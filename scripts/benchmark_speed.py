@@ -3,7 +3,8 @@
 
 Both configurations run, one after the other in one process, over the SAME generated drive
 (default: synthetic domain B, seed 3, 60 frames of 1242x375, exact ground truth), fed frame by
-frame through :class:`~sfm_ttr_ros.stream.StreamProcessor` exactly as the ROS node feeds it, and
+frame through :class:`~sfm_ttr_ros.core.stream.StreamProcessor` exactly as the ROS node feeds
+it, and
 every output is converted as the node converts it before publishing (``depth_to_image``,
 ``depth_to_colored_image``, ``numpy_to_pointcloud2`` for the window's cloud,
 ``make_diagnostic_array`` per window, as the node's ``publish_*`` parameters say), then serialised
@@ -99,19 +100,19 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run from a source checkout without installing
     sys.path.insert(0, str(REPO))
 
-from sfm_ttr_ros.benchmark import (  # noqa: E402
+from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator  # noqa: E402
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics  # noqa: E402
+from sfm_ttr_ros.core.models.registry import ModelConfig, build_model, resolve_device  # noqa: E402
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
+from sfm_ttr_ros.core.sfm import SfmReconstructor  # noqa: E402
+from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats  # noqa: E402
+from sfm_ttr_ros.tools.benchmark import (  # noqa: E402
     default_params_file,
     describe_model,
     json_safe,
     read_params_file,
     settings_from_params,
 )
-from sfm_ttr_ros.evaluation import METRICS, EvalConfig, Evaluator  # noqa: E402
-from sfm_ttr_ros.frames import Frame, InputError, Intrinsics  # noqa: E402
-from sfm_ttr_ros.models.registry import ModelConfig, build_model, resolve_device  # noqa: E402
-from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig  # noqa: E402
-from sfm_ttr_ros.sfm import SfmReconstructor  # noqa: E402
-from sfm_ttr_ros.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats  # noqa: E402
 
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "sfm_ttr_speed_cache"
 STAGES = ("feature_extraction", "matching", "mapping", "sfm_other", "alignment", "refinement",
@@ -171,7 +172,7 @@ def load_drive(domain: str = "B", seed: int = 3, frames: int = 60, width: int = 
     """The first ``frames`` frames of the drive of scene ``seed`` in ``domain``; rendered once
     and cached in ``cache_dir`` as an .npz (a cached longer drive of the same scene and size is
     reused: its first frames are the same frames). ``cache_dir`` None or "": no cache."""
-    from sfm_ttr_ros.synthetic import render_sequence, sample_scene_params
+    from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
     if frames < 2:
         raise InputError(f"need at least 2 frames, got {frames}")
@@ -228,7 +229,7 @@ def iter_drive_chunks(domain: str, seed: int, frames: int, width: int, height: i
     boundary). Here the street is laid out once for the whole drive and frames are rendered
     from it chunk by chunk, exactly as ``render_sequence(params, frames, ...)`` renders them
     (same images, same 10 Hz stamps), without holding more than one chunk."""
-    from sfm_ttr_ros import synthetic as syn
+    from sfm_ttr_ros.data import synthetic as syn
 
     params = syn.sample_scene_params(seed, domain)
     intr = syn.scene_intrinsics(params, int(width), int(height))
@@ -282,7 +283,7 @@ def _parse_value(text: str):
 def split_overrides(overrides: Sequence[str]) -> tuple[dict[str, Any], dict[str, dict]]:
     """``KEY=VALUE`` strings → (node parameter values, {section: {field: value}} for the
     fields of the core's configs that are not node parameters)."""
-    from sfm_ttr_ros import node_params
+    from sfm_ttr_ros.ros import params as node_params
 
     node: dict[str, Any] = {}
     extra: dict[str, dict] = defaultdict(dict)
@@ -475,7 +476,7 @@ class Publisher:
 
     def warm_up(self, shape: tuple[int, int]) -> None:
         """One message of each type (rclpy loads its type support on first use)."""
-        from sfm_ttr_ros.stream import FrameOutput as _FO
+        from sfm_ttr_ros.core.stream import FrameOutput as _FO
 
         d = np.ones(shape, np.float32)
         f = Frame(index=0, image=np.zeros((*shape, 3), np.uint8), header=make_header(0.0))

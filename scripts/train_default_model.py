@@ -13,7 +13,7 @@ inlier test, Eq. 4, is in the network's depth units).
 Reproducible from ``--seed`` (scene seeds, batch order, augmentation, initialisation). Example
 (the command that produced the shipped weights, see MODEL_CARD.md)::
 
-    .venv/bin/python scripts/train_default_model.py --seed 0 --out sfm_ttr_ros/models/weights
+    .venv/bin/python scripts/train_default_model.py --seed 0 --out sfm_ttr_ros/core/models/weights
 
 Renders are cached in ``--cache`` (an ``.npz`` per scene), so a rerun skips rendering.
 """
@@ -34,10 +34,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sfm_ttr_ros.evaluation import EvalConfig, Evaluator
-from sfm_ttr_ros.models.mobilenet import MobileDepthNet
-from sfm_ttr_ros.models.monodepth2 import save_monodepth2
-from sfm_ttr_ros.synthetic import render_sequence, sample_scene_params
+from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
+from sfm_ttr_ros.core.models.monodepth2 import save_monodepth2
+from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
 INPUT_SIZE = (128, 416)  # h, w: KITTI's 1242x375 aspect, SfMLearner's size, ~40 ms on 2 threads
 RENDER_SCALE = 2  # render at 2x the input size, area-downsample (anti-aliased like inference)
@@ -147,7 +147,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cache", default="/tmp/sfm_ttr_train_cache")
-    ap.add_argument("--out", default="sfm_ttr_ros/models/weights")
+    ap.add_argument("--out", default="sfm_ttr_ros/core/models/weights")
     ap.add_argument("--fp16", action=argparse.BooleanOptionalAction, default=True,
                     help="store weights as float16 (half the size; loaded back as float32)")
     args = ap.parse_args(argv)

@@ -22,12 +22,12 @@ import time
 import numpy as np
 import torch
 
-from sfm_ttr_ros.evaluation import EvalConfig, Evaluator
-from sfm_ttr_ros.models import ModelConfig, build_model
-from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.refinement import RefinementConfig
-from sfm_ttr_ros.sequence import open_kitti
-from sfm_ttr_ros.sfm import SfmConfig
+from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+from sfm_ttr_ros.core.models import ModelConfig, build_model
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.refinement import RefinementConfig
+from sfm_ttr_ros.core.sfm import SfmConfig
+from sfm_ttr_ros.data.sequence import open_kitti
 
 BANDS = ((0, 5), (5, 10), (10, 20), (20, 80))
 

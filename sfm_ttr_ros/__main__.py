@@ -1,5 +1,5 @@
 import sys
 
-from .cli import main
+from sfm_ttr_ros.tools.cli import main
 
 sys.exit(main())

@@ -57,7 +57,7 @@ def one_thread():
 TINY_PLUGIN = '''
 import torch
 from torch import nn
-from sfm_ttr_ros.models.base import EncoderDecoder
+from sfm_ttr_ros.core.models.base import EncoderDecoder
 
 def factory(config=None):
     torch.manual_seed(0)

@@ -14,8 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.cli import main
-from sfm_ttr_ros.frames import (
+from sfm_ttr_ros.core.frames import (
     Frame,
     InputError,
     Intrinsics,
@@ -24,8 +23,9 @@ from sfm_ttr_ros.frames import (
     load_frames,
     load_rgb,
 )
-from sfm_ttr_ros.sequence import open_image_folder
-from sfm_ttr_ros.sfm import SfmReconstructor, reconstruct_window
+from sfm_ttr_ros.core.sfm import SfmReconstructor, reconstruct_window
+from sfm_ttr_ros.data.sequence import open_image_folder
+from sfm_ttr_ros.tools.cli import main
 
 W, H = 128, 96
 INTR = Intrinsics(100.0, 100.0, 63.5, 47.5, W, H)
@@ -153,8 +153,8 @@ def test_bad_window_rejected_before_sfm_or_network():
     import torch
     from torch import nn
 
-    from sfm_ttr_ros.models.base import EncoderDecoder
-    from sfm_ttr_ros.pipeline import SfmTTR
+    from sfm_ttr_ros.core.models.base import EncoderDecoder
+    from sfm_ttr_ros.core.pipeline import SfmTTR
 
     torch.manual_seed(0)
     model = EncoderDecoder(nn.Conv2d(3, 4, 3, padding=1),

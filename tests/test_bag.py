@@ -18,7 +18,11 @@ import numpy as np
 import pytest
 import yaml
 
-from sfm_ttr_ros.bag import (
+from sfm_ttr_ros.core.evaluation import EvalConfig
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.data.kitti import read_depth_png, write_kitti_drive
+from sfm_ttr_ros.data.synthetic import make_sequence
+from sfm_ttr_ros.ros.bag import (
     CAMERA_INFO_TOPIC,
     DEFAULT_PRED_TOPIC,
     DEPTH_GT_TOPIC,
@@ -34,10 +38,6 @@ from sfm_ttr_ros.bag import (
     kitti_to_bag,
     read_bag,
 )
-from sfm_ttr_ros.evaluation import EvalConfig
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.kitti import read_depth_png, write_kitti_drive
-from sfm_ttr_ros.synthetic import make_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 REAL_CALIB = REPO.parent / "shared" / "data" / "kitti_calib_2011_09_26" / "calib_cam_to_cam.txt"
@@ -232,7 +232,7 @@ def test_play_into_subscriber_with_clock_and_recording(drive, bags, ros_sub, tmp
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import CameraInfo, Image
 
-    from sfm_ttr_ros.player import TopicRecorder, play_bag
+    from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
 
     raw, _, name, _ = drive
     subscribe, got, wait = ros_sub
@@ -274,7 +274,7 @@ def test_play_into_subscriber_with_clock_and_recording(drive, bags, ros_sub, tmp
 
 def test_play_errors(bags, tmp_path):
     pytest.importorskip("rclpy")
-    from sfm_ttr_ros.player import play_bag
+    from sfm_ttr_ros.ros.player import play_bag
 
     with pytest.raises(InputError, match="no subscriber on each of /kitti/camera_color_left/"
                                          "depth_gt after 0.3 s"):
@@ -290,7 +290,7 @@ def test_play_errors(bags, tmp_path):
 
 PLAY_SCRIPT = """
 import argparse, sys
-from sfm_ttr_ros.cli_bag import add_commands
+from sfm_ttr_ros.tools.cli_bag import add_commands
 p = argparse.ArgumentParser()
 add_commands(p.add_subparsers(dest="command", required=True))
 a = p.parse_args(sys.argv[1:])
@@ -365,7 +365,7 @@ def test_evaluate_bag_matches_by_stamp(bags, tmp_path):
 
 
 def test_evaluate_bag_command(bags, tmp_path, capsys):
-    from sfm_ttr_ros.cli_bag import evaluate_bag_command
+    from sfm_ttr_ros.tools.cli_bag import evaluate_bag_command
 
     both = tmp_path / "both"
     gts = _gt_frames(bags["sqlite3"])
@@ -407,7 +407,7 @@ def test_evaluate_bag_command(bags, tmp_path, capsys):
 
 
 def _parser():
-    from sfm_ttr_ros.cli_bag import add_commands
+    from sfm_ttr_ros.tools.cli_bag import add_commands
 
     p = argparse.ArgumentParser(prog="sfm-ttr")
     add_commands(p.add_subparsers(dest="command", required=True))
@@ -481,7 +481,7 @@ def test_cli_kitti_to_bag(drive, tmp_path, capsys):
 
 
 def test_bag_module_is_ros_free():
-    code = ("import sys, sfm_ttr_ros.bag, sfm_ttr_ros.cli_bag, sfm_ttr_ros.player\n"
+    code = ("import sys, sfm_ttr_ros.ros.bag, sfm_ttr_ros.tools.cli_bag, sfm_ttr_ros.ros.player\n"
             "bad = [m for m in ('rclpy', 'sensor_msgs', 'msg_adapters') if m in sys.modules]\n"
             "assert not bad, bad\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 DRIVE = "2011_09_26_drive_0001_sync"
@@ -35,8 +35,8 @@ KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "frames", "se
 def cli(argv: list[str]) -> int:
     """``sfm-ttr ARGV``: through ``cli.main`` once the commands are wired into it, else through
     a parser holding only this module's commands, with the same error handling."""
-    from sfm_ttr_ros import cli as cli_mod
-    from sfm_ttr_ros.cli_benchmark import add_commands
+    from sfm_ttr_ros.tools import cli as cli_mod
+    from sfm_ttr_ros.tools.cli_benchmark import add_commands
 
     sub = next(a for a in cli_mod.build_parser()._actions
                if isinstance(a, argparse._SubParsersAction))
@@ -54,8 +54,8 @@ def cli(argv: list[str]) -> int:
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory, tiny_plugin):
-    from sfm_ttr_ros.kitti import write_kitti_drive
-    from sfm_ttr_ros.synthetic import make_sequence
+    from sfm_ttr_ros.data.kitti import write_kitti_drive
+    from sfm_ttr_ros.data.synthetic import make_sequence
 
     root = tmp_path_factory.mktemp("bench")
     seq = make_sequence(seed=1, domain="B", num_frames=N_FRAMES, width=320, height=96)
@@ -182,15 +182,15 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     """Without settings, run_benchmark uses params/kitti.yaml; offline_max_frames splits."""
     from bench_tiny_model import factory
 
-    from sfm_ttr_ros import node_params
-    from sfm_ttr_ros.benchmark import (
+    from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
+    from sfm_ttr_ros.data.sequence import open_kitti
+    from sfm_ttr_ros.ros import params as node_params
+    from sfm_ttr_ros.tools.benchmark import (
         default_params_file,
         read_params_file,
         run_benchmark,
         settings_from_params,
     )
-    from sfm_ttr_ros.models.mobilenet import MobileDepthNet
-    from sfm_ttr_ros.sequence import open_kitti
 
     path = default_params_file()
     assert path == REPO / "params" / "kitti.yaml"
@@ -230,7 +230,7 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
 
 
 def test_params_file_is_checked_like_the_node(tmp_path):
-    from sfm_ttr_ros.benchmark import read_params_file
+    from sfm_ttr_ros.tools.benchmark import read_params_file
 
     def write(body: str) -> Path:
         p = tmp_path / "p.yaml"

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from sfm_ttr_ros.evaluation import EvalConfig, Evaluator
-from sfm_ttr_ros.models import ModelConfig, build_model
-from sfm_ttr_ros.models.mobilenet import MobileDepthNet
-from sfm_ttr_ros.models.registry import (
+from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+from sfm_ttr_ros.core.models import ModelConfig, build_model
+from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
+from sfm_ttr_ros.core.models.registry import (
     DEFAULT_DECODER_FILE,
     DEFAULT_ENCODER_FILE,
     DEFAULT_WEIGHTS_PACKAGE,
     default_weights_available,
 )
-from sfm_ttr_ros.synthetic import make_sequence
+from sfm_ttr_ros.data.synthetic import make_sequence
 
 # Measured with the weights of scripts/train_default_model.py --seed 0 (see MODEL_CARD.md):
 # median-scaled abs rel 0.149 on this frame (domain B, seed 4242, 1242x375), 0.15-0.25 on seeds

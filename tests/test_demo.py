@@ -11,8 +11,8 @@ import json
 
 import pytest
 
-from sfm_ttr_ros.demo import DemoOptions, run_demo
-from sfm_ttr_ros.models.registry import default_weights_available
+from sfm_ttr_ros.core.models.registry import default_weights_available
+from sfm_ttr_ros.tools.demo import DemoOptions, run_demo
 
 pytestmark = pytest.mark.skipif(not default_weights_available(),
                                 reason="default weights not trained yet")

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.evaluation import (
+from sfm_ttr_ros.core.evaluation import (
     EIGEN_CROP,
     MAX_DEPTH,
     MIN_DEPTH,
@@ -22,7 +22,7 @@ from sfm_ttr_ros.evaluation import (
     relative_gain,
     valid_mask,
 )
-from sfm_ttr_ros.frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 
 def test_constants():

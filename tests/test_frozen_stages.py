@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.models.mobilenet import MobileDepthNet
-from sfm_ttr_ros.models.monodepth2 import Monodepth2
-from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.refinement import (
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
+from sfm_ttr_ros.core.models.monodepth2 import Monodepth2
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.refinement import (
     FrameSupervision,
     RefinementConfig,
     frozen_stage_count,

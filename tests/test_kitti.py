@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.frames import Frame, InputError, Intrinsics
-from sfm_ttr_ros.kitti import (
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from sfm_ttr_ros.data.kitti import (
     KittiDrive,
     format_kitti_timestamp,
     kitti_intrinsics,
@@ -24,7 +24,7 @@ from sfm_ttr_ros.kitti import (
     write_depth_png,
     write_kitti_drive,
 )
-from sfm_ttr_ros.synthetic import SyntheticSequence, make_sequence
+from sfm_ttr_ros.data.synthetic import SyntheticSequence, make_sequence
 
 REAL_CALIB = (
     Path(__file__).resolve().parents[2]

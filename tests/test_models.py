@@ -11,8 +11,8 @@ import pytest
 import torch
 from torch import nn
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.models import (
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models import (
     DepthDecoder,
     DepthModel,
     EncoderDecoder,
@@ -29,8 +29,8 @@ from sfm_ttr_ros.models import (
     load_monodepth2,
     save_monodepth2,
 )
-from sfm_ttr_ros.models import registry as registry_module
-from sfm_ttr_ros.models.mobilenet import imagenet_mobilenet_v2_path
+from sfm_ttr_ros.core.models import registry as registry_module
+from sfm_ttr_ros.core.models.mobilenet import imagenet_mobilenet_v2_path
 
 SMALL = (64, 96)
 
@@ -427,7 +427,7 @@ def test_build_plugin_errors(tmp_path, monkeypatch):
         "value = 3\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     try:
-        with pytest.raises(ModelLoadError, match="not a sfm_ttr_ros.models.base.DepthModel"):
+        with pytest.raises(ModelLoadError, match="not a sfm_ttr_ros.core.models.base.DepthModel"):
             build_model(ModelConfig(type=f"python:{name}:not_a_model"))
         with pytest.raises(ModelLoadError, match="no callable"):
             build_model(ModelConfig(type=f"python:{name}:value"))

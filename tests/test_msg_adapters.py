@@ -33,7 +33,7 @@ from msg_adapters import (  # noqa: E402
     pointcloud2_to_numpy,
     pointcloud2_to_xyz,
 )
-from sfm_ttr_ros.frames import InputError, Intrinsics  # noqa: E402
+from sfm_ttr_ros.core.frames import InputError, Intrinsics  # noqa: E402
 
 RNG = np.random.default_rng(1234)
 # encoding -> (dtype, channels)

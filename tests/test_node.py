@@ -44,9 +44,9 @@ from msg_adapters import (  # noqa: E402
     numpy_to_image,
     pointcloud2_to_numpy,
 )
-from sfm_ttr_ros import node_params  # noqa: E402
-from sfm_ttr_ros.models.base import EncoderDecoder  # noqa: E402
-from sfm_ttr_ros.node import DIAG_NAME, RefinerNode  # noqa: E402
+from sfm_ttr_ros.core.models.base import EncoderDecoder  # noqa: E402
+from sfm_ttr_ros.ros import params as node_params  # noqa: E402
+from sfm_ttr_ros.ros.node import DIAG_NAME, RefinerNode  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PKG = "sfm_ttr_ros"
@@ -92,7 +92,7 @@ def context():
 
 @pytest.fixture(scope="module")
 def sequence():
-    synthetic = pytest.importorskip("sfm_ttr_ros.synthetic")
+    synthetic = pytest.importorskip("sfm_ttr_ros.data.synthetic")
     return synthetic.make_sequence(seed=0, domain="A", num_frames=12, width=WIDTH, height=HEIGHT)
 
 

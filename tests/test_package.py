@@ -28,7 +28,7 @@ EXEC_DEPENDS = {
     "python3-yaml",
     "rosgraph_msgs",
 }
-EXECUTABLES = {"refiner": "sfm_ttr_ros.node", "sfm-ttr": "sfm_ttr_ros.cli"}
+EXECUTABLES = {"refiner": "sfm_ttr_ros.ros.node", "sfm-ttr": "sfm_ttr_ros.tools.cli"}
 
 
 @pytest.fixture(scope="module")
@@ -140,7 +140,7 @@ def test_colcon_installs_every_module_and_the_weights(colcon_install: Path):
     site = colcon_install / "lib" / PY_VERSION / "site-packages"
     wanted = {p.relative_to(REPO) for top in (PKG, "msg_adapters")
               for p in (REPO / top).rglob("*.py") if "__pycache__" not in p.parts}
-    wanted |= {p.relative_to(REPO) for p in (REPO / PKG / "models/weights").glob("*.pth")}
+    wanted |= {p.relative_to(REPO) for p in (REPO / PKG / "core/models/weights").glob("*.pth")}
     assert wanted, "no sources found"
     missing = sorted(str(p) for p in wanted if not (site / p).is_file())
     assert not missing, f"not installed: {missing}"

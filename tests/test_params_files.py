@@ -21,7 +21,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from sfm_ttr_ros import node_params  # noqa: E402
+from sfm_ttr_ros.ros import params as node_params  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FILES = sorted((REPO / "params").glob("*.yaml"))
@@ -89,8 +89,8 @@ def test_every_key_is_declared_typed_and_in_range(path: Path, context):
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
 def test_the_node_starts_with_the_file(path: Path, context):
     pytest.importorskip("torch")
-    from sfm_ttr_ros.models.mobilenet import MobileDepthNet
-    from sfm_ttr_ros.node import RefinerNode
+    from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
+    from sfm_ttr_ros.ros.node import RefinerNode
 
     # a small default-architecture network: kitti.yaml's frozen_encoder_levels needs its stages
     model = MobileDepthNet(input_size=(64, 96))

@@ -18,11 +18,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-import sfm_ttr_ros.pipeline as pipeline_module
-from sfm_ttr_ros.evaluation import Evaluator
-from sfm_ttr_ros.frames import Frame
-from sfm_ttr_ros.models.base import EncoderDecoder
-from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig
+import sfm_ttr_ros.core.pipeline as pipeline_module
+from sfm_ttr_ros.core.evaluation import Evaluator
+from sfm_ttr_ros.core.frames import Frame
+from sfm_ttr_ros.core.models.base import EncoderDecoder
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 
 W, H = 640, 192  # the SfM stage's reliable small size (see test_sfm.py)
 INPUT = (48, 160)  # the network's input size
@@ -67,7 +67,7 @@ def tiny_model(state=None) -> EncoderDecoder:
 
 @pytest.fixture(scope="module")
 def scene(one_thread):
-    from sfm_ttr_ros.synthetic import make_sequence
+    from sfm_ttr_ros.data.synthetic import make_sequence
 
     seq = make_sequence(seed=0, domain="A", num_frames=10, width=W, height=H)
     frames = [Frame(i, im, stamp=s) for i, (im, s) in

@@ -16,11 +16,11 @@ import pytest
 import torch
 from torch import nn
 
-from sfm_ttr_ros.frames import Frame, Intrinsics
-from sfm_ttr_ros.models.base import EncoderDecoder
-from sfm_ttr_ros.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig, sample_at
-from sfm_ttr_ros.refinement import RefinementConfig
-from sfm_ttr_ros.sfm import FrameObservations, SfmResult
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.models.base import EncoderDecoder
+from sfm_ttr_ros.core.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig, sample_at
+from sfm_ttr_ros.core.refinement import RefinementConfig
+from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
 
 W, H = 160, 64
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)

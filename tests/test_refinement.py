@@ -5,9 +5,9 @@ import pytest
 import torch
 from torch import nn
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.models.base import EncoderDecoder
-from sfm_ttr_ros.refinement import (
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.base import EncoderDecoder
+from sfm_ttr_ros.core.refinement import (
     FrameSupervision,
     RefinementConfig,
     frame_loss,

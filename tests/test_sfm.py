@@ -15,8 +15,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from sfm_ttr_ros.frames import Frame, Intrinsics
-from sfm_ttr_ros.sfm import SfmConfig, SfmReconstructor, SfmResult, reconstruct_window
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, reconstruct_window
 
 # 640 x 192 is the smallest size that registered every window we tried: at 416 x 128 seed 1
 # "succeeded" with a wrong reconstruction (camera path 32 degrees off, depth error 33 %),
@@ -43,7 +43,7 @@ def depth_errors(result: SfmResult, frames: list[Frame], gt: dict[str, np.ndarra
 
 @pytest.fixture(scope="module")
 def street():
-    from sfm_ttr_ros.synthetic import make_sequence
+    from sfm_ttr_ros.data.synthetic import make_sequence
 
     seq = make_sequence(seed=0, domain="A", num_frames=12, width=W, height=H)
     frames = [Frame(i, im, stamp=s) for i, (im, s) in
@@ -233,7 +233,7 @@ def test_unrelated_frames_fail_with_a_reason(street):
 # -------------------------------------------------------------------------- real data
 @pytest.mark.slow
 def test_real_hololens_window(shared_data):
-    from sfm_ttr_ros.sequence import open_image_folder
+    from sfm_ttr_ros.data.sequence import open_image_folder
 
     root = shared_data / "hololens_000"
     if not root.is_dir():

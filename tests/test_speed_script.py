@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from sfm_ttr_ros.frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -159,7 +159,7 @@ def test_overrides(bs, tiny_model):
 
 
 def test_chunked_drive_is_one_continuous_street(bs):
-    from sfm_ttr_ros.synthetic import render_sequence, sample_scene_params
+    from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
     chunks = list(bs.iter_drive_chunks("B", 3, 7, 64, 32, chunk=3))
     assert [len(c) for _, c in chunks] == [3, 3, 1]

@@ -13,11 +13,11 @@ import pytest
 import torch
 from torch import nn
 
-from sfm_ttr_ros.frames import Frame, Intrinsics
-from sfm_ttr_ros.models.base import EncoderDecoder
-from sfm_ttr_ros.pipeline import SfmTTR, TTRConfig, WindowResult
-from sfm_ttr_ros.sfm import SfmResult
-from sfm_ttr_ros.stream import (
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.models.base import EncoderDecoder
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
+from sfm_ttr_ros.core.sfm import SfmResult
+from sfm_ttr_ros.core.stream import (
     DROP_REASONS,
     UNREFINED_REASONS,
     FrameOutput,
@@ -302,7 +302,7 @@ def tiny_model() -> EncoderDecoder:
 
 @pytest.fixture(scope="module")
 def sequence():
-    synthetic = pytest.importorskip("sfm_ttr_ros.synthetic")
+    synthetic = pytest.importorskip("sfm_ttr_ros.data.synthetic")
     return synthetic.make_sequence(seed=0, domain="A", num_frames=8, width=320, height=96)
 
 

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.synthetic import (
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.data.synthetic import (
     SceneParams,
     SyntheticSequence,
     _materials,

@@ -1,4 +1,4 @@
-"""sfm_ttr_ros.visualize: depth / error colour maps and binary PLY."""
+"""sfm_ttr_ros.core.visualize: depth / error colour maps and binary PLY."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.visualize import colorize_depth, colorize_error, read_ply, write_ply
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.visualize import colorize_depth, colorize_error, read_ply, write_ply
 
 
 def _gray(bgr: np.ndarray) -> np.ndarray:

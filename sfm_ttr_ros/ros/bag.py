@@ -2,7 +2,7 @@
 
 Everything here uses only `rosbags <https://gitlab.com/ternaris/rosbags>`_ (pure Python), numpy
 and the core, so it runs on machines without a ROS install. Playing a bag into a ROS graph is
-:mod:`sfm_ttr_ros.player` (rclpy).
+:mod:`sfm_ttr_ros.ros.player` (rclpy).
 
 Bags are written as rosbag2 version 9 (what Jazzy writes) with the ``ROS2_JAZZY`` type store of
 rosbags: every connection carries its message definition, its RIHS01 type hash (equal to the one
@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluation import EvalConfig, Evaluator
-from .frames import InputError
+from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+from sfm_ttr_ros.core.frames import InputError
 
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_MSGTYPE = "sensor_msgs/msg/CameraInfo"
@@ -88,7 +88,7 @@ def _storage_plugin(storage: str):
 def kitti_timestamp_ns(text: str) -> int:
     """``YYYY-MM-DD HH:MM:SS.fffffffff`` (UTC) -> integer nanoseconds since the epoch, exactly
     (a float of seconds since 1970 cannot hold nanoseconds)."""
-    from .kitti import parse_kitti_timestamp
+    from sfm_ttr_ros.data.kitti import parse_kitti_timestamp
 
     parse_kitti_timestamp(text)  # validates, with the reader's error message
     text = text.strip()
@@ -165,7 +165,7 @@ def camera_info_from_calib(calib: dict, cam: str, stamp_ns: int, frame_id: str):
     an already rectified image would rotate it a second time; image_geometry with D = 0, R = I,
     K = P[:3, :3] leaves the image as it is).
     """
-    from .kitti import kitti_intrinsics
+    from sfm_ttr_ros.data.kitti import kitti_intrinsics
 
     intr = kitti_intrinsics(calib, cam)  # validates P_rect and S_rect
     P = np.asarray(calib[f"P_rect_{cam}"], dtype=np.float64).reshape(3, 4)
@@ -245,12 +245,12 @@ class BagRecorder:
     """A rosbag2 writer for serialized (CDR) messages.
 
     Use it from one thread: the sqlite3 storage refuses calls from any thread but the one that
-    created it (:class:`sfm_ttr_ros.player.TopicRecorder` opens, writes and closes it in its
+    created it (:class:`sfm_ttr_ros.ros.player.TopicRecorder` opens, writes and closes it in its
     spinning thread). Writes after :meth:`close` are ignored.
 
     Topics are added with their message type (``sensor_msgs/msg/Image``); messages are written
     as raw CDR bytes (:meth:`write_raw`, what an rclpy subscription with ``raw=True`` receives,
-    see :class:`sfm_ttr_ros.player.TopicRecorder`) or as rosbags message objects
+    see :class:`sfm_ttr_ros.ros.player.TopicRecorder`) or as rosbags message objects
     (:meth:`write`). The output folder must not exist. Use as a context manager, or call
     :meth:`close` (which writes ``metadata.yaml``; a bag without it cannot be read).
     """
@@ -356,7 +356,7 @@ class ConvertResult:
 
 
 def _drive_stamps_ns(drive) -> list[int]:
-    """Per frame of a :class:`~sfm_ttr_ros.kitti.KittiDrive`, its stamp in integer ns: read
+    """Per frame of a :class:`~sfm_ttr_ros.data.kitti.KittiDrive`, its stamp in integer ns: read
     from ``timestamps.txt`` (line = frame number) as KittiDrive does, or its 10 Hz fallback."""
     if not drive.stamps_from_file:
         return [round(s * 1e9) for s in drive.stamps]
@@ -389,7 +389,7 @@ def kitti_to_bag(
     :class:`InputError` for a missing drive / calibration / GT, an image whose size is not
     ``S_rect``, or an existing ``out``; a failed conversion leaves no partial bag behind.
     """
-    from .kitti import KittiDrive
+    from sfm_ttr_ros.data.kitti import KittiDrive
 
     if camera not in KITTI_CAMERA_NAMES:
         raise InputError(f"camera must be one of {', '.join(KITTI_CAMERA_NAMES)} (colour), "

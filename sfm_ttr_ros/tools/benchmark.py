@@ -1,16 +1,16 @@
 """``sfm-ttr benchmark``: the same frames, the same network, three ways.
 
 * ``no_ttr``: the network's plain prediction (the original weights).
-* ``sfm_ttr_online``: every frame pushed through :class:`~sfm_ttr_ros.stream.StreamProcessor`
+* ``sfm_ttr_online``: every frame pushed through :class:`~sfm_ttr_ros.core.stream.StreamProcessor`
   exactly as the ROS node feeds it (same windows, keyframes, overlap and accounting; no ROS
-  transport), then :meth:`~sfm_ttr_ros.stream.StreamProcessor.flush` at the end of the stream
+  transport), then :meth:`~sfm_ttr_ros.core.stream.StreamProcessor.flush` at the end of the stream
   (the node's idle flush). The depth of each frame is the one the node would publish.
-* ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.pipeline.SfmTTR.process_window` over the whole
+* ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.process_window` over the whole
   sequence, the paper's setting (or consecutive chunks of ``offline_max_frames`` frames, each
   from the original weights, when the sequence is too long for one reconstruction).
 
 Each mode starts from a fresh copy of the original weights (``model_factory()``). Every frame
-that has ground truth is evaluated (KITTI protocol, :mod:`sfm_ttr_ros.evaluation`); frames that
+that has ground truth is evaluated (KITTI protocol, :mod:`sfm_ttr_ros.core.evaluation`); frames that
 SfM could not use count with the prediction the mode published for them (unrefined), as in the
 paper. The online and offline windows read their settings from the node's parameter file
 (``params/kitti.yaml`` by default, see :func:`default_params_file`), so the benchmark measures
@@ -41,7 +41,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .evaluation import (
+from sfm_ttr_ros.core.evaluation import (
     ERROR_METRICS,
     METRICS,
     EvalConfig,
@@ -50,11 +50,17 @@ from .evaluation import (
     relative_gain,
     valid_mask,
 )
-from .frames import InputError
-from .pipeline import SfmTTR, TTRConfig
-from .sequence import ImageSequence
-from .stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats, reason_key_of
-from .visualize import colorize_depth, colorize_error
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.stream import (
+    FrameOutput,
+    StreamProcessor,
+    StreamSettings,
+    WindowStats,
+    reason_key_of,
+)
+from sfm_ttr_ros.core.visualize import colorize_depth, colorize_error
+from sfm_ttr_ros.data.sequence import ImageSequence
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +85,7 @@ def default_params_file(name: str = PARAMS_FILE) -> Path:
     """``params/<name>``: beside the package in a source checkout (or an editable install),
     else in the package's ament share folder (colcon / pip install of the ROS package);
     :class:`InputError` when neither exists."""
-    tried = [Path(__file__).resolve().parents[1] / "params" / name]
+    tried = [Path(__file__).resolve().parents[2] / "params" / name]
     try:
         from ament_index_python.packages import get_package_share_directory
 
@@ -111,7 +117,7 @@ def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
     is for rclpy) and within its range. Nested mappings are flattened with dots."""
     import yaml
 
-    from . import node_params
+    from sfm_ttr_ros.ros import params as node_params
 
     path = Path(path)
     if not path.is_file():
@@ -157,7 +163,7 @@ def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
 def settings_from_params(values: Mapping[str, Any]):
     """(TTRConfig, StreamSettings, ModelConfig) for the node parameters ``values`` (missing
     ones take the node's defaults), exactly as the node builds them."""
-    from . import node_params
+    from sfm_ttr_ros.ros import params as node_params
 
     full = {**node_params.DEFAULTS, **values}
     err = node_params.validate(full)

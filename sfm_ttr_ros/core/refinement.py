@@ -37,8 +37,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .frames import InputError
-from .models.base import DepthModel
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.base import DepthModel
 
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")

@@ -61,9 +61,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .frames import Frame, InputError, Intrinsics
-from .pipeline import SfmTTR, TTRConfig, WindowResult
-from .sfm import SfmCancelled
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
+from sfm_ttr_ros.core.sfm import SfmCancelled
 
 #: Reason keys of frames published without refinement.
 UNREFINED_REASONS = {

@@ -1,5 +1,5 @@
 """``sfm-ttr benchmark`` and ``sfm-ttr evaluate`` (folder mode; the bag mode lives in
-:mod:`sfm_ttr_ros.cli_bag`). :func:`add_commands` registers both on the ``sfm-ttr`` parser.
+:mod:`sfm_ttr_ros.tools.cli_bag`). :func:`add_commands` registers both on the ``sfm-ttr`` parser.
 
 Benchmark settings: the node's parameter file (``--params-file``, default the installed or the
 repository's ``params/kitti.yaml``) gives the windows, keyframes and SfM-TTR options, so the
@@ -16,8 +16,8 @@ import shlex
 import sys
 from pathlib import Path
 
-from .cli import add_method_args, add_model_args, add_sequence_args, open_sequence
-from .frames import InputError
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.tools.cli import add_method_args, add_model_args, add_sequence_args, open_sequence
 
 #: Command-line flags (argparse dest) → the node parameter they override.
 FLAG_PARAMS = {
@@ -63,7 +63,7 @@ def _add_eval_args(p: argparse.ArgumentParser) -> None:
 
 
 def _eval_config(args: argparse.Namespace):
-    from .evaluation import EvalConfig
+    from sfm_ttr_ros.core.evaluation import EvalConfig
 
     return EvalConfig(min_depth=args.min_depth, max_depth=args.max_depth,
                       eigen_crop=args.eigen_crop, median_scaling=args.median_scaling)
@@ -82,7 +82,7 @@ def _command_line() -> str:
 
 
 def add_benchmark_parser(sub) -> argparse.ArgumentParser:
-    from .benchmark import MODES
+    from sfm_ttr_ros.tools.benchmark import MODES
 
     b = sub.add_parser(
         "benchmark",
@@ -121,7 +121,7 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
 
 def benchmark_values(args: argparse.Namespace) -> tuple[Path, dict]:
     """(parameter file, node parameter values): the file's, then the flags given."""
-    from .benchmark import default_params_file, read_params_file
+    from sfm_ttr_ros.tools.benchmark import default_params_file, read_params_file
 
     path = Path(args.params_file) if args.params_file else default_params_file()
     values = read_params_file(path)
@@ -150,8 +150,8 @@ def _load_encoder(model, path: str) -> None:
 def cmd_benchmark(args: argparse.Namespace) -> int:
     import torch
 
-    from .benchmark import run_benchmark, settings_from_params
-    from .models import build_model
+    from sfm_ttr_ros.core.models import build_model
+    from sfm_ttr_ros.tools.benchmark import run_benchmark, settings_from_params
 
     params_path, values = benchmark_values(args)
     ttr_config, stream_settings, model_config = settings_from_params(values)
@@ -177,7 +177,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         save_depth=args.save_depth, model_description=description,
         settings_info={"params_file": str(params_path), "torch_threads": args.threads},
         command=_command_line())
-    from .benchmark import results_markdown
+    from sfm_ttr_ros.tools.benchmark import results_markdown
 
     print(results_markdown(results).split("Command:")[0].rstrip())
     print(f"\nresults in {args.out}")
@@ -212,7 +212,7 @@ def add_evaluate_parser(sub) -> argparse.ArgumentParser:
     f.add_argument("--pred-scale", type=float, default=None,
                    help="PNG prediction value per metre (default: --gt-scale)")
     try:  # the bag mode's own options, from the module that implements it
-        from .cli_bag import add_evaluate_bag_arguments
+        from sfm_ttr_ros.tools.cli_bag import add_evaluate_bag_arguments
     except ImportError:
         bag = e.add_argument_group("bag mode")
         bag.add_argument("--bag", help="rosbag2 holding the node's depth (and the GT topic)")
@@ -234,7 +234,7 @@ def _pred_format(folder: Path, wanted: str) -> str:
 
 
 def evaluate_folder_command(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate_folders, format_table, relative_gain
+    from sfm_ttr_ros.core.evaluation import evaluate_folders, format_table, relative_gain
 
     if not args.pred or not args.gt:
         raise InputError("folder mode needs both --pred DIR and --gt DIR")
@@ -272,7 +272,7 @@ def evaluate_folder_command(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        from .benchmark import json_safe
+        from sfm_ttr_ros.tools.benchmark import json_safe
 
         doc = {"gt": str(args.gt), "gt_scale": args.gt_scale,
                "eval": {"min_depth": cfg.min_depth, "max_depth": cfg.max_depth,
@@ -294,10 +294,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise InputError("give either --bag (bag mode) or --pred/--gt (folder mode), "
                              "not both")
         try:
-            from .cli_bag import evaluate_bag_command
+            from sfm_ttr_ros.tools.cli_bag import evaluate_bag_command
         except ImportError as exc:
             raise InputError(f"bag evaluation is not available in this installation "
-                             f"(sfm_ttr_ros.cli_bag: {exc})") from exc
+                             f"(sfm_ttr_ros.tools.cli_bag: {exc})") from exc
         return int(evaluate_bag_command(args) or 0)
     if args.gt_bag:
         raise InputError("--gt-bag needs --bag")

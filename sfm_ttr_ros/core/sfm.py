@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 
 log = logging.getLogger(__name__)
 

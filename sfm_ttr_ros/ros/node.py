@@ -2,7 +2,7 @@
 
 Threads: the executor (main thread) runs the subscription callbacks, the parameter services and
 the diagnostics timer; callbacks only convert the message (``msg_adapters``) and queue the frame
-in :class:`~sfm_ttr_ros.stream.StreamProcessor`. One worker thread runs the stream (SfM, model,
+in :class:`~sfm_ttr_ros.core.stream.StreamProcessor`. One worker thread runs the stream (SfM, model,
 refinement) and publishes its outputs, so the executor never blocks on heavy work.
 
 Topics (names remappable): subscribes ``image`` (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8,
@@ -59,13 +59,12 @@ from msg_adapters import (
     make_diagnostic_array,
     numpy_to_pointcloud2,
 )
-
-from . import node_params
-from .frames import Frame, InputError, Intrinsics
-from .models.base import DepthModel
-from .models.registry import build_model
-from .pipeline import SfmTTR
-from .stream import FrameOutput, StreamProcessor, WindowStats
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.models.registry import build_model
+from sfm_ttr_ros.core.pipeline import SfmTTR
+from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, WindowStats
+from sfm_ttr_ros.ros import params as node_params
 
 NODE_NAME = "refiner"
 DIAG_NAME = "sfm_ttr_ros: refiner"

@@ -1,11 +1,11 @@
 """Play a rosbag2 into a ROS 2 graph, and record topics into one, without ros2cli / rosbag2_py.
 
-``play_bag`` publishes every message of a rosbag2 (any the converter of :mod:`sfm_ttr_ros.bag`
+``play_bag`` publishes every message of a rosbag2 (any the converter of :mod:`sfm_ttr_ros.ros.bag`
 writes, and any other CDR rosbag2 whose message types are installed) with its recorded timing
 scaled by ``rate``: the raw CDR bytes from the bag go straight to ``Publisher.publish(bytes)``
 (rclpy's ``publish_raw``), so nothing is decoded or re-encoded. ``TopicRecorder`` does the
 reverse: rclpy subscriptions with ``raw=True`` hand it the serialized bytes, which a
-:class:`~sfm_ttr_ros.bag.BagRecorder` writes as they are.
+:class:`~sfm_ttr_ros.ros.bag.BagRecorder` writes as they are.
 
 QoS. Publishers are RELIABLE, VOLATILE, KEEP_LAST ``qos_depth`` (default 100, as deep as 10 s of
 KITTI at 10 Hz), like ``ros2 bag play`` on a bag without QoS metadata. A reliable DataWriter
@@ -45,8 +45,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .bag import BagRecorder, ProgressBar
-from .frames import InputError
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.ros.bag import BagRecorder, ProgressBar
 
 DEFAULT_QOS_DEPTH = 100
 CLOCK_TOPIC = "/clock"

@@ -4,16 +4,18 @@ download.
 Steps (each printed as it runs):
 
 1. the drive: with no arguments a synthetic KITTI-format drive of the held-out domain "B"
-   (:mod:`sfm_ttr_ros.synthetic`, written in the real KITTI raw + improved-GT layouts), or a real
+   (:mod:`sfm_ttr_ros.data.synthetic`, written in the real KITTI raw + improved-GT layouts),
+   or a real
    one with ``--kitti-raw/--kitti-gt/--drive``;
-2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.bag.kitti_to_bag`);
+2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.bag.kitti_to_bag`);
 3. the unrefined network's depth for every image of the bag (same model, same weights) → a
    ``no_ttr`` bag with the same stamps;
 4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``-p`` overrides),
-   remapped to the bag's topics; the bag played into it (:func:`sfm_ttr_ros.player.play_bag`)
-   while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.player.TopicRecorder`) until every
+   remapped to the bag's topics; the bag played into it (:func:`sfm_ttr_ros.ros.player.play_bag`)
+   while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`) until every
    image came back; then SIGINT;
-5. both bags evaluated against the GT topic matched by stamp (:func:`sfm_ttr_ros.bag.evaluate_bag`),
+5. both bags evaluated against the GT topic matched by stamp
+   (:func:`sfm_ttr_ros.ros.bag.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json``) with a
    qualitative figure (``figure.png``).
 
@@ -37,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 DEPTH_TOPIC = "/refiner/depth"
 
@@ -84,8 +86,8 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
         if not (opts.kitti_raw and opts.kitti_gt and opts.drive):
             raise InputError("a real drive needs all of --kitti-raw, --kitti-gt and --drive")
         return opts.kitti_raw, opts.kitti_gt, opts.drive
-    from .kitti import write_kitti_drive
-    from .synthetic import make_sequence
+    from sfm_ttr_ros.data.kitti import write_kitti_drive
+    from sfm_ttr_ros.data.synthetic import make_sequence
 
     _say(f"1/5 generating a synthetic KITTI drive: {opts.frames} frames {opts.width}x"
          f"{opts.height}, domain {opts.domain} (seed {opts.seed})")
@@ -98,7 +100,7 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
 
 def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str) -> int:
     """The unrefined network's depth for every image of ``bag``, same stamps, into ``out_bag``."""
-    from .bag import (
+    from sfm_ttr_ros.ros.bag import (
         IMAGE_MSGTYPE,
         IMAGE_TOPIC,
         BagRecorder,
@@ -128,9 +130,9 @@ def _ros_env() -> dict[str, str]:
 
 def refiner_command(params_file: Path, overrides: list[str]) -> list[str]:
     """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag."""
-    from .bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+    from sfm_ttr_ros.ros.bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 
-    cmd = [sys.executable, "-m", "sfm_ttr_ros.node", "--ros-args", "--params-file",
+    cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args", "--params-file",
            str(params_file), "-r", f"image:={IMAGE_TOPIC}", "-r",
            f"camera_info:={CAMERA_INFO_TOPIC}"]
     for o in overrides:
@@ -140,9 +142,9 @@ def refiner_command(params_file: Path, overrides: list[str]) -> list[str]:
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
     """Start the node, play the bag into it, record ``/refiner/depth`` until all frames are back."""
-    from .bag import CAMERA_INFO_TOPIC, IMAGE_MSGTYPE, IMAGE_TOPIC
-    from .benchmark import default_params_file
-    from .player import TopicRecorder, play_bag
+    from sfm_ttr_ros.ros.bag import CAMERA_INFO_TOPIC, IMAGE_MSGTYPE, IMAGE_TOPIC
+    from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
+    from sfm_ttr_ros.tools.benchmark import default_params_file
 
     params = Path(opts.params_file) if opts.params_file else default_params_file()
     if not params.is_file():
@@ -196,7 +198,9 @@ def run_demo(opts: DemoOptions) -> dict:
     import cv2
     import torch
 
-    from .bag import (
+    from sfm_ttr_ros.core.evaluation import EvalConfig, format_table, relative_gain
+    from sfm_ttr_ros.core.models import build_model
+    from sfm_ttr_ros.ros.bag import (
         DEPTH_GT_TOPIC,
         IMAGE_TOPIC,
         bag_topics,
@@ -206,14 +210,12 @@ def run_demo(opts: DemoOptions) -> dict:
         kitti_to_bag,
         read_bag,
     )
-    from .benchmark import (
+    from sfm_ttr_ros.tools.benchmark import (
         default_params_file,
         qualitative_figure,
         read_params_file,
         settings_from_params,
     )
-    from .evaluation import EvalConfig, format_table, relative_gain
-    from .models import build_model
 
     t_start = time.perf_counter()
     out = _prepare_out(opts)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 
 @dataclass

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sfm_ttr_ros.frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 # Monodepth2's depth range: depth = 1 / (1/max + (1/min - 1/max) * sigmoid).
 MIN_DEPTH = 0.1
@@ -21,7 +21,8 @@ MAX_DEPTH = 100.0
 
 class ModelLoadError(InputError):
     """A model or its weights could not be built or loaded (missing file, wrong layout, shape
-    mismatch, bad plug-in). An :class:`~sfm_ttr_ros.frames.InputError`, hence a ``ValueError``."""
+    mismatch, bad plug-in). An :class:`~sfm_ttr_ros.core.frames.InputError`, hence a
+    ``ValueError``."""
 
 
 def disp_to_depth(sigmoid: torch.Tensor, min_depth: float = MIN_DEPTH,

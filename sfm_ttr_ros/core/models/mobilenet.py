@@ -29,13 +29,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from sfm_ttr_ros.models.base import EncoderDecoder, ModelLoadError
-from sfm_ttr_ros.models.depth_decoder import (
+from sfm_ttr_ros.core.models.base import EncoderDecoder, ModelLoadError
+from sfm_ttr_ros.core.models.depth_decoder import (
     DEFAULT_DECODER_CHANNELS,
     DepthDecoder,
     decoder_channels_from_state,
 )
-from sfm_ttr_ros.models.monodepth2 import (
+from sfm_ttr_ros.core.models.monodepth2 import (
     DEFAULT_INPUT_SIZE,
     check_input_size,
     input_size_from_state,
@@ -132,7 +132,7 @@ class MobileNetV2Encoder(nn.Module):
         """Run blocks ``start`` … ``stop − 1`` on ``x`` (the [0, 1] image when ``start`` is 0),
         appending the tapped outputs to a copy of ``features``: the staged-encoder protocol
         that lets SfM-TTR compute frozen leading blocks once per frame
-        (:mod:`sfm_ttr_ros.refinement`)."""
+        (:mod:`sfm_ttr_ros.core.refinement`)."""
         out = list(features)
         if start == 0:
             x = (x - self.mean) / self.std
@@ -198,7 +198,8 @@ def is_mobilenet_state(state) -> bool:
 def load_mobile_depth_net(encoder_path: str | Path, decoder_path: str | Path,
                           map_location="cpu") -> MobileDepthNet:
     """A :class:`MobileDepthNet` from a Monodepth2-layout pair written by
-    :func:`~sfm_ttr_ros.models.monodepth2.save_monodepth2` (architecture read from the files)."""
+    :func:`~sfm_ttr_ros.core.models.monodepth2.save_monodepth2` (architecture read from the
+    files)."""
     enc_state = read_state_file(encoder_path, "MobileDepthNet encoder", map_location)
     dec_state = read_state_file(decoder_path, "MobileDepthNet decoder", map_location)
     if not is_mobilenet_state(enc_state):

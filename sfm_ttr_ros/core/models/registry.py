@@ -13,14 +13,14 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from sfm_ttr_ros.frames import InputError
-from sfm_ttr_ros.models.base import DepthModel, ModelLoadError
-from sfm_ttr_ros.models.mobilenet import (
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.base import DepthModel, ModelLoadError
+from sfm_ttr_ros.core.models.mobilenet import (
     MobileDepthNet,
     is_mobilenet_state,
     load_mobile_depth_net,
 )
-from sfm_ttr_ros.models.monodepth2 import (
+from sfm_ttr_ros.core.models.monodepth2 import (
     Monodepth2,
     check_input_size,
     load_monodepth2,
@@ -30,7 +30,7 @@ from sfm_ttr_ros.models.monodepth2 import (
 log = logging.getLogger(__name__)
 
 MODEL_TYPES = ("default", "monodepth2", "mobilenet", "python:<module>:<factory>")
-DEFAULT_WEIGHTS_PACKAGE = "sfm_ttr_ros.models"
+DEFAULT_WEIGHTS_PACKAGE = "sfm_ttr_ros.core.models"
 DEFAULT_ENCODER_FILE = "default_encoder.pth"
 DEFAULT_DECODER_FILE = "default_depth.pth"
 
@@ -99,7 +99,7 @@ def default_weights_available() -> bool:
 
 
 def load_default_model(map_location="cpu") -> DepthModel:
-    """The embedded trained default network (``sfm_ttr_ros/models/weights/default_*.pth``),
+    """The embedded trained default network (``sfm_ttr_ros/core/models/weights/default_*.pth``),
     read through ``importlib.resources`` so it works from an installed package."""
     ref = importlib.resources.files(DEFAULT_WEIGHTS_PACKAGE) / "weights"
     enc, dec = ref / DEFAULT_ENCODER_FILE, ref / DEFAULT_DECODER_FILE
@@ -140,7 +140,7 @@ def _load_plugin(config: ModelConfig) -> DepthModel:
     model = factory(config)
     if not isinstance(model, DepthModel):
         raise ModelLoadError(f"plug-in factory {spec!r} returned {type(model).__name__}, not a "
-                             "sfm_ttr_ros.models.base.DepthModel")
+                             "sfm_ttr_ros.core.models.base.DepthModel")
     for part in ("encoder", "decoder"):
         if not isinstance(getattr(model, part, None), nn.Module):
             raise ModelLoadError(f"plug-in model from {spec!r} has no nn.Module {part!r}")

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import torch
 
-from sfm_ttr_ros.models.base import EncoderDecoder, ModelLoadError
-from sfm_ttr_ros.models.depth_decoder import DepthDecoder
-from sfm_ttr_ros.models.resnet import RESNET_SPECS, ResnetEncoder
+from sfm_ttr_ros.core.models.base import EncoderDecoder, ModelLoadError
+from sfm_ttr_ros.core.models.depth_decoder import DepthDecoder
+from sfm_ttr_ros.core.models.resnet import RESNET_SPECS, ResnetEncoder
 
 DEFAULT_INPUT_SIZE = (192, 640)
 EXTRA_ENCODER_KEYS = ("height", "width", "use_stereo")

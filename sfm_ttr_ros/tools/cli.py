@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .frames import InputError
+from sfm_ttr_ros.core.frames import InputError
 
 log = logging.getLogger("sfm_ttr_ros")
 
@@ -54,7 +54,7 @@ def add_sequence_args(p: argparse.ArgumentParser, required: bool = True) -> None
 
 
 def open_sequence(args: argparse.Namespace):
-    from .sequence import open_image_folder, open_kitti
+    from sfm_ttr_ros.data.sequence import open_image_folder, open_kitti
 
     if args.kitti_raw:
         if not args.drive:
@@ -70,7 +70,7 @@ def open_sequence(args: argparse.Namespace):
 def build_model_from_args(args: argparse.Namespace):
     import torch
 
-    from .models import ModelConfig, build_model
+    from sfm_ttr_ros.core.models import ModelConfig, build_model
 
     torch.set_num_threads(max(1, args.threads))
     return build_model(ModelConfig(type=args.model, encoder_path=args.encoder,
@@ -79,10 +79,10 @@ def build_model_from_args(args: argparse.Namespace):
 
 
 def ttr_config_from_args(args: argparse.Namespace):
-    from .alignment import AlignmentConfig
-    from .pipeline import TTRConfig
-    from .refinement import RefinementConfig
-    from .sfm import SfmConfig
+    from sfm_ttr_ros.core.alignment import AlignmentConfig
+    from sfm_ttr_ros.core.pipeline import TTRConfig
+    from sfm_ttr_ros.core.refinement import RefinementConfig
+    from sfm_ttr_ros.core.sfm import SfmConfig
 
     return TTRConfig(
         sfm=SfmConfig(max_image_size=args.sfm_max_image_size, seed=args.seed),
@@ -95,9 +95,9 @@ def ttr_config_from_args(args: argparse.Namespace):
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Offline SfM-TTR over a whole sequence (the paper's setting) and write the results."""
-    from .evaluation import EvalConfig, Evaluator
-    from .pipeline import SfmTTR
-    from .visualize import colorize_depth, write_ply
+    from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+    from sfm_ttr_ros.core.pipeline import SfmTTR
+    from sfm_ttr_ros.core.visualize import colorize_depth, write_ply
 
     config = ttr_config_from_args(args)  # bad options fail before any image is read
     seq = open_sequence(args)
@@ -149,7 +149,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     print(f"{len(frames)} frames, refined={res.refined} {res.reason}".strip())
     if "metrics" in summary:
-        from .evaluation import format_table
+        from sfm_ttr_ros.core.evaluation import format_table
 
         print(format_table({"no_ttr": summary["metrics"]["before"],
                             "sfm_ttr": summary["metrics"]["after"]}))
@@ -163,8 +163,8 @@ def _plain(summary: dict) -> dict:
 
 def cmd_generate(args: argparse.Namespace) -> int:
     """Write a synthetic KITTI-format drive (raw layout + improved-GT PNGs)."""
-    from .kitti import write_kitti_drive
-    from .synthetic import make_sequence
+    from sfm_ttr_ros.data.kitti import write_kitti_drive
+    from sfm_ttr_ros.data.synthetic import make_sequence
 
     seq = make_sequence(seed=args.seed, domain=args.domain, num_frames=args.frames,
                         width=args.width, height=args.height)
@@ -198,9 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--drive-number", type=int, default=1)
     g.set_defaults(func=cmd_generate)
 
-    from .cli_bag import add_commands as add_bag_commands
-    from .cli_benchmark import add_commands as add_benchmark_commands
-    from .demo import add_commands as add_demo_commands
+    from sfm_ttr_ros.tools.cli_bag import add_commands as add_bag_commands
+    from sfm_ttr_ros.tools.cli_benchmark import add_commands as add_benchmark_commands
+    from sfm_ttr_ros.tools.demo import add_commands as add_demo_commands
 
     add_benchmark_commands(sub)
     add_bag_commands(sub)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .frames import Frame, InputError, Intrinsics, list_images, load_rgb
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, list_images, load_rgb
 
 
 @dataclass
@@ -42,7 +42,7 @@ class ImageSequence:
 
     def gt(self, name: str) -> np.ndarray | None:
         """Ground-truth depth in metres (0 = none), or None when the frame has no GT file."""
-        from .kitti import read_depth_png
+        from sfm_ttr_ros.data.kitti import read_depth_png
 
         path = self.gt_paths.get(name)
         return None if path is None else read_depth_png(path, self.gt_scale)
@@ -51,7 +51,7 @@ class ImageSequence:
 def open_kitti(raw_root: str | Path, drive: str, gt_root: str | Path | None = None
                ) -> ImageSequence:
     """A KITTI raw drive (left colour camera, image_02) with improved GT when given."""
-    from .kitti import KittiDrive
+    from sfm_ttr_ros.data.kitti import KittiDrive
 
     kd = KittiDrive(raw_root, drive, gt_root=gt_root)
     paths = [Path(kd.image_path(i)) for i in range(len(kd.frame_names))]

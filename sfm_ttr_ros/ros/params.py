@@ -2,7 +2,8 @@
 declared with full descriptors, validated as a whole, and turned into the core's configs.
 
 Live parameters (not read-only) take effect at the next window: the node builds a new
-:class:`~sfm_ttr_ros.pipeline.TTRConfig` and :class:`~sfm_ttr_ros.stream.StreamSettings` from
+:class:`~sfm_ttr_ros.core.pipeline.TTRConfig` and
+:class:`~sfm_ttr_ros.core.stream.StreamSettings` from
 the current values at the start of every window (``SfmTTR.set_config``). rclpy itself enforces
 types, ranges and read-only; :func:`validate` adds what descriptors cannot say (enum values,
 ``window_stride <= window_size``, ``lr > 0``, both model files or neither, ...).
@@ -21,13 +22,13 @@ from rcl_interfaces.msg import (
     ParameterType,
 )
 
-from .alignment import AlignmentConfig
-from .frames import InputError
-from .models.registry import ModelConfig
-from .pipeline import TTRConfig
-from .refinement import BN_MODES, WEIGHTINGS, RefinementConfig
-from .sfm import SfmConfig
-from .stream import StreamSettings
+from sfm_ttr_ros.core.alignment import AlignmentConfig
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.registry import ModelConfig
+from sfm_ttr_ros.core.pipeline import TTRConfig
+from sfm_ttr_ros.core.refinement import BN_MODES, WEIGHTINGS, RefinementConfig
+from sfm_ttr_ros.core.sfm import SfmConfig
+from sfm_ttr_ros.core.stream import StreamSettings
 
 INT_MAX = 2**31 - 1
 

@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .alignment import AlignmentConfig, AlignmentResult, align_scale
-from .frames import Frame, Intrinsics, check_window
-from .models.base import DepthModel
-from .refinement import (
+from sfm_ttr_ros.core.alignment import AlignmentConfig, AlignmentResult, align_scale
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.refinement import (
     FrameSupervision,
     RefinementConfig,
     RefinementResult,
@@ -32,7 +32,7 @@ from .refinement import (
     sample_depth,
     snapshot_encoder,
 )
-from .sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
+from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16

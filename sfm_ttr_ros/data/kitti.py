@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .frames import Frame, InputError, Intrinsics, load_rgb
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, load_rgb
 
 KITTI_DEPTH_SCALE = 256.0
 CAMERAS = ("00", "01", "02", "03")
@@ -366,7 +366,7 @@ def write_kitti_drive(
     gt_seed: int = 0,
     overwrite: bool = False,
 ) -> str:
-    """Write ``seq`` (a :class:`~sfm_ttr_ros.synthetic.SyntheticSequence`, or anything with
+    """Write ``seq`` (a :class:`~sfm_ttr_ros.data.synthetic.SyntheticSequence`, or anything with
     ``images``, ``depths``, ``stamps``, ``intrinsics``) as a KITTI raw drive; return its name.
 
     Images go to ``image_02/data`` as RGB PNGs, stamps to ``image_02/timestamps.txt``, the

@@ -2,7 +2,7 @@
 ``evaluate`` (:func:`evaluate_bag_command`, wired into ``sfm-ttr evaluate`` by ``cli.py``).
 
 ``cli.py`` calls :func:`add_commands` with its subparsers; every command returns an exit code
-and raises :class:`~sfm_ttr_ros.frames.InputError` for bad input (``cli.main`` maps it to 2).
+and raises :class:`~sfm_ttr_ros.core.frames.InputError` for bad input (``cli.main`` maps it to 2).
 """
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ import math
 import sys
 from pathlib import Path
 
-from .bag import DEFAULT_PRED_TOPIC, DEPTH_GT_TOPIC, STORAGES
-from .frames import InputError
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.ros.bag import DEFAULT_PRED_TOPIC, DEPTH_GT_TOPIC, STORAGES
 
 
 def cmd_kitti_to_bag(args: argparse.Namespace) -> int:
     """Convert a KITTI raw drive (+ improved GT) into a rosbag2."""
-    from .bag import kitti_to_bag
+    from sfm_ttr_ros.ros.bag import kitti_to_bag
 
     res = kitti_to_bag(args.kitti_raw, args.drive, args.out, gt_root=args.kitti_gt,
                        storage=args.storage, start=args.start, max_frames=args.max_frames,
@@ -34,7 +34,7 @@ def cmd_kitti_to_bag(args: argparse.Namespace) -> int:
 
 def cmd_play(args: argparse.Namespace) -> int:
     """Play a rosbag2 into the ROS 2 graph (for machines without ros2cli)."""
-    from .player import PlaybackInterrupted, play_bag
+    from sfm_ttr_ros.ros.player import PlaybackInterrupted, play_bag
 
     try:
         res = play_bag(args.bag, rate=args.rate, clock=args.clock,
@@ -78,8 +78,8 @@ def evaluate_bag_command(args: argparse.Namespace) -> int:
     JSON path); missing attributes take the defaults. Prints the table and the frame counts;
     returns 0, or 1 when no frame could be evaluated.
     """
-    from .bag import evaluate_bag
-    from .evaluation import MAX_DEPTH, EvalConfig, format_table
+    from sfm_ttr_ros.core.evaluation import MAX_DEPTH, EvalConfig, format_table
+    from sfm_ttr_ros.ros.bag import evaluate_bag
 
     bag = getattr(args, "bag", None)
     if not bag:
