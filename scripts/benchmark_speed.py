@@ -21,10 +21,10 @@ and is decoded with ``image_to_rgb8`` as the node's subscription callback does.
   best measured for 200 steps), the model at its own (full) input size in torch's default
   memory format (``channels_last`` off). ``--naive-set``
   changes it (smoke runs only).
-* ``tuned``: the parameter file as the node reads it (``benchmark.read_params_file`` /
-  ``settings_from_params``), with ``--set KEY=VALUE`` overrides: a node parameter name
-  (``refinement.steps=40``, ``sfm.first_octave=0``, ``window_stride=5``) or a field of the
-  core's configs (``sfm.min_tri_angle=1.0``, ``refinement.sampling=nearest``,
+* ``tuned``: the parameter file as the node reads it, with ``--set NAME=VALUE`` overrides, the
+  one syntax of ``sfm-ttr run`` / ``benchmark`` (:func:`sfm_ttr_ros.core.params.parse_overrides`):
+  a parameter name (``refinement.steps=40``, ``sfm.first_octave=0``, ``window_stride=5``) or a
+  field of the core's configs (``sfm.min_tri_angle=1.0``, ``refinement.sampling=nearest``,
   ``ttr.predict_batch=4``, ``model.input_height=96`` / ``model.input_width=320``).
 
 Measured per configuration:
@@ -100,9 +100,11 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run from a source checkout without installing
     sys.path.insert(0, str(REPO))
 
+from sfm_ttr_ros.core.diagnostics import Status, StreamDiagnostics  # noqa: E402
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator  # noqa: E402
 from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics  # noqa: E402
 from sfm_ttr_ros.core.models.registry import ModelConfig, build_model, resolve_device  # noqa: E402
+from sfm_ttr_ros.core.params import TARGETS, build, parse_overrides  # noqa: E402
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
 from sfm_ttr_ros.core.sfm import SfmReconstructor  # noqa: E402
 from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats  # noqa: E402
@@ -111,7 +113,6 @@ from sfm_ttr_ros.tools.benchmark import (  # noqa: E402
     describe_model,
     json_safe,
     read_params_file,
-    settings_from_params,
 )
 
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "sfm_ttr_speed_cache"
@@ -250,7 +251,6 @@ def iter_drive_chunks(domain: str, seed: int, frames: int, width: int, height: i
 # Configurations
 # ---------------------------------------------------------------------------------------------
 
-_SECTIONS = ("sfm", "alignment", "refinement", "ttr", "stream", "model")
 
 
 @dataclass
@@ -271,112 +271,43 @@ class RunConfig:
                 "publish": dict(self.publish), "overrides": list(self.overrides)}
 
 
-def _parse_value(text: str):
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
+#: What the naive run sets besides NAIVE_STEPS / NAIVE_LR (``--naive-set`` can change it): the
+#: model at its own input size in torch's default memory format, every prediction computed.
+NAIVE_FIELDS = {"model.input_height": 0, "model.input_width": 0, "channels_last": False,
+                "ttr.reuse_predictions": False}
 
 
-def split_overrides(overrides: Sequence[str]) -> tuple[dict[str, Any], dict[str, dict]]:
-    """``KEY=VALUE`` strings → (node parameter values, {section: {field: value}} for the
-    fields of the core's configs that are not node parameters)."""
-    from sfm_ttr_ros.ros import params as node_params
-
-    node: dict[str, Any] = {}
-    extra: dict[str, dict] = defaultdict(dict)
-    for item in overrides:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise InputError(f"override {item!r}: expected KEY=VALUE")
-        value = _parse_value(text.strip())
-        spec = node_params.SPECS.get(key)
-        if spec is not None:
-            if isinstance(spec.default, float) and not isinstance(value, bool | float):
-                try:  # 1 and 3e-5 (YAML reads the latter as a string) are doubles here
-                    value = float(text)
-                except ValueError:
-                    pass  # left to the parameter check, which names the expected type
-            if isinstance(spec.default, str) and not spec.dynamic_typing:
-                value = str(text.strip())
-            node[key] = value
-            continue
-        section, dot, attr = key.partition(".")
-        if not dot or section not in _SECTIONS:
-            raise InputError(f"override {key!r}: neither a node parameter nor "
-                             f"<{'|'.join(_SECTIONS)}>.<field>")
-        extra[section][attr] = value
-    return node, dict(extra)
-
-
-def _apply_extra(ttr: TTRConfig, stream: StreamSettings, model: ModelConfig,
-                 extra: dict[str, dict]) -> tuple[TTRConfig, StreamSettings, ModelConfig]:
-    def repl(obj, fields: dict, what: str):
-        names = {f.name for f in dataclasses.fields(obj)}
-        bad = sorted(set(fields) - names)
-        if bad:
-            raise InputError(f"{what} has no field(s) {bad} (fields: {sorted(names)})")
-        try:
-            return dataclasses.replace(obj, **fields)
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"bad {what} override {fields}: {exc}") from exc
-
-    ttr = copy.deepcopy(ttr)
-    for sec in ("sfm", "alignment", "refinement"):
-        if sec in extra:
-            setattr(ttr, sec, repl(getattr(ttr, sec), extra[sec], f"{sec} config"))
-    if "ttr" in extra:
-        top = {k: v for k, v in extra["ttr"].items()}
-        ttr = repl(ttr, top, "TTRConfig")
-    if "stream" in extra:
-        stream = repl(stream, extra["stream"], "StreamSettings")
-    if "model" in extra:
-        model = repl(model, extra["model"], "ModelConfig")
-    return ttr, stream, model
-
-
-def _model_from_args(model: ModelConfig, args_model: dict[str, Any]) -> ModelConfig:
-    """The parameter file's model with the command line's choices (None / "" = keep)."""
-    given = {k: v for k, v in args_model.items() if v not in (None, "")}
-    return dataclasses.replace(model, **given)
+def _model_values(model_args: dict[str, Any]) -> dict[str, Any]:
+    """The command line's model choices (ModelConfig field → value; None / "" = keep the
+    file's) as parameter values."""
+    return {TARGETS[f"model.{k}"]: v for k, v in model_args.items() if v not in (None, "")}
 
 
 def build_configs(params_file: str | Path | None = None, tuned_set: Sequence[str] = (),
                   naive_set: Sequence[str] = (), model_args: dict[str, Any] | None = None,
                   image_size: tuple[int, int] = (1242, 375),
                   names: Sequence[str] = ("naive", "tuned")) -> list[RunConfig]:
-    """The configurations to compare (see the module docstring); ``image_size`` = (w, h)."""
+    """The configurations to compare (see the module docstring); ``image_size`` = (w, h).
+    Precedence: the file < the model flags < the configuration's forced values < ``--set``."""
     path = Path(params_file) if params_file else default_params_file()
-    base = read_params_file(path)
+    base = {**read_params_file(path), **_model_values(model_args or {})}
     out = []
     for name in names:
         if name == "tuned":
-            node, extra = split_overrides(tuned_set)
-            values = {**base, **node}
+            values = {**base, **parse_overrides(tuned_set)}
             overrides = list(tuned_set)
         elif name == "naive":
             forced = {"sfm.max_image_size": int(max(image_size)), "sfm.first_octave": -1,
                       "refinement.steps": NAIVE_STEPS, "refinement.early_stop_patience": 0,
                       "refinement.lr": NAIVE_LR, "refinement.frozen_encoder_levels": 0}
-            node, extra = split_overrides(naive_set)
-            values = {**base, **forced, **node}
+            values = {**base, **forced, **NAIVE_FIELDS, **parse_overrides(naive_set)}
             overrides = [f"{k}={v}" for k, v in forced.items()] + list(naive_set)
-            # the model at its own input size; every prediction computed (no reuse)
-            extra.setdefault("model", {}).setdefault("input_height", 0)
-            extra["model"].setdefault("input_width", 0)
-            extra["model"].setdefault("channels_last", False)  # torch's default format
-            extra.setdefault("ttr", {}).setdefault("reuse_predictions", False)
         else:
             raise InputError(f"unknown configuration {name!r} (naive, tuned)")
-        ttr, stream, model = settings_from_params(values)
-        model = _model_from_args(model, model_args or {})
-        ttr, stream, model = _apply_extra(ttr, stream, model, extra)
-        publish = {k: bool(values.get(f"publish_{k}", True))
-                   for k in ("colored", "points", "diagnostics")}
-        out.append(RunConfig(name, ttr, stream, model, feature_cache=(name != "naive"),
+        s = build(values)
+        publish = {k: getattr(s.node, f"publish_{k}") for k in ("colored", "points",
+                                                                "diagnostics")}
+        out.append(RunConfig(name, s.ttr, s.stream, s.model, feature_cache=(name != "naive"),
                              overrides=overrides, publish=publish))
     return out
 
@@ -406,25 +337,18 @@ class _FreshReconstructor(SfmReconstructor):
 
 
 class Publisher:
-    """What the node does with the messages, timed: decode each input Image, convert each
-    output (msg_adapters) and serialise it."""
+    """What the node does with the messages, timed: decode each input Image, build each
+    output's messages as the node does (:mod:`sfm_ttr_ros.ros.outputs`) and serialise them."""
 
     def __init__(self, publish: dict[str, bool] | None = None):
         from rclpy.serialization import serialize_message
 
-        from msg_adapters import (
-            depth_to_colored_image,
-            depth_to_image,
-            image_to_rgb8,
-            make_diagnostic_array,
-            numpy_to_image,
-            numpy_to_pointcloud2,
-        )
+        from msg_adapters import image_to_rgb8, numpy_to_image
+        from sfm_ttr_ros.ros import outputs
 
         publish = publish or {}
         self._ser = serialize_message
-        self._depth, self._colored = depth_to_image, depth_to_colored_image
-        self._cloud, self._diag = numpy_to_pointcloud2, make_diagnostic_array
+        self._outputs = outputs
         self._decode, self._encode = image_to_rgb8, numpy_to_image
         self.publish_colored = publish.get("colored", True)
         self.publish_points = publish.get("points", True)
@@ -453,38 +377,31 @@ class Publisher:
         return self._timed("input_image", self._decode, msg)
 
     def output(self, out: FrameOutput) -> None:
-        header = out.frame.header
-        self._send(self._timed("depth_image", self._depth, out.depth, header))
-        if self.publish_colored:
-            self._send(self._timed("colored_image", self._colored, out.depth, header))
+        for msg in self._outputs.frame_messages(out, self.publish_colored, self.t).values():
+            self._send(msg)
 
-    def window(self, ws: WindowStats, counters: dict[str, Any]) -> None:
-        if self.publish_points and ws.cloud_frame is not None and ws.cloud_xyz.shape[0]:
-            self._send(self._timed("pointcloud", self._cloud, ws.cloud_xyz,
-                                   ws.cloud_frame.header,
-                                   {"reprojection_error": ws.cloud_error}))
+    def window(self, ws: WindowStats, diagnostics: StreamDiagnostics) -> None:
+        for msg in self._outputs.window_messages(ws, self.publish_points, self.t).values():
+            self._send(msg)
         if not self.publish_diagnostics:
             return
-        values = {k: v for k, v in counters.items() if not isinstance(v, dict)}
-        values.update({"last_window.index": ws.index, "last_window.refined": ws.refined,
-                       "last_window.points_3d": ws.points, "last_window.steps_done":
-                       ws.steps_done})
-        values.update({f"last_window.time.{k}_s": v for k, v in ws.timings.items()})
         stamp = ws.cloud_frame.stamp if ws.cloud_frame is not None else time.time()
-        self._send(self._timed("diagnostics", self._diag, stamp, "sfm_ttr_ros: refiner",
-                               "/refiner", "ok" if ws.refined else "warn", "", values))
+        self._send(self._outputs.diagnostics_message(diagnostics.status(), stamp,
+                                                     timings=self.t))
 
     def warm_up(self, shape: tuple[int, int]) -> None:
         """One message of each type (rclpy loads its type support on first use)."""
-        from sfm_ttr_ros.core.stream import FrameOutput as _FO
-
         d = np.ones(shape, np.float32)
         f = Frame(index=0, image=np.zeros((*shape, 3), np.uint8), header=make_header(0.0))
         self.receive(self.make_input(f))
-        self.output(_FO(f, d, False))
-        self._send(self._cloud(np.zeros((1, 3), np.float32), f.header,
-                               {"reprojection_error": np.zeros(1, np.float32)}))
-        self._send(self._diag(0.0, "x", "x", "ok", "", {"a": 1}))
+        for msg in self._outputs.frame_messages(FrameOutput(f, d, False)).values():
+            self._send(msg)
+        cloud = WindowStats(index=0, names=[f.name], new_frames=1, refined=True, cloud_frame=f,
+                            cloud_xyz=np.zeros((1, 3), np.float32),
+                            cloud_error=np.zeros(1, np.float32))
+        for msg in self._outputs.window_messages(cloud).values():
+            self._send(msg)
+        self._send(self._outputs.diagnostics_message(Status("ok", "", {"a": 1}), 0.0))
         self.t.clear()
         self.bytes = self.messages = 0
 
@@ -551,15 +468,17 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
     window_stage = defaultdict(float)
     pending_windows: list[dict[str, Any]] = []
     stream: StreamProcessor | None = None
+    diagnostics: StreamDiagnostics | None = None
 
     def on_output(o: FrameOutput) -> None:
         pub.output(o)
+        diagnostics.output_published(o.refined)
         if keep_depths:
             depths[o.frame.index] = o.depth
         refined[o.frame.index] = o.refined
 
     def on_window(ws: WindowStats) -> None:
-        pub.window(ws, stream.counters())
+        pub.window(ws, diagnostics)
         t = ws.timings
         rec = {"index": ws.index, "frames": len(ws.names), "new_frames": ws.new_frames,
                "refined": ws.refined, "reason": ws.reason, "registered": ws.registered,
@@ -579,6 +498,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
 
     stream = StreamProcessor(ttr, copy.deepcopy(cfg.stream), on_output=on_output,
                              on_window=on_window)
+    diagnostics = StreamDiagnostics(stream)  # the node's /diagnostics status
     # warm-up outside the clock: one forward pass, one message of each type
     pub_shape = None
     push_times: list[float] = []
@@ -953,10 +873,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rendered drives are cached here ('' = no cache)")
     p.add_argument("--params-file", default="", help="node parameter file (params/kitti.yaml)")
     p.add_argument("--configs", default="naive,tuned", help="comma-separated, run in this order")
-    p.add_argument("--set", dest="tuned_set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override of the tuned configuration (repeatable)")
-    p.add_argument("--naive-set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override of the naive configuration (smoke runs)")
+    p.add_argument("--set", dest="tuned_set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a parameter (`sfm-ttr params`) or config field of the tuned "
+                        "configuration, as `sfm-ttr run --set` (repeatable)")
+    p.add_argument("--naive-set", action="append", default=[], metavar="NAME=VALUE",
+                   help="the same for the naive configuration (smoke runs)")
     p.add_argument("--model", default=None,
                    help="model type (default: the parameter file's model_type)")
     p.add_argument("--encoder", default=None, help="encoder weights (mobilenet / monodepth2)")

@@ -3,6 +3,7 @@ module imports rclpy or torch) and the fixtures for the data in ../shared/data."
 
 from __future__ import annotations
 
+import inspect
 import os
 import random
 from pathlib import Path
@@ -54,23 +55,52 @@ def one_thread():
     torch.set_num_threads(previous)
 
 
-TINY_PLUGIN = '''
-import torch
-from torch import nn
-from sfm_ttr_ros.core.models.base import EncoderDecoder
+@pytest.fixture(scope="module")
+def context():
+    """An rclpy Context initialised for one test module (its nodes are independent of any other
+    module's), shut down afterwards; skips the module without rclpy."""
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.context import Context
 
-def factory(config=None):
-    torch.manual_seed(0)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, ({height}, {width})).eval()
-'''
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    ctx.try_shutdown()
+
+
+def tiny_model(input_size: tuple[int, int] = (64, 208), *, downsample: bool = True,
+               batch_norm: int = 0, seed: int = 0):
+    """A network small enough that a few refinement steps take well under a second; the same
+    arguments give the same weights (``seed``), which the tests' numbers rely on.
+
+    Encoder: Conv 3->8 (stride 2 when ``downsample``), a BatchNorm when ``batch_norm`` >= 1, ReLU,
+    Conv 8->8, then BatchNorm + ReLU when ``batch_norm`` == 2. Decoder: Conv 8->1, an x2
+    upsampling when ``downsample`` (the output is at the input size), sigmoid disparity.
+    Imports torch itself: this function's source is also the plug-in of :func:`write_tiny_plugin`.
+    """
+    import torch
+    from torch import nn
+
+    from sfm_ttr_ros.core.models.base import EncoderDecoder
+
+    torch.manual_seed(seed)
+    enc = [nn.Conv2d(3, 8, 3, 2 if downsample else 1, 1)]
+    enc += [nn.BatchNorm2d(8)] if batch_norm >= 1 else []
+    enc += [nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1)]
+    enc += [nn.BatchNorm2d(8), nn.ReLU()] if batch_norm == 2 else []
+    dec = [nn.Conv2d(8, 1, 3, 1, 1)]
+    dec += [nn.Upsample(scale_factor=2)] if downsample else []
+    dec += [nn.Sigmoid()]
+    return EncoderDecoder(nn.Sequential(*enc), nn.Sequential(*dec), tuple(input_size)).eval()
 
 
 def write_tiny_plugin(path: Path, height: int, width: int) -> Path:
-    """A plug-in model module (``python:<module>:factory``) with a tiny network at the given
-    input size, written to ``path``."""
-    path.write_text(TINY_PLUGIN.format(height=height, width=width))
+    """A plug-in model module (``python:<module>:factory``) with :func:`tiny_model` at the
+    given input size, written to ``path`` (for a CLI or a subprocess, which cannot import
+    conftest)."""
+    factory = (f"\n\ndef factory(config=None):\n"
+               f"    return tiny_model(({int(height)}, {int(width)}))\n")
+    path.write_text(inspect.getsource(tiny_model) + factory)
     return path
 
 

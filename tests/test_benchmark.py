@@ -89,7 +89,8 @@ def kitti_args(root: Path, out: Path, *extra: str) -> list[str]:
 def bench(data):
     out = data / "out"
     argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "5",
-                      "--lr", "1e-3", "--save-depth")
+                      "--lr", "1e-3", "--set", "refinement.early_stop_patience=50",
+                      "--save-depth")
     saved, sys.argv = sys.argv, ["sfm-ttr", *argv]  # what results.json records as the command
     try:
         assert cli(argv) == 0
@@ -135,6 +136,8 @@ def test_results_json_has_every_mode_and_key(bench, data):
     assert s["stream"]["window_size"] == 4 and s["stream"]["window_stride"] == 2
     assert s["stream"]["overload_pending"] == 50 and s["ttr"]["min_supervision_points"] == 20
     assert s["ttr"]["refinement"]["steps"] == 5 and s["ttr"]["refinement"]["lr"] == 1e-3
+    assert s["ttr"]["refinement"]["early_stop_patience"] == 50  # --set
+    assert s["stream"]["idle_flush_s"] == 2.0 and s["torch_threads"] >= 1
     assert res["model"]["type"] == "python:bench_tiny_model:factory"
     assert res["model"]["class"] == "EncoderDecoder"
 
@@ -182,9 +185,9 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     """Without settings, run_benchmark uses params/kitti.yaml; offline_max_frames splits."""
     from bench_tiny_model import factory
 
+    from sfm_ttr_ros.core import params as schema
     from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
     from sfm_ttr_ros.data.sequence import open_kitti
-    from sfm_ttr_ros.ros import params as node_params
     from sfm_ttr_ros.tools.benchmark import (
         default_params_file,
         read_params_file,
@@ -197,9 +200,8 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     values = read_params_file(path)
     assert values["window_size"] == 15 and values["overload_pending"] == 50
     ttr, stream, model = settings_from_params(values)
-    full = {**node_params.DEFAULTS, **values}
-    assert stream == node_params.build_stream_settings(full)
-    assert ttr == node_params.build_ttr_config(full)
+    full = schema.build({**schema.defaults(), **values})  # as the node builds them
+    assert (ttr, stream, model) == (full.ttr, full.stream, full.model)
     assert model.type == "default"
 
     seq = open_kitti(data / "raw", DRIVE, data / "gt")
@@ -251,13 +253,27 @@ def test_params_file_is_checked_like_the_node(tmp_path):
     for body, msg in (
         ("refiner:\n  ros__parameters:\n    refinement.lr: 1\n", "doubles"),
         ("refiner:\n  ros__parameters:\n    no_such_param: 1\n", "not a parameter"),
-        ("refiner:\n  ros__parameters:\n    window_size: 1\n", "out of range"),
+        ("refiner:\n  ros__parameters:\n    window_size: 1\n", "window_size must be >= 2"),
         ("other_node:\n  ros__parameters:\n    window_size: 4\n", "no ros__parameters"),
     ):
         with pytest.raises(InputError, match=msg):
             read_params_file(write(body))
     with pytest.raises(InputError, match="not found"):
         read_params_file(tmp_path / "missing.yaml")
+
+
+@pytest.mark.slow
+def test_run_takes_a_params_file_and_set(data, tmp_path):
+    """``sfm-ttr run`` reads the node's parameter file and ``--set`` over it (70 steps in the
+    file, 3 given): one offline window over the drive, refined with 3 steps."""
+    out = tmp_path / "run"
+    argv = ["run", "--kitti-raw", str(data / "raw"), "--kitti-gt", str(data / "gt"), "--drive",
+            DRIVE, "--out", str(out), "--model", "python:bench_tiny_model:factory",
+            "--params-file", str(data / "small.yaml"), "--set", "refinement.steps=3"]
+    assert cli(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["refined"] and len(summary["loss_history"]) == 3
+    assert summary["frames"] == N_FRAMES and "metrics" in summary
 
 
 def _write_png16(path: Path, depth_m: np.ndarray, scale: float = 256.0) -> None:
@@ -338,6 +354,10 @@ def test_bad_input_is_a_clear_error(data, tmp_path, capsys):
         # start past the end, a bad parameter file
         kitti_args(data, tmp_path / "o", "--start", "100"),
         kitti_args(data, tmp_path / "o", "--params-file", str(tmp_path / "none.yaml")),
+        # --set: an unknown name, a value out of range, no value
+        kitti_args(data, tmp_path / "o", "--set", "refinement.stepz=3"),
+        kitti_args(data, tmp_path / "o", "--set", "refinement.steps=-1"),
+        kitti_args(data, tmp_path / "o", "--set", "refinement.steps"),
         # evaluate: nothing given, a missing GT folder, no matching names, a missing bag
         ["evaluate"],
         ["evaluate", "--pred", str(tmp_path), "--gt", str(tmp_path / "nope")],

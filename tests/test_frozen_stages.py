@@ -5,6 +5,7 @@ stages."""
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
@@ -19,7 +20,6 @@ from sfm_ttr_ros.core.refinement import (
     sample_depth,
     weighted_l1,
 )
-from tests.test_refinement import tiny_model
 
 
 def mobile(seed: int = 0) -> MobileDepthNet:

@@ -20,18 +20,22 @@ from msg_adapters import (  # noqa: E402
     CameraInfoError,
     ImageConversionError,
     PointCloudError,
+    camera_info_msg,
     camera_info_to_intrinsics,
     depth_to_colored_image,
     depth_to_image,
     diagnostic_values,
+    image_to_depth,
     image_to_numpy,
     image_to_rgb8,
     intrinsics_to_camera_info,
     make_diagnostic_array,
+    make_header,
     numpy_to_image,
     numpy_to_pointcloud2,
     pointcloud2_to_numpy,
     pointcloud2_to_xyz,
+    typestore_classes,
 )
 from sfm_ttr_ros.core.frames import InputError, Intrinsics  # noqa: E402
 
@@ -434,3 +438,61 @@ def test_diagnostics():
     assert diagnostic_values(np_vals.status[0]) == {"f": "2.5", "i": "7"}
     with pytest.raises(InputError, match="level"):
         make_diagnostic_array(None, "n", "h", "fatal", "m", {})
+
+
+# ---------------------------------------------------------------------------------------------
+# One builder, two kinds of classes (rclpy's and a rosbags type store's), and depth reading
+# ---------------------------------------------------------------------------------------------
+
+
+def test_image_to_depth_rep118():
+    mm = np.array([[0, 1500], [65535, 20]], np.uint16)
+    for enc in ("16UC1", "mono16"):
+        d = image_to_depth(numpy_to_image(mm, enc))
+        assert d.dtype == np.float32 and np.isnan(d[0, 0])
+        np.testing.assert_allclose(d.ravel()[1:], [1.5, 65.535, 0.02], rtol=1e-6)
+    metres = np.array([[1.25, np.nan]], np.float32)
+    _eq(image_to_depth(numpy_to_image(metres, "32FC1")), metres)
+    with pytest.raises(ImageConversionError, match="must be 32FC1"):
+        image_to_depth(numpy_to_image(np.zeros((2, 2, 3), np.uint8), "rgb8"))
+
+
+def test_builders_give_rosbags_messages_equal_to_rclpy_ones():
+    """numpy_to_image / depth_to_image / camera_info_msg / make_header fill a rosbags type
+    store's classes exactly as rclpy's: rclpy decodes the rosbags CDR bytes (what a bag holds)
+    into a message equal to the one built for rclpy. (The bytes themselves may differ in the
+    alignment padding, which rclpy's serializer leaves uninitialised.)"""
+    rosbags_typesys = pytest.importorskip("rosbags.typesys")
+    from rclpy.serialization import deserialize_message
+
+    store = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
+    bag_classes = typestore_classes(store)
+
+    def same_bytes(build, msgtype: str) -> None:
+        ros_msg, bag_msg = build(None), build(bag_classes)
+        assert type(bag_msg).__msgtype__ == msgtype and isinstance(ros_msg, (Image, CameraInfo))
+        cdr = bytes(store.serialize_cdr(bag_msg, msgtype))
+        assert deserialize_message(cdr, type(ros_msg)) == ros_msg
+
+    for enc in ("rgb8", "mono8", "16UC1", "32FC1"):
+        a = _random(enc)
+        same_bytes(lambda c, a=a, enc=enc: numpy_to_image(
+            a, enc, make_header(1_317_042_145_964_389_445, "cam", c), classes=c),
+            "sensor_msgs/msg/Image")
+    d = RNG.uniform(-1.0, 50.0, (4, 6))
+    same_bytes(lambda c: depth_to_image(d, make_header(5, "d", c), classes=c),
+               "sensor_msgs/msg/Image")
+    bgr = _random("bgr8")
+    same_bytes(lambda c: numpy_to_image(bgr, "bgr8", classes=c),
+               "sensor_msgs/msg/Image")  # no header given: a zero stamp, no frame id
+    K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
+    P = np.hstack([K, [[44.9], [0.2], [0.003]]])
+    same_bytes(lambda c: camera_info_msg(1242, 375, K, P, D=np.zeros(5),
+                                         header=make_header(7, "cam", c), classes=c),
+               "sensor_msgs/msg/CameraInfo")
+    info = camera_info_msg(1242, 375, K, P, D=np.zeros(5), classes=bag_classes)
+    assert camera_info_to_intrinsics(info) == Intrinsics(721.5, 721.5, 609.6, 172.9, 1242, 375)
+    with pytest.raises(InputError, match="negative stamp"):
+        make_header(-1, "cam")
+    with pytest.raises(CameraInfoError, match="P must have 12 values"):
+        camera_info_msg(10, 10, K, K)

@@ -22,14 +22,13 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
-from torch import nn  # noqa: E402
+from conftest import tiny_model  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
 from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
-from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -44,23 +43,15 @@ from msg_adapters import (  # noqa: E402
     numpy_to_image,
     pointcloud2_to_numpy,
 )
-from sfm_ttr_ros.core.models.base import EncoderDecoder  # noqa: E402
+from sfm_ttr_ros.ros import names  # noqa: E402
 from sfm_ttr_ros.ros import params as node_params  # noqa: E402
-from sfm_ttr_ros.ros.node import DIAG_NAME, RefinerNode  # noqa: E402
+from sfm_ttr_ros.ros.node import RefinerNode  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PKG = "sfm_ttr_ros"
 WIDTH, HEIGHT = 320, 96
 FRAME_ID = "camera_color_left"
 pytestmark = pytest.mark.ros
-
-
-def tiny_model() -> EncoderDecoder:
-    """A network small enough that 5 refinement steps take well under a second."""
-    torch.manual_seed(0)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, (64, 208)).eval()
 
 
 FAST = {"refinement.steps": 5, "sfm.max_num_features": 2048, "min_supervision_points": 20,
@@ -83,14 +74,6 @@ def stamp_of(seconds: float) -> Time:
 
 
 @pytest.fixture(scope="module")
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    ctx.try_shutdown()
-
-
-@pytest.fixture(scope="module")
 def sequence():
     synthetic = pytest.importorskip("sfm_ttr_ros.data.synthetic")
     return synthetic.make_sequence(seed=0, domain="A", num_frames=12, width=WIDTH, height=HEIGHT)
@@ -105,18 +88,18 @@ class Graph:
                                    parameter_overrides=overrides)
         self.node = Node("player", context=context)
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_image = self.node.create_publisher(Image, "image", reliable)
-        self.pub_info = self.node.create_publisher(CameraInfo, "camera_info", reliable)
+        self.pub_image = self.node.create_publisher(Image, names.IMAGE_TOPIC, reliable)
+        self.pub_info = self.node.create_publisher(CameraInfo, names.CAMERA_INFO_TOPIC, reliable)
         self.depths: list[Image] = []
         self.colored: list[Image] = []
         self.points: list[PointCloud2] = []
         self.diags: list[DiagnosticArray] = []
-        self.node.create_subscription(Image, "/refiner/depth", self.depths.append, reliable)
-        self.node.create_subscription(Image, "/refiner/depth_colored", self.colored.append,
-                                      reliable)
-        self.node.create_subscription(PointCloud2, "/refiner/points", self.points.append,
-                                      reliable)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
+        for msg_type, topic, sink in ((Image, names.DEPTH_TOPIC_RESOLVED, self.depths),
+                                      (Image, names.DEPTH_COLORED_TOPIC_RESOLVED, self.colored),
+                                      (PointCloud2, names.POINTS_TOPIC_RESOLVED, self.points)):
+            self.node.create_subscription(msg_type, topic, sink.append, reliable)
+        self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC,
+                                      self.diags.append, 10)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.refiner)
         self.executor.add_node(self.node)
@@ -145,7 +128,7 @@ class Graph:
 
     def last_diag(self) -> dict[str, str]:
         for msg in reversed(self.diags):
-            if msg.status and msg.status[0].name == DIAG_NAME:
+            if msg.status and msg.status[0].name == names.DIAG_NAME:
                 return diagnostic_values(msg)
         return {}
 
@@ -217,14 +200,14 @@ def test_every_frame_comes_back_with_its_header(graph_factory, sequence):
 @pytest.mark.slow
 def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
     g = graph_factory(window_size=3, window_stride=3)
-    client = AsyncParameterClient(g.node, "refiner")
+    client = AsyncParameterClient(g.node, names.NODE_NAME)
     assert client.wait_for_services(timeout_sec=10)
 
     def call(future):
         return wait_for(lambda: future.result() if future.done() else None, 10, "service")
 
-    names = call(client.list_parameters()).result.names
-    assert set(node_params.SPECS) <= set(names)
+    declared = call(client.list_parameters()).result.names
+    assert set(node_params.SPECS) <= set(declared)
     desc = {d.name: d for d in call(client.describe_parameters(
         ["window_size", "refinement.lr", "model_type", "refinement.bn_mode"])).descriptors}
     assert desc["window_size"].integer_range[0].from_value == 2
@@ -292,14 +275,14 @@ def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
     # a CameraInfo with K (and P) all zeros: camera not calibrated
     bad = CameraInfo(width=WIDTH, height=HEIGHT)
     g.pub_info.publish(bad)
-    wait_for(lambda: refiner.rejected_camera_info == 1, 10, "rejected CameraInfo")
+    wait_for(lambda: refiner.diagnostics.rejected_camera_info == 1, 10, "rejected CameraInfo")
     # no intrinsics at all yet: frames are held
     g.send_image(ok_rgb, 10.0)
     g.send_image(ok_rgb, 11.0, "rgb8")
-    wait_for(lambda: len(refiner._held) == 2, 10, "2 held frames")
+    wait_for(lambda: refiner.intrinsics.held == 2, 10, "2 held frames")
     assert refiner.diagnostics_values()["frames_held_no_intrinsics"] == 2
     g.send_info(sequence.intrinsics, 11.0)
-    wait_for(lambda: not refiner._held, 10, "held frames released")
+    wait_for(lambda: not refiner.intrinsics.held, 10, "held frames released")
     g.send_image(ok_rgb, 11.0)  # duplicate stamp: rejected
     wait_for(lambda: refiner.stream.counters()["dropped_by_reason"].get("duplicate_stamp"), 10,
              "duplicate rejected")
@@ -310,16 +293,17 @@ def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
     small = sequence.intrinsics.scaled(160, 48)
     g.send_info(sequence.intrinsics, 5.0)
     g.send_info(small, 6.0)
-    wait_for(lambda: refiner._cam_latest == small, 10, "new CameraInfo")
+    wait_for(lambda: refiner.intrinsics.latest == small, 10, "new CameraInfo")
     g.send_image(other_rgb, 5.0)
     g.send_image(np.ascontiguousarray(other_rgb[::2, ::2]), 6.0)
     wait_for(lambda: refiner.stream.counters()["non_monotonic_stamps"] == 1, 10, "jump back")
     # the 160x48 frame is alone in its window: the idle flush publishes it unrefined
     wait_for(lambda: len(g.depths) == 5, 30, "every frame accounted for")
     # a best-effort publisher cannot feed a reliable subscription: an incompatible-QoS event
-    g.node.create_publisher(Image, "image", QoSProfile(
+    g.node.create_publisher(Image, names.IMAGE_TOPIC, QoSProfile(
         depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
-    wait_for(lambda: refiner.qos_incompatible["image"] > 0, 15, "incompatible QoS event")
+    wait_for(lambda: refiner.diagnostics.qos_incompatible[names.IMAGE_TOPIC] > 0, 15,
+             "incompatible QoS event")
 
     c = refiner.stream.counters()
     assert c["unrefined_by_reason"] == {"sfm_failed": 3, "resolution_change": 1,
@@ -349,7 +333,7 @@ def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence)
     msg = intrinsics_to_camera_info(intr)
     msg.k = [0.0] * 9
     g.pub_info.publish(msg)
-    wait_for(lambda: g.refiner._cam_latest == intr, 10, "intrinsics from P")
+    wait_for(lambda: g.refiner.intrinsics.latest == intr, 10, "intrinsics from P")
 
 
 @pytest.mark.slow
@@ -438,7 +422,7 @@ def test_installed_refiner_runs_and_stops_on_sigint(installed, context, tmp_path
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
-        client = AsyncParameterClient(node, "refiner")
+        client = AsyncParameterClient(node, names.NODE_NAME)
         assert client.wait_for_services(timeout_sec=60), "the installed node never came up"
         future = client.get_parameters(["window_size", "model_type", "refinement.lr"])
         executor.spin_until_future_complete(future, timeout_sec=60)

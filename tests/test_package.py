@@ -27,6 +27,9 @@ EXEC_DEPENDS = {
     "python3-torch",
     "python3-yaml",
     "rosgraph_msgs",
+    "launch",
+    "launch_ros",
+    "ament_index_python",
 }
 EXECUTABLES = {"refiner": "sfm_ttr_ros.ros.node", "sfm-ttr": "sfm_ttr_ros.tools.cli"}
 
@@ -133,6 +136,12 @@ def test_colcon_install_layout(colcon_install: Path):
         assert f"'{name}'" in exe.read_text()
     for yaml_file in sorted((REPO / "params").glob("*.yaml")):
         assert (prefix / "share" / PKG / "params" / yaml_file.name).is_file()
+    # `ros2 launch sfm_ttr_ros refiner.launch.py` looks in share/<pkg>/launch
+    launch_files = sorted((REPO / "launch").glob("*.launch.py"))
+    assert [p.name for p in launch_files] == ["refiner.launch.py"]
+    for launch_file in launch_files:
+        installed = prefix / "share" / PKG / "launch" / launch_file.name
+        assert installed.read_bytes() == launch_file.read_bytes()
 
 
 @pytest.mark.slow
@@ -182,3 +191,23 @@ def test_installed_entry_points_load(colcon_install: Path, tmp_path: Path, name:
     mod, is_callable, origin = out.stdout.split()[-3:]
     assert (mod, is_callable) == (module, "True")
     assert Path(origin).is_relative_to(colcon_install)
+
+
+@pytest.mark.slow
+def test_installed_launch_file_finds_and_checks_the_installed_params(colcon_install: Path,
+                                                                   tmp_path: Path):
+    pytest.importorskip("ament_index_python")
+    launch_file = colcon_install / "share" / PKG / "launch" / "refiner.launch.py"
+    code = ("import importlib.util, os\n"
+            "spec = importlib.util.spec_from_file_location("
+            f"'refiner_launch', {str(launch_file)!r})\n"
+            "m = importlib.util.module_from_spec(spec)\n"
+            "spec.loader.exec_module(m)\n"
+            "default = m.default_params_file()\n"
+            "out = m.node_params_file(default)\n"
+            "print(default)\nprint(m.names.__file__)\nos.unlink(out)\n")
+    out = _run([sys.executable, "-c", code], cwd=tmp_path, env=_install_env(colcon_install),
+               timeout=120)
+    default, names_file = out.stdout.split()[-2:]
+    assert Path(default) == colcon_install / "share" / PKG / "params" / "kitti.yaml"
+    assert Path(names_file).is_relative_to(colcon_install)

@@ -1,5 +1,7 @@
-"""The shipped parameter files: every key is a declared parameter of the refiner node with the
-declared type and within its range, and the node starts with them (checked in-process)."""
+"""The shipped parameter files against the node's ROS declaration: every key is a declared
+parameter with the declared type and within its range, and the node starts with them (checked
+in-process); the descriptors come from the rows of the one schema (sfm_ttr_ros.core.params,
+whose own checks of the same files are in test_params_schema.py)."""
 
 from __future__ import annotations
 
@@ -17,10 +19,10 @@ rclpy = pytest.importorskip("rclpy")
 
 import yaml  # noqa: E402
 from rcl_interfaces.msg import ParameterType  # noqa: E402
-from rclpy.context import Context  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
+from sfm_ttr_ros.core import params as schema  # noqa: E402
 from sfm_ttr_ros.ros import params as node_params  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,14 +42,6 @@ def parameter_dict_from_yaml_file(path: str, target_nodes: list[str]) -> dict:
         for name, value in data[node]["ros__parameters"].items():
             out[name] = Parameter(name, value=value).to_parameter_msg()
     return out
-
-
-@pytest.fixture(scope="module")
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    ctx.try_shutdown()
 
 
 def test_both_files_are_shipped():
@@ -70,9 +64,9 @@ def test_every_key_is_declared_typed_and_in_range(path: Path, context):
     for name, msg in params.items():
         spec = node_params.SPECS[name]
         if not spec.dynamic_typing:
-            assert msg.value.type == spec.type, (
+            assert msg.value.type == node_params.ros_type(spec), (
                 f"{path.name}: {name} is {ParameterType.__name__} {msg.value.type}, declared "
-                f"{spec.type} (write doubles as 1.0, not 1)")
+                f"{node_params.ros_type(spec)} (write doubles as 1.0, not 1)")
     # declare on a real node with the file's values as overrides: rclpy checks type and range
     overrides = [Parameter.from_parameter_msg(m) for m in params.values()]
     node = Node("refiner", context=context, parameter_overrides=overrides)
@@ -84,6 +78,9 @@ def test_every_key_is_declared_typed_and_in_range(path: Path, context):
     for name, msg in params.items():
         assert values[name] == Parameter.from_parameter_msg(msg).value
     assert node_params.validate(values) == ""
+    # the schema reads the file as rcl does
+    assert schema.read_params_file(path, "refiner") == {
+        k: Parameter.from_parameter_msg(m).value for k, m in params.items()}
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
@@ -117,14 +114,25 @@ def test_a_double_written_as_an_integer_stops_the_start_up(tmp_path: Path, conte
         node.destroy_node()
 
 
-def test_every_descriptor_is_complete():
+def test_every_descriptor_is_complete_and_from_the_schema():
+    assert node_params.PARAMS is schema.PARAMS and node_params.DEFAULTS == schema.defaults()
+    types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+             float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
     for spec in node_params.PARAMS:
-        d = spec.descriptor()
-        assert d.description, spec.name
-        if spec.type in (ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_DOUBLE):
+        d = node_params.descriptor(spec)
+        assert d.name == spec.name and d.description == spec.description
+        assert d.read_only == (not spec.live) and d.dynamic_typing == spec.dynamic_typing
+        if spec.dynamic_typing:
+            assert d.type == ParameterType.PARAMETER_NOT_SET
+        else:
+            assert d.type == types[spec.type], spec.name
+        if d.type in (ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_DOUBLE):
             assert d.integer_range or d.floating_point_range, f"{spec.name} has no range"
+            r = (d.integer_range or d.floating_point_range)[0]
+            assert (r.from_value, r.to_value) == spec.range
         if spec.choices:
-            assert "one of" in d.additional_constraints
-    ro = {s.name for s in node_params.PARAMS if s.read_only}
+            assert d.additional_constraints.startswith(
+                "one of: " + ", ".join(map(str, spec.choices)))
+    ro = {s.name for s in node_params.PARAMS if not s.live}
     assert {"model_type", "device", "qos_reliability", "qos_depth", "max_pending"} <= ro
     assert not ro & {"refinement.steps", "window_size", "refinement.lr"}

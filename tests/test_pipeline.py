@@ -57,7 +57,8 @@ class SigmoidHead(nn.Module):
         return torch.sigmoid(up)  # Monodepth2-style sigmoid disparity
 
 
-def tiny_model(state=None) -> EncoderDecoder:
+def street_model(state=None) -> EncoderDecoder:
+    """A small net that can learn street depth (CoordEncoder + SigmoidHead), seeded."""
     torch.manual_seed(0)
     model = EncoderDecoder(CoordEncoder(), SigmoidHead(), INPUT)
     if state is not None:
@@ -82,7 +83,7 @@ def scene(one_thread):
 @pytest.fixture(scope="module")
 def biased_state(scene):
     """Weights of the tiny network fitted to depth ** GAMMA of the window's frames."""
-    model = tiny_model()
+    model = street_model()
     x = model.preprocess(scene.seq.images)
     gt = F.interpolate(torch.from_numpy(np.stack(scene.seq.depths))[:, None], size=INPUT,
                        mode="nearest")
@@ -116,7 +117,7 @@ def run(scene, biased_state):
         supervised.append([s.name for s in supervision])
         return real(model, supervision, *args, **kwargs)
 
-    model = tiny_model(biased_state)
+    model = street_model(biased_state)
     ttr = SfmTTR(model, config())
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(pipeline_module, "refine_encoder", spy)

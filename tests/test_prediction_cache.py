@@ -14,10 +14,9 @@ import copy
 import numpy as np
 import pytest
 import torch
-from torch import nn
+from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.models.base import EncoderDecoder
 from sfm_ttr_ros.core.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig, sample_at
 from sfm_ttr_ros.core.refinement import RefinementConfig
 from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
@@ -26,12 +25,9 @@ W, H = 160, 64
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)
 
 
-def tiny_model() -> EncoderDecoder:
-    torch.manual_seed(0)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.BatchNorm2d(8), nn.ReLU(),
-                        nn.Conv2d(8, 8, 3, 1, 1))
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, (32, 96)).eval()
+def bn_model():
+    """The tiny network with a BatchNorm after its first convolution, at (32, 96)."""
+    return tiny_model((32, 96), batch_norm=1)
 
 
 def images(n: int) -> list[np.ndarray]:
@@ -44,7 +40,7 @@ class FakeReconstructor:
     """Sparse 'SfM' depths: the ORIGINAL network's depth at fixed pixels / 3, +-20 % noise."""
 
     def __init__(self):
-        self.model = tiny_model()
+        self.model = bn_model()
 
     def reconstruct(self, frames, intrinsics) -> SfmResult:
         res = SfmResult(True, "", len(frames), timings={"extract": 0.0})
@@ -71,7 +67,7 @@ def make_ttr(reuse: bool, reset_each_window: bool = False, batch: int = 1) -> Sf
     cfg = TTRConfig(refinement=RefinementConfig(steps=3, lr=1e-2),
                     reuse_predictions=reuse, reset_each_window=reset_each_window,
                     predict_batch=batch)
-    ttr = SfmTTR(tiny_model(), cfg)
+    ttr = SfmTTR(bn_model(), cfg)
     ttr.reconstructor.close()
     ttr.reconstructor = FakeReconstructor()
     return ttr

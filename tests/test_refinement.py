@@ -1,12 +1,13 @@
 """Test-time refinement (paper Sec. 3.3, Eq. 5) on a tiny encoder-decoder, no SfM involved."""
 
+from functools import partial
+
 import numpy as np
 import pytest
 import torch
-from torch import nn
+from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.models.base import EncoderDecoder
 from sfm_ttr_ros.core.refinement import (
     FrameSupervision,
     RefinementConfig,
@@ -16,13 +17,8 @@ from sfm_ttr_ros.core.refinement import (
     snapshot_encoder,
 )
 
-
-def tiny_model(seed: int = 0) -> EncoderDecoder:
-    torch.manual_seed(seed)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.BatchNorm2d(8), nn.ReLU(),
-                        nn.Conv2d(8, 8, 3, padding=1), nn.BatchNorm2d(8), nn.ReLU())
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, padding=1), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, input_size=(32, 48)).eval()
+# full resolution, BatchNorm after both encoder convolutions (the BN modes are tested here)
+bn_model = partial(tiny_model, (32, 48), downsample=False, batch_norm=2)
 
 
 def scene(seed: int, n_frames: int = 3, points: int = 300):
@@ -43,7 +39,7 @@ def abs_rel(model, sup) -> float:
 
 
 def test_refinement_lowers_the_error_of_a_biased_network():
-    model = tiny_model()
+    model = bn_model()
     sup = scene(0)
     dec_before = {k: v.clone() for k, v in model.decoder.state_dict().items()}
     before = abs_rel(model, sup)
@@ -59,7 +55,7 @@ def test_refinement_lowers_the_error_of_a_biased_network():
 
 
 def test_deterministic_under_seed():
-    a, b = tiny_model(), tiny_model()
+    a, b = bn_model(), bn_model()
     cfg = RefinementConfig(steps=10, lr=1e-3, seed=5)
     ra = refine_encoder(a, scene(1), cfg)
     rb = refine_encoder(b, scene(1), cfg)
@@ -70,7 +66,7 @@ def test_deterministic_under_seed():
 
 @pytest.mark.parametrize("mode", ["frozen", "train"])
 def test_batchnorm_mode_is_explicit(mode):
-    model = tiny_model()
+    model = bn_model()
     bn = model.encoder[1]
     mean0 = bn.running_mean.clone()
     refine_encoder(model, scene(2), RefinementConfig(steps=3, bn_mode=mode))
@@ -79,7 +75,7 @@ def test_batchnorm_mode_is_explicit(mode):
 
 
 def test_cancel_between_steps_and_unregistered_frames_unused():
-    model = tiny_model()
+    model = bn_model()
     sup = scene(3)
     sup.append(FrameSupervision("few", sup[0].image, np.zeros((2, 2)), np.ones(2), np.ones(2)))
     calls = {"n": 0}
@@ -101,7 +97,7 @@ def test_reprojection_weighting_and_loss_eval():
 
 
 def test_snapshot_restore_and_bad_config():
-    model = tiny_model()
+    model = bn_model()
     snap = snapshot_encoder(model)
     refine_encoder(model, scene(5), RefinementConfig(steps=5, lr=1e-2))
     assert not all(torch.equal(v, snap[k]) for k, v in model.encoder.state_dict().items())

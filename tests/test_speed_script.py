@@ -182,11 +182,23 @@ def test_memory_stream(bs, tiny_model):
     assert isinstance(m["within_10_percent"], bool)
 
 
-def test_overrides_are_typed_like_the_node_parameters(bs):
-    node, extra = bs.split_overrides(["refinement.lr=3e-5", "refinement.steps=40",
-                                      "fx=700", "sfm.min_tri_angle=1.0"])
-    assert node == {"refinement.lr": 3e-5, "refinement.steps": 40, "fx": 700.0}
-    assert isinstance(node["refinement.lr"], float) and isinstance(node["fx"], float)
-    assert extra == {"sfm": {"min_tri_angle": 1.0}}
-    with pytest.raises(InputError):
-        bs.split_overrides(["no_such_thing=1"])
+def test_set_is_the_one_syntax_of_the_schema(bs, tiny_model):
+    """--set / --naive-set go through sfm_ttr_ros.core.params.parse_overrides: typed by the
+    schema (integers become doubles), parameter names or config fields, over the file and the
+    model flags; the naive run's forced values under its own --naive-set."""
+    (cfg,) = bs.build_configs(None, ["refinement.lr=1", "sfm.min_tri_angle=2",
+                                     "publish_points=false", "model.channels_last=false",
+                                     "model_type=python:tiny_speed_model:factory"], (),
+                              {"type": "mobilenet"}, names=("tuned",))
+    assert type(cfg.ttr.refinement.lr) is float and cfg.ttr.refinement.lr == 1.0
+    assert type(cfg.ttr.sfm.min_tri_angle) is float and cfg.ttr.sfm.min_tri_angle == 2.0
+    assert cfg.publish == {"colored": True, "points": False, "diagnostics": True}
+    assert not cfg.model.channels_last and cfg.model.type == tiny_model["type"]
+    (naive,) = bs.build_configs(None, (), ["refinement.steps=3", "ttr.reuse_predictions=true"],
+                                tiny_model, names=("naive",))
+    assert naive.ttr.refinement.steps == 3 and naive.ttr.reuse_predictions is True
+    assert "refinement.steps=3" in naive.overrides
+    with pytest.raises(InputError, match="did you mean refinement.steps"):
+        bs.build_configs(None, ["refinement.stepz=1"], (), tiny_model, names=("tuned",))
+    args = bs.build_parser().parse_args(["--set", "a.b=1", "--set", "c=2", "--naive-set", "d=3"])
+    assert args.tuned_set == ["a.b=1", "c=2"] and args.naive_set == ["d=3"]

@@ -10,11 +10,9 @@ import time
 
 import numpy as np
 import pytest
-import torch
-from torch import nn
+from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.models.base import EncoderDecoder
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm import SfmResult
 from sfm_ttr_ros.core.stream import (
@@ -293,13 +291,6 @@ def test_idle_flush_and_worker_thread_cancel():
 
 
 # -- the real SfmTTR with a tiny network ------------------------------------------------------
-def tiny_model() -> EncoderDecoder:
-    torch.manual_seed(0)
-    enc = nn.Sequential(nn.Conv2d(3, 8, 3, 2, 1), nn.ReLU(), nn.Conv2d(8, 8, 3, 1, 1))
-    dec = nn.Sequential(nn.Conv2d(8, 1, 3, 1, 1), nn.Upsample(scale_factor=2), nn.Sigmoid())
-    return EncoderDecoder(enc, dec, (64, 208)).eval()
-
-
 @pytest.fixture(scope="module")
 def sequence():
     synthetic = pytest.importorskip("sfm_ttr_ros.data.synthetic")

@@ -102,7 +102,7 @@ class StreamSettings:
     min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
     max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
     overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
-    idle_flush_s: float = 0.0  # > 0: flush an incomplete window after this long without input
+    idle_flush_s: float = 2.0  # > 0: flush an incomplete window after this long without input
 
     def __post_init__(self) -> None:
         if self.window_size < 2:

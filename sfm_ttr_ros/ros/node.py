@@ -11,10 +11,13 @@ image's header), ``~/depth_colored`` (bgr8), ``~/points`` (PointCloud2 x, y, z,
 reprojection_error in the optical frame of the window's newest registered image, with that
 image's header; units = the depth's units) and ``/diagnostics``.
 
-Intrinsics: the CameraInfo with the image's stamp, else the latest one; without any CameraInfo
-the fallback parameters fx, fy (cx, cy; 0 = image centre); with neither, frames are held
-(bounded by ``max_pending``, oldest dropped and counted) with a throttled warning, and processed
-once intrinsics are known.
+Topic and node names: :mod:`sfm_ttr_ros.ros.names`; the messages: :mod:`sfm_ttr_ros.ros.outputs`.
+
+Intrinsics (:class:`~sfm_ttr_ros.core.camera.IntrinsicsResolver`): the CameraInfo with the
+image's stamp, else the latest one; without any CameraInfo the fallback parameters fx, fy (cx,
+cy; 0 = image centre); with neither, frames are held (bounded by ``max_pending``, oldest dropped
+and counted) with a throttled warning, and processed once intrinsics are known. Diagnostics:
+:class:`~sfm_ttr_ros.core.diagnostics.StreamDiagnostics`.
 
 Shutdown (SIGINT / SIGTERM / external shutdown): the worker is cancelled (``SfmTTR.cancel``:
 refinement stops at the next step, pycolmap through its cancellation token) and joined, the
@@ -28,7 +31,6 @@ saving the weights.
 
 from __future__ import annotations
 
-import collections
 import os
 import signal
 import sys
@@ -51,37 +53,33 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
-from msg_adapters import (
-    camera_info_to_intrinsics,
-    depth_to_colored_image,
-    depth_to_image,
-    image_to_rgb8,
-    make_diagnostic_array,
-    numpy_to_pointcloud2,
-)
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from msg_adapters import camera_info_to_intrinsics, image_to_rgb8
+from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
+from sfm_ttr_ros.core.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
+from sfm_ttr_ros.core.diagnostics import StreamDiagnostics
+from sfm_ttr_ros.core.frames import Frame, InputError
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.models.registry import build_model
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, WindowStats
+from sfm_ttr_ros.ros import names, outputs
 from sfm_ttr_ros.ros import params as node_params
 
-NODE_NAME = "refiner"
-DIAG_NAME = "sfm_ttr_ros: refiner"
 WARN_PERIOD_S = 5.0
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
-
-
-def _stamp_key(stamp) -> tuple[int, int]:
-    return int(stamp.sec), int(stamp.nanosec)
 
 
 class RefinerNode(Node):
     """The refiner node. ``model`` (tests, embedding) replaces the one the parameters describe;
     other keyword arguments go to :class:`rclpy.node.Node` (context, parameter_overrides,
-    cli_args, namespace)."""
+    cli_args, namespace).
 
-    def __init__(self, *, model: DepthModel | None = None, node_name: str = NODE_NAME,
+    ``intrinsics`` (:class:`~sfm_ttr_ros.core.camera.IntrinsicsResolver`) decides each frame's
+    intrinsics and holds the frames that have none; ``diagnostics``
+    (:class:`~sfm_ttr_ros.core.diagnostics.StreamDiagnostics`) counts and builds the status;
+    :mod:`sfm_ttr_ros.ros.outputs` builds the messages."""
+
+    def __init__(self, *, model: DepthModel | None = None, node_name: str = names.NODE_NAME,
                  **kwargs):
         super().__init__(node_name, **kwargs)
         try:
@@ -112,15 +110,10 @@ class RefinerNode(Node):
             settings_provider=lambda: node_params.build_stream_settings(self._values()),
             on_output=self._publish_output, on_window=self._on_window,
             logger=self.get_logger())
-
-        # counters of things that are not frames (frames are counted by the stream)
-        self.qos_incompatible = collections.Counter()
-        self.rejected_camera_info = 0
-        self._cam_latest: Intrinsics | None = None
-        self._cam_by_stamp: collections.OrderedDict = collections.OrderedDict()
-        self._held: collections.deque[Frame] = collections.deque()
-        self._unrefined_since_diag = 0
-        self._diag_lock = threading.Lock()
+        self.intrinsics = IntrinsicsResolver(self._fallback_intrinsics,
+                                             max_held=int(values["max_pending"]))
+        self.diagnostics = StreamDiagnostics(self.stream, held=lambda: self.intrinsics.held)
+        self._diag_lock = threading.Lock()  # one status published at a time, in order
         self._closed = False
         self._stop = threading.Event()
 
@@ -129,15 +122,13 @@ class RefinerNode(Node):
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(nv["qos_depth"]),
                          reliability=reliability)
         overrides = QoSOverridingOptions.with_default_policies()
-        self.create_subscription(
-            Image, "image", self._on_image, qos, qos_overriding_options=overrides,
-            event_callbacks=SubscriptionEventCallbacks(
-                incompatible_qos=partial(self._on_incompatible_qos, "image")))
-        self.create_subscription(
-            CameraInfo, "camera_info", self._on_camera_info, qos,
-            qos_overriding_options=overrides,
-            event_callbacks=SubscriptionEventCallbacks(
-                incompatible_qos=partial(self._on_incompatible_qos, "camera_info")))
+        for msg_type, topic, callback in ((Image, names.IMAGE_TOPIC, self._on_image),
+                                          (CameraInfo, names.CAMERA_INFO_TOPIC,
+                                           self._on_camera_info)):
+            self.create_subscription(
+                msg_type, topic, callback, qos, qos_overriding_options=overrides,
+                event_callbacks=SubscriptionEventCallbacks(
+                    incompatible_qos=partial(self._on_incompatible_qos, topic)))
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(nv["qos_depth"]),
                              reliability=ReliabilityPolicy.RELIABLE)
 
@@ -146,10 +137,13 @@ class RefinerNode(Node):
                 msg_type, topic, depth_qos, event_callbacks=PublisherEventCallbacks(
                     incompatible_qos=partial(self._on_incompatible_qos, topic)))
 
-        self.pub_depth = pub(Image, "~/depth")
-        self.pub_colored = pub(Image, "~/depth_colored")
-        self.pub_points = pub(PointCloud2, "~/points")
-        self.pub_diag = pub(DiagnosticArray, "/diagnostics", 10)
+        self.pub_depth = pub(Image, names.DEPTH_TOPIC)
+        self.pub_colored = pub(Image, names.DEPTH_COLORED_TOPIC)
+        self.pub_points = pub(PointCloud2, names.POINTS_TOPIC)
+        self.pub_diag = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, 10)
+        self._publishers_by_topic = {names.DEPTH_TOPIC: self.pub_depth,
+                                     names.DEPTH_COLORED_TOPIC: self.pub_colored,
+                                     names.POINTS_TOPIC: self.pub_points}
         self.create_timer(float(nv["diagnostics_period_s"]), self._on_timer)
 
         self._worker = threading.Thread(target=self._work, name="refiner-worker", daemon=True)
@@ -166,6 +160,9 @@ class RefinerNode(Node):
 
     def _param(self, name: str):
         return self.get_parameter(name).value
+
+    def _fallback_intrinsics(self) -> FallbackIntrinsics:
+        return FallbackIntrinsics(*(float(self._param(k)) for k in ("fx", "fy", "cx", "cy")))
 
     def _validate_parameters(self, params) -> SetParametersResult:
         values = self._values()
@@ -191,69 +188,44 @@ class RefinerNode(Node):
             raise InputError(f"load_weights_path: cannot load encoder weights from {path}: "
                              f"{type(exc).__name__}: {exc}") from exc
 
-    # -- callbacks (executor thread: convert and queue only) ---------------------------------
+    # -- callbacks (executor thread: convert and hand over only) -------------------------------
     def _on_image(self, msg: Image) -> None:
         try:
             rgb = image_to_rgb8(msg)
         except InputError as exc:
             self.stream.reject("bad_image", f"image rejected: {exc}")
             return
-        stamp = msg.header.stamp
-        frame = Frame(index=self.stream.counters()["received"] + len(self._held), image=rgb,
-                      stamp=stamp.sec + stamp.nanosec * 1e-9, header=msg.header)
-        self._held.append(frame)
-        self._release_held()
-        max_pending = int(self._param("max_pending"))
-        while len(self._held) > max_pending:
-            old = self._held.popleft()
-            self.stream.reject("no_intrinsics", "no intrinsics (no CameraInfo, fallback fx/fy "
-                               f"unset): held frame dropped (max_pending={max_pending})", old)
-        if self._held:
+        frame = Frame(index=self.stream.counters()["received"] + self.intrinsics.held,
+                      image=rgb, stamp=stamp_to_seconds(msg.header.stamp), header=msg.header)
+        self._hand_over(self.intrinsics.add_frame(frame, stamp_to_ns(msg.header.stamp)))
+        if self.intrinsics.held:
             self.get_logger().warning(
-                f"{len(self._held)} frame(s) held: no intrinsics yet - waiting for a CameraInfo "
-                f"on {self.resolve_topic_name('camera_info')} or set the fallback parameters "
-                "fx and fy", throttle_duration_sec=WARN_PERIOD_S)
+                f"{self.intrinsics.held} frame(s) held: no intrinsics yet - waiting for a "
+                f"CameraInfo on {self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set the "
+                "fallback parameters fx and fy", throttle_duration_sec=WARN_PERIOD_S)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             use_p = node_params.parse_use_projection(self._param("camera_info_use_projection"))
             intr = camera_info_to_intrinsics(msg, use_p)
         except InputError as exc:
-            self.rejected_camera_info += 1
+            self.diagnostics.camera_info_rejected()
             self.get_logger().warning(f"CameraInfo rejected: {exc}",
                                       throttle_duration_sec=WARN_PERIOD_S)
             return
-        self._cam_latest = intr
-        self._cam_by_stamp[_stamp_key(msg.header.stamp)] = intr
-        while len(self._cam_by_stamp) > 64:
-            self._cam_by_stamp.popitem(last=False)
-        self._release_held()
+        self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_to_ns(msg.header.stamp)))
 
-    def _intrinsics_for(self, frame: Frame) -> Intrinsics | None:
-        if frame.header is not None:
-            intr = self._cam_by_stamp.get(_stamp_key(frame.header.stamp))
-            if intr is not None:
-                return intr
-        if self._cam_latest is not None:
-            return self._cam_latest
-        fx, fy = float(self._param("fx")), float(self._param("fy"))
-        if fx > 0 and fy > 0:
-            w, h = frame.size
-            cx = float(self._param("cx")) or (w - 1) / 2.0
-            cy = float(self._param("cy")) or (h - 1) / 2.0
-            return Intrinsics(fx, fy, cx, cy, w, h)
-        return None
-
-    def _release_held(self) -> None:
-        """Queue the held frames, oldest first, as long as intrinsics are known for them."""
-        while self._held:
-            intr = self._intrinsics_for(self._held[0])
-            if intr is None:
-                return
-            self.stream.submit(self._held.popleft(), intr)
+    def _hand_over(self, resolved: Resolved) -> None:
+        """Queue the frames that have intrinsics; count the held frames pushed out."""
+        for frame, intr in resolved.ready:
+            self.stream.submit(frame, intr)
+        for frame in resolved.dropped:
+            self.stream.reject(NO_INTRINSICS, "no intrinsics (no CameraInfo, fallback fx/fy "
+                               f"unset): held frame dropped (max_pending="
+                               f"{self.intrinsics.max_held})", frame)
 
     def _on_incompatible_qos(self, what: str, event) -> None:
-        self.qos_incompatible[what] += 1
+        self.diagnostics.qos_event(what)
         policy = getattr(event, "last_policy_kind", "?")
         self.get_logger().warning(
             f"incompatible QoS on {what} (policy {policy}, {event.total_count} so far): "
@@ -261,7 +233,7 @@ class RefinerNode(Node):
             throttle_duration_sec=WARN_PERIOD_S)
 
     def _on_timer(self) -> None:
-        self._release_held()  # the fallback intrinsics may have been set meanwhile
+        self._hand_over(self.intrinsics.release())  # the fallback may have been set meanwhile
         self.publish_diagnostics()
 
     # -- worker thread -------------------------------------------------------------------------
@@ -279,90 +251,32 @@ class RefinerNode(Node):
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
-        header = out.frame.header
-        self.pub_depth.publish(depth_to_image(out.depth, header))
-        if self._param("publish_colored"):
-            self.pub_colored.publish(depth_to_colored_image(out.depth, header))
-        if not out.refined:
-            with self._diag_lock:
-                self._unrefined_since_diag += 1
+        self._publish(outputs.frame_messages(out, colored=self._param("publish_colored")))
+        self.diagnostics.output_published(out.refined)
 
     def _on_window(self, stats: WindowStats) -> None:
         if self._stop.is_set():
             return
-        if (self._param("publish_points") and stats.cloud_frame is not None
-                and stats.cloud_xyz.shape[0]):
-            self.pub_points.publish(numpy_to_pointcloud2(
-                stats.cloud_xyz, stats.cloud_frame.header,
-                {"reprojection_error": stats.cloud_error}))
+        self._publish(outputs.window_messages(stats, points=self._param("publish_points")))
         self.publish_diagnostics()
+
+    def _publish(self, messages: dict[str, object]) -> None:
+        for topic, msg in messages.items():
+            self._publishers_by_topic[topic].publish(msg)
 
     # -- diagnostics ---------------------------------------------------------------------------
     def diagnostics_values(self) -> dict[str, object]:
-        c = self.stream.counters()
-        held = len(self._held)
-        v: dict[str, object] = {
-            "frames_received": c["received"] + held,
-            "frames_refined": c["refined"],
-            "frames_unrefined": c["unrefined"],
-            "frames_dropped": c["dropped"],
-            "frames_pending": c["pending"] + held,
-            "frames_held_no_intrinsics": held,
-        }
-        v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})
-        v.update({f"dropped.{k}": n for k, n in sorted(c["dropped_by_reason"].items())})
-        v.update({
-            "rejected_bad_image": c["dropped_by_reason"].get("bad_image", 0),
-            "rejected_camera_info": self.rejected_camera_info,
-            "non_monotonic_stamps": c["non_monotonic_stamps"],
-            "qos_incompatible": sum(self.qos_incompatible.values()),
-            "windows_ok": c["windows_ok"],
-            "windows_failed": c["windows_failed"],
-            "windows_skipped_overload": c["windows_skipped"],
-            "windows_disabled": c["windows_disabled"],
-        })
-        w = self.stream.last_window
-        if w is not None:
-            v.update({
-                "last_window.index": w.index,
-                "last_window.frames": len(w.names),
-                "last_window.refined": w.refined,
-                "last_window.reason": w.reason,
-                "last_window.registered_frames": w.registered,
-                "last_window.points_3d": w.points,
-                "last_window.inlier_ratio": w.inlier_ratio,
-                "last_window.scale": w.scale,
-                "last_window.loss_before": w.loss_before,
-                "last_window.loss_after": w.loss_after,
-                "last_window.steps": w.steps,
-                "last_window.steps_done": w.steps_done,
-            })
-            v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
-        return v
+        """The key/values of the next /diagnostics status (README "Diagnostics")."""
+        return self.diagnostics.values()
 
     def publish_diagnostics(self) -> None:
         if self._stop.is_set() or not self._param("publish_diagnostics"):
             return
         with self._diag_lock:
-            v = self.diagnostics_values()
-            w = self.stream.last_window
-            problems = []
-            if self._unrefined_since_diag:
-                problems.append(f"{self._unrefined_since_diag} frame(s) passed through unrefined")
-            if w is not None and not w.refined:
-                problems.append(f"last window not refined: {w.reason}")
-            if v["frames_held_no_intrinsics"]:
-                problems.append("no intrinsics: frames held")
-            if v["qos_incompatible"]:
-                problems.append("incompatible QoS")
-            self._unrefined_since_diag = 0
-            level = "warn" if problems else "ok"
-            message = "; ".join(problems) if problems else (
-                f"{v['frames_refined']} refined, {v['windows_ok']} window(s) ok")
+            msg = outputs.diagnostics_message(self.diagnostics.status(), self.get_clock().now(),
+                                              self.get_fully_qualified_name())
             try:
-                self.pub_diag.publish(make_diagnostic_array(
-                    self.get_clock().now(), DIAG_NAME, self.get_fully_qualified_name(), level,
-                    message, v))
+                self.pub_diag.publish(msg)
             except Exception as exc:  # context shut down under us
                 if not self._stop.is_set():
                     raise
@@ -381,12 +295,11 @@ class RefinerNode(Node):
             self.get_logger().warning(
                 f"worker did not stop within {timeout:g} s (busy in an uninterruptible network "
                 "call); not waiting for it")
-        c = self.stream.counters()
-        pending = c["pending"] + len(self._held)
+        v = self.diagnostics.values()
         self.get_logger().info(
-            f"stopped: {c['received'] + len(self._held)} received, {c['refined']} refined, "
-            f"{c['unrefined']} unrefined, {c['dropped']} dropped, {pending} pending not "
-            "published (no flush on shutdown)")
+            f"stopped: {v['frames_received']} received, {v['frames_refined']} refined, "
+            f"{v['frames_unrefined']} unrefined, {v['frames_dropped']} dropped, "
+            f"{v['frames_pending']} pending not published (no flush on shutdown)")
         if self._worker.is_alive():
             return  # the model and the SfM workspace are still in use: leave them alone
         path = self._param("save_weights_path")
@@ -431,7 +344,7 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (InputError, ParameterException) as exc:  # bad parameters / model: no traceback
-        get_logger(NODE_NAME).fatal(f"cannot start: {type(exc).__name__}: {exc}")
+        get_logger(names.NODE_NAME).fatal(f"cannot start: {type(exc).__name__}: {exc}")
         code = 1
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -45,6 +45,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from msg_adapters.stamp import clock_message
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.ros.bag import BagRecorder, ProgressBar
 
@@ -201,8 +202,7 @@ def play_bag(
             _wait_for_subscribers(pubs, wait_topics, wait_timeout, settle_s, progress)
 
         def publish_clock(ns: int) -> None:
-            clock_pub.publish(clock_cls(clock=time_cls(sec=ns // 1_000_000_000,
-                                                       nanosec=ns % 1_000_000_000)))
+            clock_pub.publish(clock_message(ns, clock_cls, time_cls))
             result.clock += 1
 
         bag_start = None  # log time of the first message played

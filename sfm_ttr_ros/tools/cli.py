@@ -12,85 +12,16 @@ from pathlib import Path
 import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.params import build
+from sfm_ttr_ros.tools.cli_args import (
+    add_parameter_args,
+    add_sequence_args,
+    build_model_for,
+    open_sequence,
+    parameter_values,
+)
 
 log = logging.getLogger("sfm_ttr_ros")
-
-
-def add_model_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("model")
-    g.add_argument("--model", default="default",
-                   help="default | monodepth2 | mobilenet | python:module:factory")
-    g.add_argument("--encoder", default="", help="encoder.pth (Monodepth2 layout)")
-    g.add_argument("--decoder", default="", help="depth.pth (Monodepth2 layout)")
-    g.add_argument("--num-layers", type=int, default=18, help="ResNet depth for monodepth2")
-    g.add_argument("--device", default="cpu", help="cpu | cuda | auto")
-    g.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-
-
-def add_method_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("SfM-TTR (defaults = the paper's)")
-    g.add_argument("--steps", type=int, default=200)
-    g.add_argument("--lr", type=float, default=1e-4)
-    g.add_argument("--bn-mode", choices=["frozen", "train"], default="frozen")
-    g.add_argument("--weighting", choices=["observation", "track", "none"],
-                   default="observation")
-    g.add_argument("--ransac-iterations", type=int, default=20)
-    g.add_argument("--tau", type=float, default=0.5)
-    g.add_argument("--sfm-max-image-size", type=int, default=640)
-    g.add_argument("--seed", type=int, default=0)
-
-
-def add_sequence_args(p: argparse.ArgumentParser, required: bool = True) -> None:
-    g = p.add_argument_group("sequence (a KITTI raw drive, or an image folder + K)")
-    g.add_argument("--kitti-raw", help="KITTI raw root (holds <date>/<drive>/image_02)")
-    g.add_argument("--drive", help="<date>_drive_XXXX_sync")
-    g.add_argument("--kitti-gt", help="KITTI depth GT root (holds {train,val}/<drive>/...)")
-    g.add_argument("--images", help="folder of images (any other sequence)")
-    g.add_argument("--intrinsics", help="K file for --images: 3x3 or fx fy cx cy")
-    g.add_argument("--gt-depth", help="GT depth PNG folder for --images (depth x gt-scale)")
-    g.add_argument("--gt-scale", type=float, default=256.0)
-    g.add_argument("--start", type=int, default=0, help="first frame index")
-    g.add_argument("--max-frames", type=int, default=0, help="0 = all")
-
-
-def open_sequence(args: argparse.Namespace):
-    from sfm_ttr_ros.data.sequence import open_image_folder, open_kitti
-
-    if args.kitti_raw:
-        if not args.drive:
-            raise InputError("--kitti-raw needs --drive <date>_drive_XXXX_sync")
-        return open_kitti(args.kitti_raw, args.drive, args.kitti_gt)
-    if args.images:
-        if not args.intrinsics:
-            raise InputError("--images needs --intrinsics K.txt")
-        return open_image_folder(args.images, args.intrinsics, args.gt_depth, args.gt_scale)
-    raise InputError("give a sequence: --kitti-raw RAW --drive D, or --images DIR --intrinsics K")
-
-
-def build_model_from_args(args: argparse.Namespace):
-    import torch
-
-    from sfm_ttr_ros.core.models import ModelConfig, build_model
-
-    torch.set_num_threads(max(1, args.threads))
-    return build_model(ModelConfig(type=args.model, encoder_path=args.encoder,
-                                   decoder_path=args.decoder, num_layers=args.num_layers,
-                                   device=args.device))
-
-
-def ttr_config_from_args(args: argparse.Namespace):
-    from sfm_ttr_ros.core.alignment import AlignmentConfig
-    from sfm_ttr_ros.core.pipeline import TTRConfig
-    from sfm_ttr_ros.core.refinement import RefinementConfig
-    from sfm_ttr_ros.core.sfm import SfmConfig
-
-    return TTRConfig(
-        sfm=SfmConfig(max_image_size=args.sfm_max_image_size, seed=args.seed),
-        alignment=AlignmentConfig(ransac_iterations=args.ransac_iterations, tau=args.tau,
-                                  seed=args.seed),
-        refinement=RefinementConfig(steps=args.steps, lr=args.lr, bn_mode=args.bn_mode,
-                                    weighting=args.weighting, seed=args.seed),
-    )
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -99,7 +30,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sfm_ttr_ros.core.pipeline import SfmTTR
     from sfm_ttr_ros.core.visualize import colorize_depth, write_ply
 
-    config = ttr_config_from_args(args)  # bad options fail before any image is read
+    _, values = parameter_values(args)  # bad options fail before any image is read
+    settings = build(values)
     seq = open_sequence(args)
     if not 0 <= args.start < len(seq):
         raise InputError(f"--start {args.start} is outside the sequence's {len(seq)} frames "
@@ -112,8 +44,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             (out / sub).mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create the output folder {out}: {exc}") from exc
-    model = build_model_from_args(args)
-    ttr = SfmTTR(model, config)
+    model = build_model_for(settings)
+    ttr = SfmTTR(model, settings.ttr)
     t0 = time.perf_counter()
     try:
         res = ttr.process_window(frames, seq.intrinsics)
@@ -181,8 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="SfM-TTR over a whole sequence (offline, as the paper)")
     add_sequence_args(r)
-    add_model_args(r)
-    add_method_args(r)
+    add_parameter_args(r, ("model", "method"), "none: the schema's defaults, the paper's "
+                       "settings")
     r.add_argument("--eigen-crop", action="store_true", help="evaluate inside the Garg crop")
     r.add_argument("--out", required=True, help="output folder")
     r.set_defaults(func=cmd_run)
@@ -201,10 +133,12 @@ def build_parser() -> argparse.ArgumentParser:
     from sfm_ttr_ros.tools.cli_bag import add_commands as add_bag_commands
     from sfm_ttr_ros.tools.cli_benchmark import add_commands as add_benchmark_commands
     from sfm_ttr_ros.tools.demo import add_commands as add_demo_commands
+    from sfm_ttr_ros.tools.params_doc import add_commands as add_params_commands
 
     add_benchmark_commands(sub)
     add_bag_commands(sub)
     add_demo_commands(sub)
+    add_params_commands(sub)
     return p
 
 

@@ -14,12 +14,14 @@ import sys
 from pathlib import Path
 
 from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.ros.bag import DEFAULT_PRED_TOPIC, DEPTH_GT_TOPIC, STORAGES
+from sfm_ttr_ros.ros.bag import STORAGES
+from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
+from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 
 
 def cmd_kitti_to_bag(args: argparse.Namespace) -> int:
     """Convert a KITTI raw drive (+ improved GT) into a rosbag2."""
-    from sfm_ttr_ros.ros.bag import kitti_to_bag
+    from sfm_ttr_ros.ros.kitti_bag import kitti_to_bag
 
     res = kitti_to_bag(args.kitti_raw, args.drive, args.out, gt_root=args.kitti_gt,
                        storage=args.storage, start=args.start, max_frames=args.max_frames,
@@ -79,7 +81,7 @@ def evaluate_bag_command(args: argparse.Namespace) -> int:
     returns 0, or 1 when no frame could be evaluated.
     """
     from sfm_ttr_ros.core.evaluation import MAX_DEPTH, EvalConfig, format_table
-    from sfm_ttr_ros.ros.bag import evaluate_bag
+    from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
 
     bag = getattr(args, "bag", None)
     if not bag:

@@ -3,8 +3,8 @@
 
 Benchmark settings: the node's parameter file (``--params-file``, default the installed or the
 repository's ``params/kitti.yaml``) gives the windows, keyframes and SfM-TTR options, so the
-online mode runs as the node would with that file; any method or model flag given on the command
-line overrides the file's value.
+online mode runs as the node would with that file; the flags and ``--set name=value`` given on
+the command line override the file's values (:mod:`sfm_ttr_ros.tools.cli_args`).
 """
 
 from __future__ import annotations
@@ -12,44 +12,23 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import shlex
 import sys
 from pathlib import Path
 
 from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.tools.cli import add_method_args, add_model_args, add_sequence_args, open_sequence
+from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
+from sfm_ttr_ros.ros.names import DEPTH_TOPIC_RESOLVED
+from sfm_ttr_ros.tools.cli_args import (
+    add_parameter_args,
+    add_sequence_args,
+    build_model_for,
+    command_line,
+    open_sequence,
+    parameter_values,
+)
 
-#: Command-line flags (argparse dest) → the node parameter they override.
-FLAG_PARAMS = {
-    "steps": "refinement.steps",
-    "lr": "refinement.lr",
-    "bn_mode": "refinement.bn_mode",
-    "weighting": "refinement.weighting",
-    "ransac_iterations": "alignment.ransac_iterations",
-    "tau": "alignment.tau",
-    "sfm_max_image_size": "sfm.max_image_size",
-    "seed": "seed",
-    "window_size": "window_size",
-    "window_stride": "window_stride",
-    "reset_each_window": "reset_each_window",
-    "model": "model_type",
-    "encoder": "encoder_path",
-    "decoder": "decoder_path",
-    "num_layers": "num_layers",
-    "device": "device",
-}
-
-DEFAULT_PRED_TOPIC = "/refiner/depth"
-DEFAULT_GT_TOPIC = "/kitti/camera_color_left/depth_gt"
-
-
-def _bool(text: str) -> bool:
-    t = str(text).strip().lower()
-    if t in ("true", "1", "yes", "on"):
-        return True
-    if t in ("false", "0", "no", "off"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+DEFAULT_PRED_TOPIC = DEPTH_TOPIC_RESOLVED
+DEFAULT_GT_TOPIC = DEPTH_GT_TOPIC
 
 
 def _add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -69,13 +48,6 @@ def _eval_config(args: argparse.Namespace):
                       eigen_crop=args.eigen_crop, median_scaling=args.median_scaling)
 
 
-def _command_line() -> str:
-    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "sfm-ttr"
-    if prog in ("__main__.py", "-m", "-c"):
-        prog = "python -m sfm_ttr_ros"
-    return shlex.join([prog, *sys.argv[1:]])
-
-
 # ---------------------------------------------------------------------------------------------
 # benchmark
 # ---------------------------------------------------------------------------------------------
@@ -93,19 +65,12 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
                     "paper's setting); evaluate every frame with ground truth and write "
                     "OUT/results.json, results.md, per_frame.csv and figure.png.")
     add_sequence_args(b)
-    add_model_args(b)
-    add_method_args(b)
+    add_parameter_args(b, ("model", "method", "windows"),
+                       "params/kitti.yaml, installed or from the repository")
     g = b.add_argument_group("benchmark")
     g.add_argument("--out", required=True, help="output folder")
-    g.add_argument("--params-file", default="",
-                   help="the node's parameter file for windows and SfM-TTR options (default: "
-                        "params/kitti.yaml, installed or from the repository)")
     g.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
                    help="which modes to run (default: all three)")
-    g.add_argument("--window-size", type=int, help="override the file's window_size")
-    g.add_argument("--window-stride", type=int, help="override the file's window_stride")
-    g.add_argument("--reset-each-window", type=_bool, metavar="{true,false}",
-                   help="override the file's reset_each_window")
     g.add_argument("--offline-max-frames", type=int, default=0,
                    help="offline mode in chunks of at most N frames, each from the original "
                         "weights (0 = the whole sequence in one window, as the paper)")
@@ -114,71 +79,46 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--save-depth", action="store_true",
                    help="also write every depth as OUT/depth/<mode>/<frame>.npy")
     _add_eval_args(b)
-    # Method and model flags override the parameter file only when given.
-    b.set_defaults(func=cmd_benchmark, **{k: None for k in FLAG_PARAMS})
+    b.set_defaults(func=cmd_benchmark)
     return b
 
 
 def benchmark_values(args: argparse.Namespace) -> tuple[Path, dict]:
-    """(parameter file, node parameter values): the file's, then the flags given."""
-    from sfm_ttr_ros.tools.benchmark import default_params_file, read_params_file
+    """(parameter file, parameter values): the file's, then the flags, then ``--set``."""
+    from sfm_ttr_ros.tools.benchmark import default_params_file
 
-    path = Path(args.params_file) if args.params_file else default_params_file()
-    values = read_params_file(path)
-    if getattr(args, "model", None) is not None:  # another model: the file's paths do not apply
-        values["encoder_path"], values["decoder_path"] = "", ""
-    for flag, name in FLAG_PARAMS.items():
-        v = getattr(args, flag, None)
-        if v is not None:
-            values[name] = v
+    path, values = parameter_values(args, None if args.params_file else default_params_file())
     return path, values
-
-
-def _load_encoder(model, path: str) -> None:
-    import torch
-
-    if not Path(path).is_file():
-        raise InputError(f"load_weights_path: file not found: {path}")
-    try:
-        model.encoder.load_state_dict(torch.load(path, map_location=model.device,
-                                                 weights_only=True))
-    except Exception as exc:
-        raise InputError(f"load_weights_path: cannot load encoder weights from {path}: "
-                         f"{type(exc).__name__}: {exc}") from exc
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
     import torch
 
-    from sfm_ttr_ros.core.models import build_model
-    from sfm_ttr_ros.tools.benchmark import run_benchmark, settings_from_params
+    from sfm_ttr_ros.core.params import build
+    from sfm_ttr_ros.tools.benchmark import results_markdown, run_benchmark
 
     params_path, values = benchmark_values(args)
-    ttr_config, stream_settings, model_config = settings_from_params(values)
+    settings = build(values)
     if args.offline_max_frames < 0 or args.figure_frames < 0:
         raise InputError("--offline-max-frames and --figure-frames must be >= 0")
     seq = open_sequence(args)
-    torch.set_num_threads(max(1, args.threads))
-    base = build_model(model_config)
-    weights = str(values.get("load_weights_path", "") or "")
-    if weights:  # as the node does at start-up: these become the "original" weights
-        _load_encoder(base, weights)
+    base = build_model_for(settings)
 
     def factory():
         return copy.deepcopy(base)  # the original weights, untouched by earlier modes
 
+    model_config = settings.model
     description = {"type": model_config.type, "encoder_path": model_config.encoder_path,
                    "decoder_path": model_config.decoder_path, "device": model_config.device,
-                   "load_weights_path": weights}
+                   "load_weights_path": settings.node.load_weights_path}
     results = run_benchmark(
-        seq, factory, ttr_config, stream_settings, args.out, args.modes, _eval_config(args),
+        seq, factory, settings.ttr, settings.stream, args.out, args.modes, _eval_config(args),
         start=args.start, max_frames=args.max_frames,
         offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
         save_depth=args.save_depth, model_description=description,
-        settings_info={"params_file": str(params_path), "torch_threads": args.threads},
-        command=_command_line())
-    from sfm_ttr_ros.tools.benchmark import results_markdown
-
+        settings_info={"params_file": str(params_path),
+                       "torch_threads": torch.get_num_threads()},
+        command=command_line())
     print(results_markdown(results).split("Command:")[0].rstrip())
     print(f"\nresults in {args.out}")
     return 0
@@ -277,7 +217,7 @@ def evaluate_folder_command(args: argparse.Namespace) -> int:
         doc = {"gt": str(args.gt), "gt_scale": args.gt_scale,
                "eval": {"min_depth": cfg.min_depth, "max_depth": cfg.max_depth,
                         "eigen_crop": cfg.eigen_crop, "median_scaling": cfg.median_scaling},
-               "results": results, "relative_gain": gains, "command": _command_line()}
+               "results": results, "relative_gain": gains, "command": command_line()}
         out.write_text(json.dumps(json_safe(doc), indent=2) + "\n")
         print(f"results in {out}")
     empty = [label for label, res in results.items() if res["frames"] == 0]

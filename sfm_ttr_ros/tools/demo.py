@@ -7,7 +7,7 @@ Steps (each printed as it runs):
    (:mod:`sfm_ttr_ros.data.synthetic`, written in the real KITTI raw + improved-GT layouts),
    or a real
    one with ``--kitti-raw/--kitti-gt/--drive``;
-2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.bag.kitti_to_bag`);
+2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`);
 3. the unrefined network's depth for every image of the bag (same model, same weights) → a
    ``no_ttr`` bag with the same stamps;
 4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``-p`` overrides),
@@ -15,7 +15,7 @@ Steps (each printed as it runs):
    while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`) until every
    image came back; then SIGINT;
 5. both bags evaluated against the GT topic matched by stamp
-   (:func:`sfm_ttr_ros.ros.bag.evaluate_bag`),
+   (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json``) with a
    qualitative figure (``figure.png``).
 
@@ -40,8 +40,9 @@ from pathlib import Path
 import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.ros import names
 
-DEPTH_TOPIC = "/refiner/depth"
+DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's ~/depth: /refiner/depth
 
 
 def _say(msg: str) -> None:
@@ -100,20 +101,15 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
 
 def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str) -> int:
     """The unrefined network's depth for every image of ``bag``, same stamps, into ``out_bag``."""
-    from sfm_ttr_ros.ros.bag import (
-        IMAGE_MSGTYPE,
-        IMAGE_TOPIC,
-        BagRecorder,
-        depth_msg,
-        image_msg_to_array,
-        read_bag,
-    )
+    from msg_adapters.image import image_to_numpy
+    from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE, BagRecorder, depth_msg, read_bag
+    from sfm_ttr_ros.ros.kitti_bag import IMAGE_TOPIC
 
     n = 0
     with BagRecorder(out_bag, storage) as rec:
         rec.add_topic(DEPTH_TOPIC, IMAGE_MSGTYPE)
         for _, _, stamp_ns, msg in read_bag(bag, [IMAGE_TOPIC]):
-            rgb = image_msg_to_array(msg)
+            rgb = image_to_numpy(msg)
             depth = model.predict(rgb)[0]
             rec.write(DEPTH_TOPIC, depth_msg(depth, stamp_ns, msg.header.frame_id))
             n += 1
@@ -130,11 +126,11 @@ def _ros_env() -> dict[str, str]:
 
 def refiner_command(params_file: Path, overrides: list[str]) -> list[str]:
     """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag."""
-    from sfm_ttr_ros.ros.bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+    from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 
     cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args", "--params-file",
-           str(params_file), "-r", f"image:={IMAGE_TOPIC}", "-r",
-           f"camera_info:={CAMERA_INFO_TOPIC}"]
+           str(params_file), "-r", f"{names.IMAGE_TOPIC}:={IMAGE_TOPIC}", "-r",
+           f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
     for o in overrides:
         cmd += ["-p", o]
     return cmd
@@ -142,7 +138,8 @@ def refiner_command(params_file: Path, overrides: list[str]) -> list[str]:
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
     """Start the node, play the bag into it, record ``/refiner/depth`` until all frames are back."""
-    from sfm_ttr_ros.ros.bag import CAMERA_INFO_TOPIC, IMAGE_MSGTYPE, IMAGE_TOPIC
+    from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE
+    from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
     from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
     from sfm_ttr_ros.tools.benchmark import default_params_file
 
@@ -198,18 +195,12 @@ def run_demo(opts: DemoOptions) -> dict:
     import cv2
     import torch
 
+    from msg_adapters.image import image_to_depth, image_to_numpy
     from sfm_ttr_ros.core.evaluation import EvalConfig, format_table, relative_gain
     from sfm_ttr_ros.core.models import build_model
-    from sfm_ttr_ros.ros.bag import (
-        DEPTH_GT_TOPIC,
-        IMAGE_TOPIC,
-        bag_topics,
-        evaluate_bag,
-        image_msg_to_array,
-        image_msg_to_depth,
-        kitti_to_bag,
-        read_bag,
-    )
+    from sfm_ttr_ros.ros.bag import bag_topics, read_bag
+    from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
+    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC, IMAGE_TOPIC, kitti_to_bag
     from sfm_ttr_ros.tools.benchmark import (
         default_params_file,
         qualitative_figure,
@@ -254,12 +245,12 @@ def run_demo(opts: DemoOptions) -> dict:
     stamp = sorted(gts)[len(gts) // 2] if gts else None
     fig_path = None
     if stamp is not None:
-        image = next(image_msg_to_array(m) for _, _, s, m in read_bag(bag, [IMAGE_TOPIC])
+        image = next(image_to_numpy(m) for _, _, s, m in read_bag(bag, [IMAGE_TOPIC])
                      if s == stamp)
-        preds = {k: next(image_msg_to_depth(m) for _, _, s, m in read_bag(p, [DEPTH_TOPIC])
+        preds = {k: next(image_to_depth(m) for _, _, s, m in read_bag(p, [DEPTH_TOPIC])
                          if s == stamp)
                  for k, p in (("no_ttr", out / "no_ttr_bag"), ("sfm_ttr", out / "refined_bag"))}
-        gt = np.nan_to_num(image_msg_to_depth(gts[stamp]), nan=0.0)
+        gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
         fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
         fig_path = out / "figure.png"
         cv2.imwrite(str(fig_path), fig)

@@ -1,0 +1,130 @@
+"""Which intrinsics each frame of a live stream gets (the node's rule, ROS-free).
+
+For each frame, the first that applies:
+
+1. the intrinsics received with the frame's exact stamp (the last ``keep_by_stamp`` = 64 kept);
+2. the latest intrinsics received;
+3. the fallback fx, fy (both > 0; cx, cy = 0 mean the image centre, ``(size - 1) / 2``);
+4. none: the frame is HELD, at most ``max_held`` of them (beyond that the oldest is dropped,
+   reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known.
+
+Intrinsics for another image size than the frame's are returned as they are: the stream
+publishes such a frame unrefined (``intrinsics_mismatch``). Stamps are integer nanoseconds (or
+None when the frame has none: only rules 2-4 apply); converting messages is msg_adapters' job.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+
+NO_INTRINSICS = "no_intrinsics"  # the dropped reason of a held frame pushed out by a newer one
+KEEP_BY_STAMP = 64
+
+
+@dataclass(frozen=True)
+class FallbackIntrinsics:
+    """Intrinsics to use while none were received: unset unless fx and fy are both > 0."""
+
+    fx: float = 0.0
+    fy: float = 0.0
+    cx: float = 0.0  # 0 = image centre
+    cy: float = 0.0
+
+    def for_size(self, width: int, height: int) -> Intrinsics | None:
+        """Intrinsics for a ``width`` x ``height`` image, or None when fx / fy are unset."""
+        if not (self.fx > 0 and self.fy > 0):
+            return None
+        cx = float(self.cx) or (width - 1) / 2.0
+        cy = float(self.cy) or (height - 1) / 2.0
+        return Intrinsics(float(self.fx), float(self.fy), cx, cy, int(width), int(height))
+
+
+@dataclass
+class Resolved:
+    """What a call hands over: frames now ready with their intrinsics (oldest first) and held
+    frames dropped to respect the bound (oldest first, reason :data:`NO_INTRINSICS`)."""
+
+    ready: list[tuple[Frame, Intrinsics]] = field(default_factory=list)
+    dropped: list[Frame] = field(default_factory=list)
+
+
+class IntrinsicsResolver:
+    """The per-frame intrinsics rule (module docstring). Thread-safe.
+
+    ``fallback``: called at every decision, so live parameter changes apply at once.
+    ``max_held``: bound of the held frames (>= 1).
+    """
+
+    def __init__(self, fallback: Callable[[], FallbackIntrinsics] = FallbackIntrinsics,
+                 max_held: int = 100, keep_by_stamp: int = KEEP_BY_STAMP):
+        if int(max_held) < 1 or int(keep_by_stamp) < 1:
+            raise InputError(f"max_held and keep_by_stamp must be >= 1, got {max_held}, "
+                             f"{keep_by_stamp}")
+        self._fallback = fallback
+        self.max_held = int(max_held)
+        self._keep = int(keep_by_stamp)
+        self._by_stamp: collections.OrderedDict[int, Intrinsics] = collections.OrderedDict()
+        self._latest: Intrinsics | None = None
+        self._held: collections.deque[tuple[Frame, int | None]] = collections.deque()
+        self._lock = threading.Lock()
+
+    @property
+    def latest(self) -> Intrinsics | None:
+        """The intrinsics received last (None before any)."""
+        return self._latest
+
+    @property
+    def held(self) -> int:
+        """How many frames wait for intrinsics."""
+        return len(self._held)
+
+    def intrinsics_for(self, size: tuple[int, int], stamp_ns: int | None) -> Intrinsics | None:
+        """The intrinsics of a ``size`` = (width, height) frame stamped ``stamp_ns`` (rules 1-3),
+        or None (the frame would be held)."""
+        if stamp_ns is not None:
+            intr = self._by_stamp.get(int(stamp_ns))
+            if intr is not None:
+                return intr
+        if self._latest is not None:
+            return self._latest
+        return self._fallback().for_size(*size)
+
+    def add_intrinsics(self, intr: Intrinsics, stamp_ns: int) -> Resolved:
+        """Intrinsics received (a CameraInfo) for ``stamp_ns``: remembered, held frames released."""
+        with self._lock:
+            self._latest = intr
+            self._by_stamp[int(stamp_ns)] = intr
+            self._by_stamp.move_to_end(int(stamp_ns))
+            while len(self._by_stamp) > self._keep:
+                self._by_stamp.popitem(last=False)
+            return Resolved(ready=self._release())
+
+    def add_frame(self, frame: Frame, stamp_ns: int | None) -> Resolved:
+        """A frame arrives: ready at once (with the frames held before it) or held."""
+        with self._lock:
+            self._held.append((frame, None if stamp_ns is None else int(stamp_ns)))
+            out = Resolved(ready=self._release())
+            while len(self._held) > self.max_held:
+                out.dropped.append(self._held.popleft()[0])
+            return out
+
+    def release(self) -> Resolved:
+        """Release the held frames that now have intrinsics (e.g. fallback just set)."""
+        with self._lock:
+            return Resolved(ready=self._release())
+
+    def _release(self) -> list[tuple[Frame, Intrinsics]]:
+        ready = []
+        while self._held:
+            frame, stamp_ns = self._held[0]
+            intr = self.intrinsics_for(frame.size, stamp_ns)
+            if intr is None:
+                break
+            self._held.popleft()
+            ready.append((frame, intr))
+        return ready

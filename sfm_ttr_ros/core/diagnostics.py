@@ -1,0 +1,125 @@
+"""What the node reports on ``/diagnostics``, ROS-free: the counters the stream does not keep
+(rejected CameraInfos, incompatible-QoS events, frames published unrefined since the last
+report) and the status built from them and from the stream's frame accounting.
+
+``msg_adapters.make_diagnostic_array`` turns a :class:`Status` into a DiagnosticArray; the keys
+are listed in README "Diagnostics". The frame accounting always satisfies
+``frames_received = frames_refined + frames_unrefined + frames_dropped + frames_pending``
+(frames held for want of intrinsics count as received and pending).
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from sfm_ttr_ros.core.stream import StreamProcessor
+
+
+@dataclass(frozen=True)
+class Status:
+    """One diagnostic status: ``level`` ``"ok"`` or ``"warn"``, a one-line message and the
+    key/values in the order they are published."""
+
+    level: str
+    message: str
+    values: dict[str, object] = field(default_factory=dict)
+
+
+class StreamDiagnostics:
+    """Counters and status of a :class:`StreamProcessor` fed by a node. Thread-safe.
+
+    ``held``: how many frames wait outside the stream (for intrinsics); they count as received
+    and pending.
+    """
+
+    def __init__(self, stream: StreamProcessor, held: Callable[[], int] = lambda: 0):
+        self.stream = stream
+        self._held = held
+        self.rejected_camera_info = 0
+        self.qos_incompatible: collections.Counter[str] = collections.Counter()
+        self._unrefined_since_status = 0
+        self._lock = threading.Lock()
+
+    # -- counting ------------------------------------------------------------------------------
+    def camera_info_rejected(self) -> None:
+        with self._lock:
+            self.rejected_camera_info += 1
+
+    def qos_event(self, what: str) -> None:
+        """An incompatible-QoS event on ``what`` (a topic or an input's name)."""
+        with self._lock:
+            self.qos_incompatible[what] += 1
+
+    def output_published(self, refined: bool) -> None:
+        if not refined:
+            with self._lock:
+                self._unrefined_since_status += 1
+
+    # -- reporting -----------------------------------------------------------------------------
+    def values(self) -> dict[str, object]:
+        """Every key/value of the status (README "Diagnostics"), in publishing order."""
+        c = self.stream.counters()
+        held = int(self._held())
+        v: dict[str, object] = {
+            "frames_received": c["received"] + held,
+            "frames_refined": c["refined"],
+            "frames_unrefined": c["unrefined"],
+            "frames_dropped": c["dropped"],
+            "frames_pending": c["pending"] + held,
+            "frames_held_no_intrinsics": held,
+        }
+        v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})
+        v.update({f"dropped.{k}": n for k, n in sorted(c["dropped_by_reason"].items())})
+        v.update({
+            "rejected_bad_image": c["dropped_by_reason"].get("bad_image", 0),
+            "rejected_camera_info": self.rejected_camera_info,
+            "non_monotonic_stamps": c["non_monotonic_stamps"],
+            "qos_incompatible": sum(self.qos_incompatible.values()),
+            "windows_ok": c["windows_ok"],
+            "windows_failed": c["windows_failed"],
+            "windows_skipped_overload": c["windows_skipped"],
+            "windows_disabled": c["windows_disabled"],
+        })
+        w = self.stream.last_window
+        if w is not None:
+            v.update({
+                "last_window.index": w.index,
+                "last_window.frames": len(w.names),
+                "last_window.refined": w.refined,
+                "last_window.reason": w.reason,
+                "last_window.registered_frames": w.registered,
+                "last_window.points_3d": w.points,
+                "last_window.inlier_ratio": w.inlier_ratio,
+                "last_window.scale": w.scale,
+                "last_window.loss_before": w.loss_before,
+                "last_window.loss_after": w.loss_after,
+                "last_window.steps": w.steps,
+                "last_window.steps_done": w.steps_done,
+            })
+            v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
+        return v
+
+    def status(self) -> Status:
+        """The status now: WARN listing what went wrong since the last status (frames passed
+        through unrefined, the last window not refined, frames held, incompatible QoS), else OK.
+        Resets the unrefined-since-last-status count."""
+        with self._lock:
+            v = self.values()
+            w = self.stream.last_window
+            problems = []
+            if self._unrefined_since_status:
+                problems.append(f"{self._unrefined_since_status} frame(s) passed through "
+                                "unrefined")
+            if w is not None and not w.refined:
+                problems.append(f"last window not refined: {w.reason}")
+            if v["frames_held_no_intrinsics"]:
+                problems.append("no intrinsics: frames held")
+            if v["qos_incompatible"]:
+                problems.append("incompatible QoS")
+            self._unrefined_since_status = 0
+        if problems:
+            return Status("warn", "; ".join(problems), v)
+        return Status("ok", f"{v['frames_refined']} refined, {v['windows_ok']} window(s) ok", v)

@@ -1,0 +1,478 @@
+"""The ONE parameter schema of sfm_ttr_ros: pure data, ROS-free.
+
+One row per public parameter (the refiner node's parameter names): where its value goes (one or
+more ``section.field`` targets in the typed configs), its range, choices, whether it is live (may
+change while the node runs) or start-up (read-only), and its description. Its DEFAULT and TYPE
+are read from the target dataclass field, so they are written once, in the config. Sections:
+
+=========== ====================================================================
+``sfm``       :class:`~sfm_ttr_ros.core.sfm.SfmConfig`
+``alignment`` :class:`~sfm_ttr_ros.core.alignment.AlignmentConfig`
+``refinement``:class:`~sfm_ttr_ros.core.refinement.RefinementConfig`
+``ttr``       :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` (its own fields)
+``stream``    :class:`~sfm_ttr_ros.core.stream.StreamSettings`
+``model``     :class:`~sfm_ttr_ros.core.models.registry.ModelConfig`
+``node``      :class:`~sfm_ttr_ros.core.node_settings.NodeSettings`
+=========== ====================================================================
+
+Everything else comes from this table: the node's ROS descriptors (:mod:`sfm_ttr_ros.ros.params`),
+the check of parameter files (:func:`read_params_file`), the command line's ``--set name=value``
+(:func:`parse_overrides`) and flags, and the documentation (:func:`markdown_table`,
+``sfm-ttr params``, docs/parameters.md). A *values* mapping holds parameter names and, for
+experiments, ``section.field`` paths of config fields that no parameter targets (e.g.
+``ttr.predict_batch``); :func:`build` turns it into :class:`Settings`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sfm_ttr_ros.core.alignment import AlignmentConfig
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.registry import ModelConfig
+from sfm_ttr_ros.core.node_settings import (
+    QOS_RELIABILITIES,
+    USE_PROJECTION_CHOICES,
+    NodeSettings,
+)
+from sfm_ttr_ros.core.pipeline import TTRConfig
+from sfm_ttr_ros.core.refinement import BN_MODES, WEIGHTINGS, RefinementConfig
+from sfm_ttr_ros.core.sfm import SfmConfig
+from sfm_ttr_ros.core.stream import StreamSettings
+
+INT_MAX = 2**31 - 1
+#: section name → the config dataclass its fields live in
+SECTIONS: dict[str, type] = {"sfm": SfmConfig, "alignment": AlignmentConfig,
+                             "refinement": RefinementConfig, "ttr": TTRConfig,
+                             "stream": StreamSettings, "model": ModelConfig, "node": NodeSettings}
+BUILTIN_MODELS = ("default", "monodepth2", "mobilenet")
+_TYPE_NAMES = {bool: "bool", int: "integer", float: "double", str: "string"}
+_ARTICLES = {bool: "a bool", int: "an integer", float: "a double", str: "a string"}
+
+
+def _field(path: str) -> dataclasses.Field:
+    section, _, name = path.partition(".")
+    cls = SECTIONS.get(section)
+    fields = {f.name: f for f in dataclasses.fields(cls)} if cls else {}
+    if name not in fields:
+        raise KeyError(path)
+    return fields[name]
+
+
+def _settable(path: str) -> bool:
+    """A ``section.field`` with a plain bool / int / float / str default."""
+    try:
+        f = _field(path)
+    except KeyError:
+        return False
+    return f.default is not dataclasses.MISSING and type(f.default) in _TYPE_NAMES
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: ``targets`` are ``section.field`` paths (the first one gives the default
+    and the type); ``range`` (lo, hi) inclusive; ``live`` False = start-up only (read-only in
+    ROS); ``constraints``: free text besides range and choices; ``dynamic_typing``: a bool or a
+    string is accepted (``camera_info_use_projection``)."""
+
+    name: str
+    targets: tuple[str, ...]
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple = ()
+    live: bool = True
+    constraints: str = ""
+    dynamic_typing: bool = False
+
+    @property
+    def default(self) -> bool | int | float | str:
+        return _field(self.targets[0]).default
+
+    @property
+    def type(self) -> type:
+        return type(self.default)
+
+    @property
+    def type_name(self) -> str:
+        name = _TYPE_NAMES[self.type]
+        return f"{name} or bool" if self.dynamic_typing else name
+
+
+def _p(name: str, targets: str, description: str, lo=None, hi=None, **kw) -> Param:
+    return Param(name, tuple(targets.split(",")), description,
+                 None if lo is None else (lo, hi), **kw)
+
+
+_START_UP = {"live": False}
+PARAMS: tuple[Param, ...] = (
+    # -- windows and keyframes (live) -----------------------------------------------------------
+    _p("window_size", "stream.window_size", "Keyframes per SfM-TTR window.", 2, 1000),
+    _p("window_stride", "stream.window_stride", "New keyframes between consecutive windows "
+       "(window_size - stride frames overlap).", 1, 1000, constraints="<= window_size"),
+    _p("min_keyframe_interval_s", "stream.min_keyframe_interval_s", "Minimum time between "
+       "keyframes (stamps), seconds; frames in between are published unrefined ('not a "
+       "keyframe').", 0.0, 3600.0),
+    _p("min_keyframe_motion", "stream.min_keyframe_motion", "Minimum mean absolute grey-level "
+       "difference (0-255, 64-px-wide thumbnails) to the last keyframe; 0 = off.", 0.0, 255.0),
+    _p("overload_pending", "stream.overload_pending", "When a window is due while more frames "
+       "than this are queued, refinement is skipped for it and its frames pass through "
+       "unrefined; 0 = never.", 0, 1_000_000),
+    _p("max_pending", "stream.max_pending", "Bound of the input queue (and of the frames held "
+       "while no intrinsics are known); when full the OLDEST pending frame is dropped and "
+       "counted.", 1, 1_000_000, **_START_UP),
+    _p("idle_flush_s", "stream.idle_flush_s", "After this long without input, frames waiting in "
+       "an incomplete window are processed as a final partial window; 0 = wait for more "
+       "frames.", 0.0, 3600.0),
+    # -- SfM (live) -------------------------------------------------------------------------
+    _p("sfm.max_image_size", "sfm.max_image_size", "SIFT runs on images downscaled to this "
+       "longest side; 0 = full resolution.", 0, 100_000),
+    _p("sfm.max_num_features", "sfm.max_num_features", "Maximum SIFT features per image.", 16,
+       1_000_000),
+    _p("sfm.num_threads", "sfm.num_threads", "Threads of feature extraction, matching and "
+       "mapping.", 1, 256),
+    _p("sfm.first_octave", "sfm.first_octave", "SIFT first octave: -1 = COLMAP default "
+       "(upsampled), 0 = ~3x faster.", -1, 8),
+    _p("sfm.overlap", "sfm.overlap", "Sequential matching: each frame is matched with the next "
+       "N frames.", 1, 1000),
+    _p("sfm.init_min_tri_angle", "sfm.init_min_tri_angle", "Minimum triangulation angle "
+       "(degrees) of the initial pair (COLMAP's 16 rejects forward driving).", 0.0, 90.0),
+    _p("sfm.refine_intrinsics", "sfm.refine_intrinsics", "Refine the focal length in bundle "
+       "adjustment (the paper holds the known intrinsics fixed)."),
+    _p("sfm.min_points", "sfm.min_points", "Fewer 3D points than this: the window's SfM "
+       "failed.", 1, 1_000_000),
+    # -- alignment (live) -------------------------------------------------------------------
+    _p("alignment.ransac_iterations", "alignment.ransac_iterations", "RANSAC iterations of the "
+       "one-point scale model.", 1, 1_000_000),
+    _p("alignment.tau", "alignment.tau", "RANSAC inlier threshold on (s*D_sfm - D_nn)^2 / "
+       "(s*D_sfm).", 0.0, 1e6, constraints="> 0"),
+    _p("alignment.relaxed_tau", "alignment.relaxed_tau", "Threshold of the relaxed second pass "
+       "that selects the supervision points.", 0.0, 1e6, constraints="> 0"),
+    _p("min_supervision_points", "ttr.min_supervision_points", "Fewer selected points in a "
+       "window: do not refine.", 1, 1_000_000),
+    # -- refinement (live) ------------------------------------------------------------------
+    _p("refinement.steps", "refinement.steps", "Adam steps per window (one frame per step); "
+       "0 = no refinement.", 0, 1_000_000),
+    _p("refinement.lr", "refinement.lr", "Adam learning rate of the encoder.", 0.0, 1.0,
+       constraints="> 0"),
+    _p("refinement.bn_mode", "refinement.bn_mode", "BatchNorm mode during refinement.",
+       choices=tuple(BN_MODES)),
+    _p("refinement.weighting", "refinement.weighting", "Per-point weight: exp(-r^2) with r per "
+       "observation or per track, or none (w = 1).", choices=tuple(WEIGHTINGS)),
+    _p("refinement.early_stop_patience", "refinement.early_stop_patience", "Stop a window's "
+       "refinement when the running loss has not improved for N steps; 0 = off.", 0,
+       1_000_000),
+    _p("refinement.frozen_encoder_levels", "refinement.frozen_encoder_levels", "Speed option: "
+       "keep the encoder fixed up to its L-th feature map too (1 = 1/2, 2 = 1/4, 3 = 1/8, "
+       "4 = 1/16 of the input), computed once per frame instead of once per step; 0 = the "
+       "paper's whole-encoder refinement.", 0, 4),
+    _p("reset_each_window", "ttr.reset_each_window", "True (default, measured better: "
+       "BENCHMARKS.md): every window starts from the original weights; False: refinement "
+       "continues from the previous window's weights."),
+    _p("seed", "sfm.seed,alignment.seed,refinement.seed", "Random seed of SfM, RANSAC and "
+       "refinement.", 0, INT_MAX),
+    # -- model (start-up) -------------------------------------------------------------------
+    _p("model_type", "model.type", "Depth network: 'default' (embedded weights), 'monodepth2', "
+       "'mobilenet' or a plug-in 'python:<module>:<factory>'.",
+       constraints="default, monodepth2, mobilenet or python:<module>:<factory>", **_START_UP),
+    _p("encoder_path", "model.encoder_path", "Encoder weights file (monodepth2 / mobilenet); "
+       "empty = none.", **_START_UP),
+    _p("decoder_path", "model.decoder_path", "Decoder weights file (monodepth2 / mobilenet); "
+       "empty = none.", **_START_UP),
+    _p("num_layers", "model.num_layers", "ResNet depth of a randomly initialised monodepth2 "
+       "model.", 18, 152, choices=(18, 34, 50, 101, 152), **_START_UP),
+    _p("device", "model.device", "Torch device.", constraints="cpu, cuda, cuda:N or auto",
+       **_START_UP),
+    _p("channels_last", "model.channels_last", "Run the network's convolutions in channels-last "
+       "memory format (faster on CPU: ~13 % per refinement step; outputs equal to ~1e-5, not "
+       "bit for bit).", **_START_UP),
+    _p("torch_num_threads", "node.torch_num_threads", "torch.set_num_threads at start-up; 0 = "
+       "torch's default.", 0, 1024, **_START_UP),
+    _p("load_weights_path", "node.load_weights_path", "Encoder state dict (torch.save of "
+       "model.encoder.state_dict()) loaded at start-up, e.g. saved by a previous run; empty = "
+       "none.", **_START_UP),
+    _p("save_weights_path", "node.save_weights_path", "Where the refined encoder's state dict "
+       "is saved on shutdown; empty = not saved."),
+    # -- camera (live) ----------------------------------------------------------------------
+    _p("fx", "node.fx", "Fallback focal length x (px) used until a CameraInfo arrives; 0 = "
+       "unset.", 0.0, 1e7),
+    _p("fy", "node.fy", "Fallback focal length y (px); 0 = unset.", 0.0, 1e7),
+    _p("cx", "node.cx", "Fallback principal point x (px); 0 = image centre.", 0.0, 1e7),
+    _p("cy", "node.cy", "Fallback principal point y (px); 0 = image centre.", 0.0, 1e7),
+    _p("camera_info_use_projection", "node.camera_info_use_projection", "Intrinsics from "
+       "CameraInfo P (rectified images: true) or K (false); auto: P when it is set and D is "
+       "zero.", choices=USE_PROJECTION_CHOICES, dynamic_typing=True),
+    # -- transport (start-up) -------------------------------------------------------------
+    _p("qos_reliability", "node.qos_reliability", "Reliability of the image and camera_info "
+       "subscriptions (best_effort for sensor-data publishers).", choices=QOS_RELIABILITIES,
+       **_START_UP),
+    _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
+       "publishers.", 1, 10_000, **_START_UP),
+    _p("publish_colored", "node.publish_colored", "Publish ~/depth_colored (bgr8)."),
+    _p("publish_points", "node.publish_points", "Publish ~/points (the window's sparse SfM "
+       "cloud)."),
+    _p("publish_diagnostics", "node.publish_diagnostics", "Publish /diagnostics after each "
+       "window and periodically."),
+    _p("diagnostics_period_s", "node.diagnostics_period_s", "Period of the /diagnostics timer, "
+       "seconds.", 0.05, 3600.0, **_START_UP),
+)
+SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
+#: ``section.field`` → the parameter that sets it
+TARGETS: dict[str, str] = {t: p.name for p in PARAMS for t in p.targets}
+
+
+@dataclass
+class Settings:
+    """Everything a set of parameter values configures."""
+
+    ttr: TTRConfig
+    stream: StreamSettings
+    model: ModelConfig
+    node: NodeSettings
+
+
+def defaults() -> dict[str, Any]:
+    """Every parameter at its default (the dataclass fields' defaults)."""
+    return {p.name: p.default for p in PARAMS}
+
+
+def _close(name: str, fields: bool = True) -> str:
+    """" (did you mean a, b?)" for the parameters (and settable fields) close to ``name``."""
+    paths = (f"{s}.{f.name}" for s, c in SECTIONS.items() for f in dataclasses.fields(c))
+    candidates = [*SCHEMA, *(p for p in paths if fields and p not in TARGETS and _settable(p))]
+    close = difflib.get_close_matches(name, candidates, n=3, cutoff=0.6)
+    return f" (did you mean {', '.join(close)}?)" if close else ""
+
+
+def _unknown(name: str) -> str:
+    return f"unknown parameter {name!r}{_close(name)}; `sfm-ttr params` lists them"
+
+
+def _value_type(name: str) -> type:
+    return SCHEMA[name].type if name in SCHEMA else type(_field(name).default)
+
+
+def check_value(name: str, value: Any) -> str:
+    """Why ``value`` is not acceptable for parameter (or settable config field) ``name``: its
+    type (a double given as an integer is an error, as for rclpy), range and choices; "" when
+    it is acceptable."""
+    param = SCHEMA.get(name)
+    if param is None and not (name not in TARGETS and _settable(name)):
+        return _unknown(name)
+    want = _value_type(name)
+    if param is not None and param.dynamic_typing:
+        ok = isinstance(value, bool | str)
+    else:
+        ok = isinstance(value, want) and (want is bool or not isinstance(value, bool))
+    if not ok:
+        hint = " (write doubles as 1.0, not 1)" if want is float and isinstance(value, int) \
+            else ""
+        return f"{name} must be {_ARTICLES[want]}, got {value!r}{hint}"
+    if param is None:
+        return ""
+    if param.range is not None and not isinstance(value, bool | str):
+        lo, hi = param.range
+        if not (math.isfinite(value) and lo <= value <= hi):
+            side = f">= {_number(lo)}" if not value >= lo else f"<= {_number(hi)}"
+            return f"{name} must be {side} (range {_number(lo)} … {_number(hi)}), got {value!r}"
+    if param.choices and not param.dynamic_typing and value not in param.choices:
+        return f"{name} must be one of {', '.join(map(str, param.choices))}; got {value!r}"
+    return ""
+
+
+def _check_model(values: Mapping[str, Any]) -> None:
+    kind = str(values["model_type"]).strip()
+    if kind.lower() not in BUILTIN_MODELS and ":" not in kind:
+        raise InputError(f"model_type must be default, monodepth2, mobilenet or "
+                         f"python:<module>:<factory>; got {kind!r}")
+    if bool(str(values["encoder_path"]).strip()) != bool(str(values["decoder_path"]).strip()):
+        raise InputError("give both encoder_path and decoder_path, or neither")
+
+
+def build(values: Mapping[str, Any]) -> Settings:
+    """The configs of ``values`` (parameters not given keep their defaults; ``section.field``
+    entries set config fields no parameter targets). :class:`InputError` says what is wrong."""
+    for name, value in values.items():
+        reason = check_value(name, value)
+        if reason:
+            raise InputError(reason)
+    full = {**defaults(), **values}
+    _check_model(full)
+    sections: dict[str, dict[str, Any]] = {s: {} for s in SECTIONS}
+    for name, value in full.items():
+        for target in SCHEMA[name].targets if name in SCHEMA else (name,):
+            section, _, attr = target.partition(".")
+            sections[section][attr] = value
+    try:
+        ttr_top = sections.pop("ttr")
+        return Settings(
+            stream=StreamSettings(**sections["stream"]),
+            ttr=TTRConfig(sfm=SfmConfig(**sections["sfm"]),
+                          alignment=AlignmentConfig(**sections["alignment"]),
+                          refinement=RefinementConfig(**sections["refinement"]), **ttr_top),
+            model=ModelConfig(**sections["model"]),
+            node=NodeSettings(**sections["node"]))
+    except InputError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"bad parameters: {exc}") from exc
+
+
+def validate(values: Mapping[str, Any]) -> str:
+    """Why this set of values is not acceptable ("" when it is): every value's type, range and
+    choices, the rules between parameters and every config's own checks."""
+    try:
+        build(values)
+    except InputError as exc:
+        return str(exc)
+    return ""
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameter files and the command line
+# ---------------------------------------------------------------------------------------------
+
+
+def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def read_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
+    """The ``ros__parameters`` a ROS 2 parameter file gives node ``node_name`` (wildcard
+    sections ``/**`` first, then the node's own), checked as the node checks them: every key a
+    parameter, of its type (a double written as ``1`` is an error, as for rclpy) and within its
+    range and choices. Nested mappings are flattened with dots."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"parameter file not found: {path}")
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise InputError(f"cannot read parameter file {path}: {exc}") from exc
+    if not isinstance(doc, Mapping):
+        raise InputError(f"{path}: expected a mapping of node names to ros__parameters")
+    wild, own = {}, {}
+    for section, body in doc.items():
+        s = str(section).strip()
+        if not isinstance(body, Mapping) or "ros__parameters" not in body:
+            continue
+        params = body["ros__parameters"]
+        if not isinstance(params, Mapping):
+            raise InputError(f"{path}: ros__parameters of {s!r} is not a mapping")
+        if s in ("/**", "**"):
+            wild.update(_flatten(params))
+        elif s.lstrip("/").split("/")[-1] == node_name:
+            own.update(_flatten(params))
+    values = {**wild, **own}
+    if not values:
+        raise InputError(f"{path}: no ros__parameters for node {node_name!r}")
+    for key, value in values.items():
+        if key not in SCHEMA:
+            raise InputError(f"{path}: {key!r} is not a parameter of the {node_name} node"
+                             f"{_close(key, fields=False)}")
+        reason = check_value(key, value)
+        if reason:
+            raise InputError(f"{path}: {reason}")
+    return values
+
+
+def _typed(kind: type, dynamic: bool, text: str) -> Any:
+    """``text`` read as a YAML scalar, then made the parameter's type where that is lossless:
+    integers (and YAML 1.1's ``3e-5``, a string to it) become doubles, anything becomes the
+    text itself for a string parameter."""
+    import yaml
+
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        value = text
+    if dynamic:
+        return value if isinstance(value, bool) else text
+    if kind is str:
+        return value if isinstance(value, str) else text
+    if kind is float and not isinstance(value, bool | float):
+        try:
+            return float(text)
+        except ValueError:
+            return value  # the type check names what was expected
+    return value
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``["name=value", ...]`` (the command line's repeated ``--set``) → values. ``name`` is a
+    parameter, or a ``section.field`` path: one that a parameter targets means that parameter
+    (``model.channels_last`` = ``channels_last``), any other plain config field is set as it is
+    (``ttr.predict_batch=4``, experiments). Values are typed by the schema; later items win."""
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = str(item).partition("=")
+        name, text = name.strip(), text.strip()
+        if not sep or not name:
+            raise InputError(f"--set {item!r}: expected NAME=VALUE")
+        name = TARGETS.get(name, name)
+        if name not in SCHEMA and not _settable(name):
+            raise InputError(f"--set {item!r}: {_unknown(name)}")
+        param = SCHEMA.get(name)
+        value = _typed(_value_type(name), bool(param and param.dynamic_typing), text)
+        reason = check_value(name, value)
+        if reason:
+            raise InputError(f"--set {item!r}: {reason}")
+        out[name] = value
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Documentation
+# ---------------------------------------------------------------------------------------------
+
+
+def _literal(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    return repr(v)
+
+
+def _number(v: int | float) -> str:
+    """A range bound, short: 0, 3600, 0.05, 1e6, 2147483647."""
+    text = f"{v:g}"
+    if isinstance(v, int) and float(text) != v:
+        return str(v)
+    return text.replace("e+0", "e").replace("e+", "e")
+
+
+def _limits(p: Param) -> str:
+    parts = []
+    if p.range is not None and not p.choices:
+        parts.append(f"{_number(p.range[0])} … {_number(p.range[1])}")
+    if p.choices:
+        parts.append(", ".join(f"`{c}`" for c in p.choices))
+    if p.constraints:
+        parts.append(p.constraints.replace("<=", "≤"))
+    return "; ".join(parts) or "—"
+
+
+def markdown_table() -> str:
+    """The parameter table (name, type, default, range / choices, live or start-up,
+    description) as Markdown: ``sfm-ttr params`` prints it, docs/parameters.md holds it."""
+    lines = ["| parameter | type | default | range / values | set | description |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for p in PARAMS:
+        lines.append(f"| `{p.name}` | {p.type_name} | `{_literal(p.default)}` | {_limits(p)} | "
+                     f"{'live' if p.live else 'start-up'} | {p.description} |")
+    return "\n".join(lines) + "\n"

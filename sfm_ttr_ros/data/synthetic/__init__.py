@@ -1,0 +1,77 @@
+"""KITTI-like synthetic street drives with exact depth and poses (analytic ray casting).
+
+A street seen from a forward-moving car: road plane with lane markings, raised sidewalks with a
+kerb, building blocks on both sides (a front row with varying set-back / height / length and a
+taller back row seen through the gaps), parked cars (body, cabin and undercarriage boxes), poles
+(vertical cylinders, some carrying a sign board), trees (cylindrical trunk + spherical crown) and
+sky (no depth).
+
+Conventions
+-----------
+* World frame: ``x`` right (across the street), ``y`` down, ``z`` along the street. The road is
+  the plane ``y = 0``; the camera drives along ``+z`` at ``y = -camera_height``.
+* Camera: OpenCV optical frame (x right, y down, z forward). ``cam_from_world[i]`` maps a world
+  point to camera ``i``: ``x_cam = R @ x_world + t``.
+* Pixel ``(u, v)`` (integer = pixel centre, the OpenCV / KITTI-projection convention) samples the
+  ray ``K^-1 [u, v, 1]``. Depth is the ``z`` of the hit point in the camera frame (REP 118 / KITTI
+  style), *not* the ray length. Sky, and anything farther than ``max_depth``, has depth 0.
+
+Rendering: every pixel's ray is intersected with the ground (road, kerb faces, sidewalk), then
+each object whose screen-space bounding rectangle overlaps the image is tested only on the pixels
+of that rectangle (slab method for boxes, quadratics for cylinders and spheres), keeping the
+nearest hit. The hit point's surface coordinates (metres on that surface) index world-anchored
+per-material textures (multi-scale value noise, bricks, window grids, paving tiles, asphalt with
+patches and cracks, foliage blobs, ...) through ``cv2.remap`` with wrap-around and trilinear
+mip-mapping chosen from the pixel footprint, then Lambertian shading with a sun direction, an
+ambient term, distance haze, exposure and gamma.
+
+Domains (see :func:`sample_scene_params`): ``"A"`` is a sunny KITTI-like town (wide street, low
+warm plaster/brick facades, trees, KITTI camera); ``"B"`` is an overcast dense downtown (narrow
+street, tall grey concrete/glass facades, darker asphalt, more parked cars, few trees, lower and
+wider-angle camera, more yaw wobble, flatter contrast).
+
+Modules, one job each: :mod:`.scene` (parameters, domains, camera path),
+:mod:`.textures` (procedural textures), :mod:`.materials` (mip-mapped atlases and their
+lookup), :mod:`.geometry` (the street's objects), :mod:`.raycast` (intersections),
+:mod:`.shading`, :mod:`.render` (frames and drives).
+"""
+
+from __future__ import annotations
+
+from sfm_ttr_ros.data.synthetic.geometry import _build_scene
+from sfm_ttr_ros.data.synthetic.materials import _materials
+from sfm_ttr_ros.data.synthetic.render import (
+    SyntheticSequence,
+    _finish,
+    _render,
+    make_sequence,
+    render_sequence,
+)
+from sfm_ttr_ros.data.synthetic.scene import (
+    DOMAINS,
+    FRAME_RATE,
+    KITTI_START_STAMP,
+    SceneParams,
+    camera_pose,
+    sample_scene_params,
+    scene_intrinsics,
+)
+
+# the private names are the speed script's chunked renderer (scripts/benchmark_speed.py) and
+# the texture test's (tests/test_synthetic.py)
+__all__ = [
+    "DOMAINS",
+    "FRAME_RATE",
+    "KITTI_START_STAMP",
+    "SceneParams",
+    "SyntheticSequence",
+    "_build_scene",
+    "_finish",
+    "_materials",
+    "_render",
+    "camera_pose",
+    "make_sequence",
+    "render_sequence",
+    "sample_scene_params",
+    "scene_intrinsics",
+]

@@ -1,0 +1,54 @@
+"""``sfm-ttr benchmark``: the same frames, the same network, three ways.
+
+* ``no_ttr``: the network's plain prediction (the original weights).
+* ``sfm_ttr_online``: every frame pushed through :class:`~sfm_ttr_ros.core.stream.StreamProcessor`
+  exactly as the ROS node feeds it (same windows, keyframes, overlap and accounting; no ROS
+  transport), then :meth:`~sfm_ttr_ros.core.stream.StreamProcessor.flush` at the end of the stream
+  (the node's idle flush). The depth of each frame is the one the node would publish.
+* ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.process_window` over the whole
+  sequence, the paper's setting (or consecutive chunks of ``offline_max_frames`` frames, each
+  from the original weights, when the sequence is too long for one reconstruction).
+
+Each mode starts from a fresh copy of the original weights (``model_factory()``). Every frame
+that has ground truth is evaluated (KITTI protocol, :mod:`sfm_ttr_ros.core.evaluation`); frames that
+SfM could not use count with the prediction the mode published for them (unrefined), as in the
+paper. The online and offline windows read their settings from the node's parameter file
+(``params/kitti.yaml`` by default, see :func:`default_params_file`), so the benchmark measures
+what the node does.
+
+Outputs in ``out_dir``: ``results.json`` (per mode: the metrics, ``frames``,
+``seconds_per_frame``, ``refined_frames``, per-stage timings; the relative gains against
+``no_ttr``; the settings, the model, the command line), ``results.md`` (the same as tables),
+``per_frame.csv`` (abs rel and RMSE of every GT frame in every mode) and ``figure.png`` (for a
+few frames: image, depth of each mode on one colour scale, abs-rel error maps at the GT pixels
+and predicted-vs-GT density plots, drawn with OpenCV).
+
+Modules: :mod:`.settings` (the parameter file), :mod:`.runners` (the three modes), :mod:`.run`
+(:func:`run_benchmark`), :mod:`.report` (json / markdown / csv), :mod:`.figure`.
+"""
+
+from sfm_ttr_ros.tools.benchmark.figure import qualitative_figure, scatter_panel
+from sfm_ttr_ros.tools.benchmark.report import describe_model, json_safe, results_markdown
+from sfm_ttr_ros.tools.benchmark.run import run_benchmark
+from sfm_ttr_ros.tools.benchmark.runners import MODES, STAGES
+from sfm_ttr_ros.tools.benchmark.settings import (
+    PARAMS_FILE,
+    default_params_file,
+    read_params_file,
+    settings_from_params,
+)
+
+__all__ = [
+    "MODES",
+    "PARAMS_FILE",
+    "STAGES",
+    "default_params_file",
+    "describe_model",
+    "json_safe",
+    "qualitative_figure",
+    "read_params_file",
+    "results_markdown",
+    "run_benchmark",
+    "scatter_panel",
+    "settings_from_params",
+]

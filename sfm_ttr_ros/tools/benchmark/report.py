@@ -1,0 +1,114 @@
+"""The benchmark's reports: ``results.json`` values made JSON-safe, ``results.md`` and
+``per_frame.csv``."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sfm_ttr_ros.core.evaluation import ERROR_METRICS, METRICS, format_table
+from sfm_ttr_ros.data.sequence import ImageSequence
+from sfm_ttr_ros.tools.benchmark.runners import MODES, ModeRun
+
+
+def json_safe(v):
+    if isinstance(v, dict):
+        return {str(k): json_safe(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [json_safe(x) for x in v]
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, Path):
+        return str(v)
+    return v
+
+
+def config_dict(obj) -> dict:
+    from dataclasses import asdict, is_dataclass
+
+    return asdict(obj) if is_dataclass(obj) else dict(obj)
+
+
+def describe_model(model) -> dict[str, Any]:
+    """Class, input size and parameter counts of a depth network."""
+    enc = sum(p.numel() for p in model.encoder.parameters())
+    total = sum(p.numel() for p in model.parameters())
+    return {"class": type(model).__name__, "input_size": list(getattr(model, "input_size", ())),
+            "parameters": int(total), "encoder_parameters": int(enc)}
+
+
+def write_per_frame(path: Path, seq: ImageSequence, gt_indices: Sequence[int],
+                     runs: Mapping[str, ModeRun]) -> None:
+    cols = ["index", "name"]
+    for m in runs:
+        cols += [f"{m}_abs_rel", f"{m}_rmse", f"{m}_refined", f"{m}_reason"]
+    with open(path, "w", newline="") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(cols)
+        for i in gt_indices:
+            row: list[Any] = [i, seq.names[i]]
+            for r in runs.values():
+                pf = r.per_frame.get(i, {})
+                for key in ("abs_rel", "rmse"):
+                    v = pf.get(key)
+                    row.append("" if v is None else f"{v:.6f}")
+                row += [int(bool(pf.get("refined"))), pf.get("reason", "")]
+            wr.writerow(row)
+
+
+def _fmt_gain(v) -> str:
+    return "n/a" if v is None or not math.isfinite(float(v)) else f"{100 * float(v):+.1f} %"
+
+
+def results_markdown(results: Mapping[str, Any]) -> str:
+    """``results.md``: the metric table, the gains against no_ttr, time and the figure."""
+    modes = [m for m in results.get("modes", MODES) if m in results]
+    ev = results.get("settings", {}).get("eval", {})
+    lines = [f"# SfM-TTR benchmark: {results.get('sequence', '')}", ""]
+    model = results.get("model", {})
+    lines.append(
+        f"{results.get('frames_total')} frames, {results.get('frames_with_gt')} with ground "
+        f"truth; model {model.get('type', '')} {model.get('class', '')} "
+        f"{'x'.join(str(v) for v in model.get('input_size', []))}; Eigen crop "
+        f"{'on' if ev.get('eigen_crop') else 'off'}, median scaling "
+        f"{'on' if ev.get('median_scaling', True) else 'off'}, depth cap "
+        f"{ev.get('max_depth', 80)} m.")
+    lines += ["", format_table({m: {k: (math.nan if results[m].get(k) is None
+                                         else results[m].get(k))
+                                     for k in (*METRICS, 'frames')} for m in modes},
+                               decimals=4)]
+    gains = results.get("relative_gain") or {}
+    if gains:
+        lines += ["Relative gain against no_ttr (positive = better):", "",
+                  "| method | " + " | ".join(METRICS) + " |",
+                  "|---|" + "---:|" * len(METRICS)]
+        for m, g in gains.items():
+            lines.append(f"| {m} | " + " | ".join(_fmt_gain(g.get(k)) for k in METRICS) + " |")
+        lines.append("")
+    stages = ("sfm", "align", "refine", "predict_before", "predict_after", "predict")
+    lines += ["| method | s/frame | refined frames | windows (refined) | "
+              + " | ".join(f"{s} s" for s in stages) + " |",
+              "|---|" + "---:|" * (3 + len(stages))]
+    for m in modes:
+        r = results[m]
+        t = r.get("timings", {})
+        win = f"{r['windows']} ({r.get('windows_refined', 0)})" if "windows" in r else "-"
+        spf = r.get("seconds_per_frame")
+        lines.append(f"| {m} | {spf:.2f} | {r.get('refined_frames', 0)}/"
+                     f"{r.get('processed_frames', 0)} | {win} | "
+                     + " | ".join(f"{t[s]:.1f}" if s in t else "-" for s in stages) + " |")
+    lines += ["", "Lower is better for " + ", ".join(ERROR_METRICS)
+              + "; higher for a1-a3. Frames SfM could not use count with the prediction the "
+              "mode published for them.", ""]
+    if results.get("figure_frames"):
+        lines += [f"![qualitative results, frames {', '.join(results['figure_frames'])}]"
+                  "(figure.png)", ""]
+    lines += ["Command:", "", "```", str(results.get("command", "")), "```", ""]
+    return "\n".join(lines)

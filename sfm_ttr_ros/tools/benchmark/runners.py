@@ -1,0 +1,233 @@
+"""The benchmark's three modes over the same frames (see :mod:`sfm_ttr_ros.tools.benchmark`):
+``no_ttr`` (the network alone), ``sfm_ttr_online`` (the node's stream, no ROS transport) and
+``sfm_ttr_offline`` (one window over the whole sequence, or chunks), and the per-mode
+bookkeeping (:class:`ModeRun`) that evaluates each published depth."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.stream import (
+    FrameOutput,
+    StreamProcessor,
+    StreamSettings,
+    WindowStats,
+    reason_key_of,
+)
+from sfm_ttr_ros.data.sequence import ImageSequence
+
+log = logging.getLogger("sfm_ttr_ros.tools.benchmark")
+
+MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
+#: The top-level stages of a window (WindowResult.timings also holds ``sfm_*`` sub-stages).
+STAGES = ("predict_before", "sfm", "align", "refine", "predict_after")
+
+
+class ModeRun:
+    """Evaluates one mode's depths frame by frame and keeps what the outputs need."""
+
+    def __init__(self, mode: str, seq: ImageSequence, indices: Sequence[int],
+                 figure_indices: Sequence[int], eval_config: EvalConfig,
+                 depth_dir: Path | None):
+        self.mode = mode
+        self.seq = seq
+        self.names = seq.names
+        self.expected = set(indices)
+        self.figure_indices = set(figure_indices)
+        self.evaluator = Evaluator(eval_config)
+        self.per_frame: dict[int, dict[str, Any]] = {}
+        self.figure_depths: dict[int, np.ndarray] = {}
+        self.refined = 0
+        self.reasons: dict[str, int] = defaultdict(int)
+        self.seen: set[int] = set()
+        self.depth_dir = depth_dir
+        self.seconds = 0.0
+        self.timings: dict[str, float] = defaultdict(float)
+        self.extra: dict[str, Any] = {}
+        if depth_dir is not None:
+            depth_dir.mkdir(parents=True, exist_ok=True)
+
+    def add(self, index: int, depth: np.ndarray, refined: bool, reason: str = "") -> None:
+        if index in self.seen or index not in self.expected:
+            log.error("%s: frame %d published twice or not expected: ignored", self.mode, index)
+            return
+        self.seen.add(index)
+        name = self.names[index]
+        if refined:
+            self.refined += 1
+        else:
+            self.reasons[reason or "unrefined"] += 1
+        if self.depth_dir is not None:
+            np.save(self.depth_dir / f"{name}.npy", np.asarray(depth, np.float32))
+        if index in self.figure_indices:
+            self.figure_depths[index] = np.array(depth, np.float32, copy=True)
+        row: dict[str, Any] = {"refined": bool(refined), "reason": reason}
+        gt = self.seq.gt(name)
+        if gt is not None:
+            r = self.evaluator.add(name, depth, gt)
+            row.update({m: (r.metrics[m] if r is not None else None) for m in METRICS})
+        self.per_frame[index] = row
+
+    def summary(self, num_frames: int) -> dict[str, Any]:
+        s = self.evaluator.summary()
+        out: dict[str, Any] = {m: s[m] for m in METRICS}
+        out["frames"] = s["frames"]
+        out["seconds_per_frame"] = self.seconds / max(1, num_frames)
+        out["seconds"] = self.seconds
+        out["refined_frames"] = self.refined
+        out["unrefined_frames"] = dict(self.reasons)
+        out["processed_frames"] = len(self.seen)
+        out["lost_frames"] = len(self.expected - self.seen)
+        out["skipped"] = s["skipped"]
+        out["skipped_frames"] = s["skipped_frames"]
+        out["invalid_pred"] = s["invalid_pred"]
+        out["ratio_median"] = s["ratio_median"]
+        out["ratio_std"] = s["ratio_std"]
+        out["timings"] = dict(self.timings)
+        out.update(self.extra)
+        return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The three modes
+# ---------------------------------------------------------------------------------------------
+
+
+def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
+                cfg: TTRConfig, progress) -> None:
+    ttr = SfmTTR(model, copy.deepcopy(cfg))
+    try:
+        b = max(1, cfg.predict_batch)
+        for k in range(0, len(indices), b):
+            frames = [seq.frame(i) for i in indices[k:k + b]]
+            t0 = time.perf_counter()
+            depths = ttr.predict([f.image for f in frames])
+            dt = time.perf_counter() - t0
+            run.seconds += dt
+            run.timings["predict"] += dt
+            for f, d in zip(frames, depths, strict=True):
+                run.add(f.index, d, False, "no_ttr")
+            if progress and (k // b) % 10 == 9:
+                progress(f"no_ttr: {min(k + b, len(indices))}/{len(indices)} frames")
+    finally:
+        ttr.close()
+
+
+def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
+                cfg: TTRConfig, settings: StreamSettings, progress) -> None:
+    ttr = SfmTTR(model, copy.deepcopy(cfg))
+    dropped: list[tuple[Any, str]] = []
+    windows = {"windows": 0, "windows_refined": 0}
+
+    def seq_index(stream_name: str) -> int:  # the stream names frames by a running counter
+        return indices[int(stream_name)]
+
+    def on_window(ws: WindowStats) -> None:
+        windows["windows"] += 1
+        windows["windows_refined"] += int(ws.refined)
+        for k, v in ws.timings.items():
+            run.timings[k] += float(v)
+        if progress:
+            span = f"{seq_index(ws.names[0])}-{seq_index(ws.names[-1])}" if ws.names else "-"
+            what = "refined" if ws.refined else f"not refined ({ws.reason})"
+            secs = sum(ws.timings.get(k, 0.0) for k in STAGES)
+            progress(f"sfm_ttr_online: window {ws.index} (frames {span}, {ws.new_frames} new) "
+                     f"{what}; {ws.registered}/{len(ws.names)} registered, {ws.points} points, "
+                     f"{secs:.1f} s")
+
+    def on_drop(frame, key: str, message: str) -> None:
+        dropped.append((frame, key))
+
+    def take(outs: list[FrameOutput]) -> None:
+        for o in outs:
+            run.add(o.frame.index, o.depth, o.refined, o.reason_key)
+
+    stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
+                             on_drop=on_drop, logger=log)
+    try:
+        for i in indices:
+            f = seq.frame(i)
+            t0 = time.perf_counter()
+            outs = stream.push(f, seq.intrinsics)
+            run.seconds += time.perf_counter() - t0
+            take(outs)
+        t0 = time.perf_counter()
+        outs = stream.flush()
+        run.seconds += time.perf_counter() - t0
+        take(outs)
+        # Frames the stream dropped were never published by the node; they still count, with
+        # the latest weights' prediction, under their drop reason.
+        for frame, key in dropped:
+            if frame is not None and frame.index not in run.seen:
+                log.warning("sfm_ttr_online: frame %d dropped by the stream (%s): evaluated "
+                            "with an unrefined prediction", frame.index, key)
+                run.add(frame.index, ttr.predict([frame.image])[0], False, f"dropped:{key}")
+    finally:
+        ttr.close()
+    counters = stream.counters()
+    run.extra.update(windows)
+    run.extra["stream_counters"] = counters
+
+
+def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
+                 cfg: TTRConfig, max_frames: int, progress) -> None:
+    cfg = copy.deepcopy(cfg)
+    cfg.reset_each_window = False  # chunks reset explicitly below
+    ttr = SfmTTR(model, cfg)
+    n = len(indices)
+    size = n if max_frames <= 0 else max(1, max_frames)
+    chunks = [list(indices[k:k + size]) for k in range(0, n, size)]
+    info: list[dict[str, Any]] = []
+    try:
+        for c, chunk in enumerate(chunks):
+            if c:
+                ttr.reset_model()  # every chunk is a sequence of its own: original weights
+            frames = [seq.frame(i) for i in chunk]
+            if progress:
+                progress(f"sfm_ttr_offline: window {c + 1}/{len(chunks)} over {len(frames)} "
+                         f"frames ({chunk[0]}-{chunk[-1]})")
+            t0 = time.perf_counter()
+            try:
+                res = ttr.process_window(frames, seq.intrinsics)
+            except InputError:
+                raise
+            except Exception as exc:  # as the stream does: the frames go out unrefined
+                msg = f"window failed: {type(exc).__name__}: {exc}"
+                log.error("sfm_ttr_offline: %s", msg)
+                ttr.reset_model()
+                depths = ttr.predict([f.image for f in frames])
+                run.seconds += time.perf_counter() - t0
+                for f, d in zip(frames, depths, strict=True):
+                    run.add(f.index, d, False, "window_error")
+                info.append({"frames": len(frames), "refined": False, "reason": msg})
+                continue
+            run.seconds += time.perf_counter() - t0
+            for k, v in res.timings.items():
+                run.timings[k] += float(v)
+            for f in frames:
+                run.add(f.index, res.depths[f.name], res.refined,
+                        "" if res.refined else reason_key_of(res))
+            info.append(res.summary())
+            if progress:
+                what = "refined" if res.refined else f"not refined ({res.reason})"
+                progress(f"sfm_ttr_offline: {what}; {info[-1]['registered']}/{len(frames)} "
+                         f"registered, {info[-1]['points']} points, "
+                         f"{time.perf_counter() - t0:.1f} s")
+            del frames, res
+    finally:
+        ttr.close()
+    run.extra["windows"] = len(chunks)
+    run.extra["windows_refined"] = sum(int(w["refined"]) for w in info)
+    run.extra["registered_frames"] = sum(int(w.get("registered", 0)) for w in info)
+    run.extra["offline_windows"] = info

@@ -1,0 +1,48 @@
+"""Where the benchmark's settings come from: the node's parameter file (``params/kitti.yaml``
+by default) read and built through the one parameter schema, exactly as the node builds them."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from sfm_ttr_ros.core import params as schema
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.registry import ModelConfig
+from sfm_ttr_ros.core.pipeline import TTRConfig
+from sfm_ttr_ros.core.stream import StreamSettings
+from sfm_ttr_ros.ros.names import NODE_NAME, PACKAGE
+
+PARAMS_FILE = "kitti.yaml"
+
+
+def default_params_file(name: str = PARAMS_FILE) -> Path:
+    """``params/<name>``: beside the package in a source checkout (or an editable install),
+    else in the package's ament share folder (colcon / pip install of the ROS package);
+    :class:`InputError` when neither exists."""
+    tried = [Path(__file__).resolve().parents[3] / "params" / name]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        tried.append(Path(get_package_share_directory(PACKAGE)) / "params" / name)
+    except Exception:  # not installed, no AMENT_PREFIX_PATH, no ament_index_python
+        pass
+    for p in tried:
+        if p.is_file():
+            return p
+    raise InputError(f"parameter file {name} not found (looked in "
+                     f"{', '.join(str(p) for p in tried)}); pass --params-file")
+
+
+def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
+    """:func:`sfm_ttr_ros.core.params.read_params_file` for the refiner node."""
+    return schema.read_params_file(path, node_name)
+
+
+def settings_from_params(values: Mapping[str, Any]
+                         ) -> tuple[TTRConfig, StreamSettings, ModelConfig]:
+    """(TTRConfig, StreamSettings, ModelConfig) for the parameter ``values`` (missing ones take
+    their defaults), exactly as the node builds them."""
+    s = schema.build(values)
+    return s.ttr, s.stream, s.model

@@ -1,0 +1,120 @@
+"""The node's /diagnostics counters and status, ROS-free (sfm_ttr_ros.core.diagnostics), and the
+DiagnosticArray built from them (sfm_ttr_ros.ros.outputs)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sfm_ttr_ros.core.diagnostics import Status, StreamDiagnostics
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.stream import StreamProcessor, WindowStats
+
+INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
+FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_dropped",
+              "frames_pending", "frames_held_no_intrinsics"]
+INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_monotonic_stamps",
+                         "qos_incompatible", "windows_ok", "windows_failed",
+                         "windows_skipped_overload", "windows_disabled"]
+
+
+def frame(i: int) -> Frame:
+    return Frame(index=i, image=np.zeros((16, 32, 3), np.uint8), stamp=float(i))
+
+
+@pytest.fixture
+def stream() -> StreamProcessor:
+    # only the accounting is used: frames are queued and rejected, never processed
+    return StreamProcessor(ttr=None)
+
+
+def adds_up(v: dict) -> bool:
+    return v["frames_received"] == (v["frames_refined"] + v["frames_unrefined"]
+                                    + v["frames_dropped"] + v["frames_pending"])
+
+
+def test_an_idle_stream_is_ok_with_every_counter_at_zero(stream):
+    diag = StreamDiagnostics(stream)
+    status = diag.status()
+    assert status == Status("ok", "0 refined, 0 window(s) ok", status.values)
+    assert list(status.values) == FRAME_KEYS + INPUT_AND_WINDOW_KEYS
+    assert set(status.values.values()) == {0}
+
+
+def test_held_frames_count_as_received_and_pending(stream):
+    held = [2]
+    diag = StreamDiagnostics(stream, held=lambda: held[0])
+    for i in range(3):
+        stream.submit(frame(i), INTR)
+    stream.reject("bad_image", "image rejected: test")
+    v = diag.values()
+    assert (v["frames_received"], v["frames_pending"], v["frames_dropped"]) == (6, 5, 1)
+    assert v["frames_held_no_intrinsics"] == 2 and adds_up(v)
+    assert v["dropped.bad_image"] == v["rejected_bad_image"] == 1
+    # per-reason keys sit between the frame keys and the input keys, sorted
+    stream.reject("no_intrinsics", "held frame dropped")
+    keys = list(diag.values())
+    assert keys[len(FRAME_KEYS):len(FRAME_KEYS) + 2] == ["dropped.bad_image",
+                                                          "dropped.no_intrinsics"]
+    status = diag.status()
+    assert status.level == "warn" and status.message == "no intrinsics: frames held"
+    held[0] = 0
+    assert diag.status().level == "ok"
+
+
+def test_input_problems_and_unrefined_frames_make_a_warning_once(stream):
+    diag = StreamDiagnostics(stream)
+    diag.camera_info_rejected()
+    diag.qos_event("image")
+    diag.qos_event("~/depth")
+    diag.output_published(refined=False)
+    diag.output_published(refined=False)
+    diag.output_published(refined=True)
+    status = diag.status()
+    assert status.level == "warn"
+    assert status.message == "2 frame(s) passed through unrefined; incompatible QoS"
+    assert (status.values["rejected_camera_info"], status.values["qos_incompatible"]) == (1, 2)
+    assert diag.qos_incompatible == {"image": 1, "~/depth": 1}
+    # the unrefined frames are reported once; the QoS problem stays
+    assert diag.status().message == "incompatible QoS"
+
+
+def test_the_last_window_is_reported_with_its_timings(stream):
+    diag = StreamDiagnostics(stream)
+    stream.windows.append(WindowStats(
+        index=4, names=["a", "b", "c"], new_frames=3, refined=False, reason_key="sfm_failed",
+        reason="SfM failed: too few matches", registered=1, points=0, steps=5,
+        timings={"sfm": 1.25, "predict_before": 0.5}))
+    status = diag.status()
+    assert status.level == "warn"
+    assert status.message == "last window not refined: SfM failed: too few matches"
+    v = status.values
+    assert (v["last_window.index"], v["last_window.frames"], v["last_window.refined"]) == \
+        (4, 3, False)
+    assert (v["last_window.steps"], v["last_window.steps_done"]) == (5, 0)
+    assert v["last_window.time.sfm_s"] == 1.25 and v["last_window.time.predict_before_s"] == 0.5
+    assert list(v)[-2:] == ["last_window.time.sfm_s", "last_window.time.predict_before_s"]
+    stream.windows.append(WindowStats(index=5, names=["c", "d"], new_frames=1, refined=True))
+    assert diag.status() == Status("ok", "0 refined, 0 window(s) ok", diag.values())
+
+
+@pytest.mark.ros
+def test_the_status_becomes_a_diagnostic_array():
+    pytest.importorskip("diagnostic_msgs")
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from msg_adapters import diagnostic_values
+    from sfm_ttr_ros.ros import names, outputs
+
+    status = Status("warn", "incompatible QoS", {"frames_received": 3, "last_window.scale": 0.5,
+                                                 "last_window.refined": True})
+    timings: dict[str, float] = {}
+    arr = outputs.diagnostics_message(status, 12.5, timings=timings)
+    (s,) = arr.status
+    assert (s.name, s.hardware_id, s.level, s.message) == (
+        "sfm_ttr_ros: refiner", "/refiner", DiagnosticStatus.WARN, "incompatible QoS")
+    assert s.name == names.DIAG_NAME
+    assert diagnostic_values(arr) == {"frames_received": "3", "last_window.scale": "0.5",
+                                      "last_window.refined": "true"}
+    assert (arr.header.stamp.sec, arr.header.stamp.nanosec) == (12, 500_000_000)
+    assert set(timings) == {"diagnostics"} and timings["diagnostics"] >= 0

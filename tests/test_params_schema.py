@@ -1,0 +1,275 @@
+"""The one parameter schema (sfm_ttr_ros.core.params): defaults written once (in the config
+dataclasses), every row reaching its config field, ``--set`` typing and errors, parameter
+files, the precedence of the command line, and the generated docs/parameters.md. ROS-free."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from sfm_ttr_ros.core import params as schema
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.params import SECTIONS, Settings
+
+REPO = Path(__file__).resolve().parents[1]
+PARAM_FILES = sorted((REPO / "params").glob("*.yaml"))
+
+
+def _section(settings: Settings, section: str):
+    return {"sfm": settings.ttr.sfm, "alignment": settings.ttr.alignment,
+            "refinement": settings.ttr.refinement, "ttr": settings.ttr,
+            "stream": settings.stream, "model": settings.model, "node": settings.node}[section]
+
+
+def test_every_default_is_the_dataclass_field_default():
+    for p in schema.PARAMS:
+        for target in p.targets:
+            section, _, name = target.partition(".")
+            value = getattr(SECTIONS[section](), name)  # a fresh config
+            assert value == p.default and type(value) is p.type, (p.name, target, value)
+    assert schema.defaults()["idle_flush_s"] == 2.0  # the node's value, now the stream's too
+    assert schema.defaults()["torch_num_threads"] == 0  # torch's default
+
+
+def _other_value(p: schema.Param):
+    """A valid value of ``p`` that is not its default."""
+    special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True}
+    if p.name in special:
+        return special[p.name]
+    if p.choices:
+        return next(c for c in p.choices if c != p.default)
+    if p.type is bool:
+        return not p.default
+    if p.type is str:
+        return "/tmp/some/file.pth"
+    lo, hi = p.range
+    step = 1 if p.type is int else 0.25 * min(1.0, hi - lo)
+    return p.default + step if p.default + step <= hi else p.default - step
+
+
+def test_every_row_reaches_its_config_fields():
+    companions = {"fx": "fy", "fy": "fx", "encoder_path": "decoder_path",
+                  "decoder_path": "encoder_path"}
+    for p in schema.PARAMS:
+        value = _other_value(p)
+        values = {p.name: value}
+        if p.name in companions:
+            values[companions[p.name]] = value
+        settings = schema.build(values)
+        for target in p.targets:
+            section, _, name = target.partition(".")
+            assert getattr(_section(settings, section), name) == value, (p.name, target)
+    # a settable field no parameter targets (experiments: --set ttr.predict_batch=3)
+    assert schema.build({"ttr.predict_batch": 3}).ttr.predict_batch == 3
+
+
+def test_set_values_are_typed_by_the_schema():
+    values = schema.parse_overrides([
+        "refinement.lr=3e-5", "refinement.steps=40", "fx=700", "fy=700.5", "sfm.min_tri_angle=1",
+        "model.channels_last=true", "encoder_path=", "decoder_path=", "model_type=python:a.b:f",
+        "camera_info_use_projection=false", "refinement.bn_mode='train'", "seed=3", "seed=4"])
+    assert values == {
+        "refinement.lr": 3e-5, "refinement.steps": 40, "fx": 700.0, "fy": 700.5,
+        "sfm.min_tri_angle": 1.0, "channels_last": True, "encoder_path": "",
+        "decoder_path": "", "model_type": "python:a.b:f", "camera_info_use_projection": False,
+        "refinement.bn_mode": "train", "seed": 4}
+    for name in ("refinement.lr", "fx", "sfm.min_tri_angle"):
+        assert type(values[name]) is float, name
+    assert schema.parse_overrides(["camera_info_use_projection=auto"]) == {
+        "camera_info_use_projection": "auto"}
+    s = schema.build(values)
+    assert s.ttr.refinement.lr == 3e-5 and s.ttr.sfm.min_tri_angle == 1.0
+    assert (s.ttr.sfm.seed, s.ttr.alignment.seed, s.ttr.refinement.seed) == (4, 4, 4)
+    assert s.model.channels_last and s.node.use_projection is False
+
+
+@pytest.mark.parametrize("item, match", [
+    ("nonsense=1", "unknown parameter 'nonsense'"),
+    ("refinement.stepz=3", r"did you mean refinement\.steps"),
+    ("sfm.no_such_field=1", "unknown parameter"),
+    ("ttr.sfm=1", "unknown parameter"),  # a nested config is not a value
+    ("steps", "expected NAME=VALUE"),
+    ("=3", "expected NAME=VALUE"),
+    ("refinement.steps=1.5", "refinement.steps must be an integer"),
+    ("refinement.steps=-1", "refinement.steps must be >= 0"),
+    ("refinement.lr=2.0", "refinement.lr must be <= 1"),
+    ("refinement.bn_mode=sideways", "must be one of frozen, train"),
+    ("reset_each_window=maybe", "must be a bool"),
+    ("window_size=true", "must be an integer"),
+    ("fx=abc", "fx must be a double"),
+])
+def test_set_errors_name_the_problem(item, match):
+    with pytest.raises(InputError, match=match):
+        schema.parse_overrides([item])
+
+
+def test_check_value_is_strict_like_rclpy():
+    assert schema.check_value("refinement.lr", 1e-3) == ""
+    assert "write doubles as 1.0" in schema.check_value("refinement.lr", 1)
+    assert "an integer" in schema.check_value("window_size", True)
+    assert "an integer" in schema.check_value("window_size", 4.0)
+    assert "one of" in schema.check_value("num_layers", 20)
+    assert schema.check_value("camera_info_use_projection", True) == ""
+    assert "unknown parameter" in schema.check_value("no_such", 1)
+
+
+@pytest.mark.parametrize("values, match", [
+    ({"window_size": 3, "window_stride": 4}, "window_stride"),
+    ({"fx": 500.0}, "fx and fy"),
+    ({"encoder_path": "e.pth"}, "both encoder_path and decoder_path"),
+    ({"model_type": "resnet"}, "model_type must be"),
+    ({"camera_info_use_projection": "sometimes"}, "camera_info_use_projection"),
+    ({"refinement.lr": 0.0}, "lr must be a positive number"),
+    ({"alignment.tau": 0.0}, "tau"),
+    ({"no_such": 1}, "unknown parameter"),
+])
+def test_validate_checks_the_whole_set(values, match):
+    reason = schema.validate(values)
+    assert match in reason
+    with pytest.raises(InputError, match=match):
+        schema.build(values)
+    assert schema.validate({}) == "" and schema.validate(schema.defaults()) == ""
+
+
+@pytest.mark.parametrize("path", PARAM_FILES, ids=lambda p: p.name)
+def test_shipped_parameter_files_pass_the_schema(path):
+    values = schema.read_params_file(path, "refiner")
+    assert values and schema.validate(values) == ""
+    if path.name == "refiner.yaml":  # it lists every parameter at its default
+        assert values == schema.defaults()
+
+
+def test_params_file_is_read_and_checked_like_the_node(tmp_path):
+    def write(body: str) -> Path:
+        p = tmp_path / "p.yaml"
+        p.write_text(textwrap.dedent(body))
+        return p
+
+    nested = write("""
+        /**:
+          ros__parameters:
+            window_size: 6
+            window_stride: 2
+        /robot/refiner:
+          ros__parameters:
+            window_stride: 3
+            refinement: {steps: 7}
+        other:
+          ros__parameters:
+            window_size: 99
+    """)
+    assert schema.read_params_file(nested, "refiner") == {
+        "window_size": 6, "window_stride": 3, "refinement.steps": 7}
+    for body, msg in (
+        ("refiner:\n  ros__parameters:\n    refinement.lr: 1\n", "write doubles"),
+        ("refiner:\n  ros__parameters:\n    refinement.stepz: 1\n",
+         r"not a parameter of the refiner node \(did you mean refinement\.steps"),
+        ("refiner:\n  ros__parameters:\n    ttr.predict_batch: 1\n", "not a parameter"),
+        ("refiner:\n  ros__parameters:\n    window_size: 1\n", "window_size must be >= 2"),
+        ("refiner:\n  ros__parameters:\n    refinement.bn_mode: x\n", "one of"),
+        ("refiner:\n  ros__parameters: [1, 2]\n", "not a mapping"),
+        ("other_node:\n  ros__parameters:\n    window_size: 4\n", "no ros__parameters"),
+        ("- a list\n", "expected a mapping"),
+        ("refiner: {ros__parameters: {window_size: [}\n", "cannot read"),
+    ):
+        with pytest.raises(InputError, match=msg):
+            schema.read_params_file(write(body), "refiner")
+    with pytest.raises(InputError, match="not found"):
+        schema.read_params_file(tmp_path / "missing.yaml", "refiner")
+
+
+def test_command_line_precedence(tmp_path):
+    """schema default < parameter file < flag < --set, on the parser of ``sfm-ttr run``."""
+    from sfm_ttr_ros.tools.cli import build_parser
+    from sfm_ttr_ros.tools.cli_args import PARAM_FLAGS, parameter_values
+
+    f = tmp_path / "p.yaml"
+    f.write_text("refiner:\n  ros__parameters:\n    refinement.steps: 7\n    refinement.lr: "
+                 "0.001\n    encoder_path: e.pth\n    decoder_path: d.pth\n")
+    parser = build_parser()
+
+    def values(*extra: str) -> dict:
+        args = parser.parse_args(["run", "--out", str(tmp_path / "o"), *extra])
+        return parameter_values(args)[1]
+
+    def steps(*extra: str) -> int:
+        return schema.build(values(*extra)).ttr.refinement.steps
+
+    assert values() == {} and steps() == 200  # no file: the schema's defaults (the paper's)
+    assert steps("--params-file", str(f)) == 7
+    assert steps("--params-file", str(f), "--steps", "9") == 9
+    assert steps("--params-file", str(f), "--steps", "9", "--set", "refinement.steps=11") == 11
+    assert values("--params-file", str(f))["refinement.lr"] == 0.001
+    # --model: the file's weights files belong to the file's model
+    v = values("--params-file", str(f), "--model", "mobilenet")
+    assert (v["model_type"], v["encoder_path"], v["decoder_path"]) == ("mobilenet", "", "")
+    # every flag is a row of the table, typed by its parameter
+    assert schema.build(values("--threads", "3", "--lr", "1")).node.torch_num_threads == 3
+    assert type(values("--lr", "1")["refinement.lr"]) is float
+    for name, _ in PARAM_FLAGS.values():
+        assert name in schema.SCHEMA
+    with pytest.raises(SystemExit):
+        parser.parse_args(["run", "--out", "o", "--bn-mode", "sideways"])
+
+
+def test_parameters_page_is_up_to_date(capsys):
+    """docs/parameters.md is what ``sfm-ttr params`` prints (regenerate:
+    ``sfm-ttr params > docs/parameters.md``)."""
+    from sfm_ttr_ros.tools.cli import main
+
+    assert main(["params"]) == 0
+    page = capsys.readouterr().out
+    assert (REPO / "docs" / "parameters.md").read_text(encoding="utf-8") == page
+    assert main(["params", "--table"]) == 0
+    table = capsys.readouterr().out
+    assert table in page and len(table.splitlines()) == len(schema.PARAMS) + 2
+    assert "| `refinement.steps` | integer | `200` | 0 … 1e6 | live |" in table
+    assert "| `model_type` | string | `\"default\"` |" in table and "start-up" in table
+
+
+def test_schema_and_cli_parsers_import_without_ros():
+    """The schema, ``sfm-ttr run`` / ``benchmark`` argument handling and the benchmark package
+    import with rclpy, rcl_interfaces and every *_msgs package blocked."""
+    code = textwrap.dedent("""
+        import sys
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                top = name.split(".")[0]
+                if top in ("rclpy", "rcl_interfaces") or top.endswith("_msgs"):
+                    raise ImportError(f"blocked: {name}")
+        sys.meta_path.insert(0, Block())
+        from sfm_ttr_ros.core import params
+        from sfm_ttr_ros.tools import benchmark, cli, cli_args, cli_benchmark
+        cli.build_parser().parse_args(["benchmark", "--images", "x", "--out", "o",
+                                       "--set", "refinement.steps=3"])
+        bad = sorted(m for m in sys.modules
+                     if m.split(".")[0] in ("rclpy", "rcl_interfaces")
+                     or m.split(".")[0].endswith("_msgs"))
+        assert not bad, bad
+    """)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_node_settings_validate_themselves():
+    from sfm_ttr_ros.core.node_settings import NodeSettings
+
+    assert NodeSettings().use_projection is None
+    for bad, match in (({"fx": -1.0}, "fx"), ({"qos_depth": 0}, "qos_depth"),
+                       ({"qos_reliability": "sometimes"}, "qos_reliability"),
+                       ({"diagnostics_period_s": 0.0}, "diagnostics_period_s"),
+                       ({"torch_num_threads": -1}, "torch_num_threads"),
+                       ({"fy": 3.0}, "fx and fy")):
+        with pytest.raises(InputError, match=match):
+            NodeSettings(**bad)
+    # every node setting is a parameter
+    assert {f.name for f in dataclasses.fields(NodeSettings)} == {
+        t.partition(".")[2] for p in schema.PARAMS for t in p.targets if t.startswith("node.")}
