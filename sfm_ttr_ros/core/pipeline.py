@@ -14,25 +14,20 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from sfm_ttr_ros.core.alignment import AlignmentConfig, AlignmentResult, align_scale
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement import (
-    FrameSupervision,
     RefinementConfig,
     RefinementResult,
-    frame_loss,
     frozen_stage_count,
-    normalized_grid,
-    observation_weights,
     refine_encoder,
     restore_encoder,
-    sample_depth,
     snapshot_encoder,
 )
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
+from sfm_ttr_ros.core.supervision import build_supervision, frame_loss, sample_at
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16
@@ -88,12 +83,6 @@ class WindowResult:
             "loss_before": self.loss_before,
             "loss_after": self.loss_after,
         }
-
-
-def sample_at(depth: np.ndarray, pixels: np.ndarray, mode: str = "bilinear") -> np.ndarray:
-    """An image-resolution depth map read at pixels (OpenCV convention)."""
-    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
-    return sample_depth(d, normalized_grid(pixels, depth.shape[1], depth.shape[0]), mode).numpy()
 
 
 class SfmTTR:
@@ -264,7 +253,7 @@ class SfmTTR:
                           f"{d_sfm.size} (< {cfg.min_supervision_points})")
             return res
 
-        sup = self._supervision(sfm, reg, images, align)
+        sup = build_supervision(sfm, reg, images, align, cfg.refinement.weighting)
         res.loss_before = float(np.mean([frame_loss(before[s.name], s) for s in sup]))
         t0 = time.perf_counter()
         res.refinement = refine_encoder(self.model, sup, cfg.refinement, should_stop=stop)
@@ -282,25 +271,6 @@ class SfmTTR:
             res.reason = "refinement cancelled" if res.refinement.cancelled else "no usable frame"
         self._cloud(res, sfm, reg)
         return res
-
-    def _supervision(self, sfm: SfmResult, reg: list[str], images: dict[str, np.ndarray],
-                     align: AlignmentResult) -> list[FrameSupervision]:
-        """Split the window's selected points back into frames: target ŝ·D_sfm, weight."""
-        weighting = self.config.refinement.weighting
-        sup, start = [], 0
-        for n in reg:
-            obs = sfm.frames[n]
-            sel = align.selected[start:start + len(obs)]
-            start += len(obs)
-            if weighting == "observation":
-                w = observation_weights(obs.reproj_errors[sel])
-            elif weighting == "track":
-                w = observation_weights(obs.track_errors[sel])
-            else:
-                w = np.ones(int(sel.sum()))
-            sup.append(FrameSupervision(n, images[n], obs.pixels[sel],
-                                        align.scale * obs.depths[sel], w))
-        return sup
 
     @staticmethod
     def _cloud(res: WindowResult, sfm: SfmResult, reg: list[str]) -> None:

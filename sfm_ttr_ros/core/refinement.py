@@ -35,10 +35,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.supervision import (  # noqa: F401 - frame_loss: part of this stage's API
+    FrameSupervision,
+    frame_loss,
+    normalized_grid,
+    sample_depth,
+    weighted_l1,
+)
 
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
@@ -74,21 +80,6 @@ class RefinementConfig:
 
 
 @dataclass
-class FrameSupervision:
-    """Supervision of one registered frame: pixels (OpenCV convention, image resolution),
-    target depth ŝ·D_sfm in network units, per-point weights exp(−r²)."""
-
-    name: str
-    image: np.ndarray  # H x W x 3 uint8 RGB
-    pixels: np.ndarray  # N x 2 (x, y)
-    target: np.ndarray  # N
-    weights: np.ndarray  # N
-
-    def __len__(self) -> int:
-        return int(self.target.shape[0])
-
-
-@dataclass
 class RefinementResult:
     loss_history: list[float] = field(default_factory=list)
     steps_done: int = 0
@@ -96,30 +87,6 @@ class RefinementResult:
     early_stopped: bool = False
     frames_used: int = 0
     seconds: float = 0.0
-
-
-def observation_weights(reproj_errors: np.ndarray) -> np.ndarray:
-    """Eq. (5)'s confidence weight exp(−r²) of each observation."""
-    return np.exp(-np.square(np.asarray(reproj_errors, np.float64)))
-
-
-def normalized_grid(pixels: np.ndarray, width: int, height: int) -> torch.Tensor:
-    """Pixel centres (OpenCV convention) of an image of width x height → grid_sample coords."""
-    g = np.empty((1, 1, len(pixels), 2), np.float32)
-    g[0, 0, :, 0] = (pixels[:, 0] + 0.5) / width * 2.0 - 1.0
-    g[0, 0, :, 1] = (pixels[:, 1] + 0.5) / height * 2.0 - 1.0
-    return torch.from_numpy(g)
-
-
-def sample_depth(depth: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Read a 1 x 1 x h x w depth map at grid points (any resolution: coords are normalised)."""
-    return F.grid_sample(depth, grid, mode=mode, padding_mode="border",
-                         align_corners=False).reshape(-1)
-
-
-def weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Eq. (5): mean of exp(−r²)·|ŝ·D_sfm − D_nn| over a frame's selected points."""
-    return (weights * (pred - target).abs()).mean()
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -250,14 +217,6 @@ def _forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
     enc = model.encoder
     return model.depth_from_features(enc.forward_stages(x[0], frozen_stages, enc.num_stages,
                                                         x[1])[1])
-
-
-def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -> float:
-    """Eq. (5) for one frame evaluated on a predicted depth map (any resolution), no grad."""
-    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
-    h, w = s.image.shape[:2]
-    pred = sample_depth(d, normalized_grid(s.pixels, w, h), mode).numpy()
-    return float(np.mean(s.weights * np.abs(pred - s.target))) if len(s) else float("nan")
 
 
 def snapshot_encoder(model: DepthModel) -> dict[str, torch.Tensor]:

@@ -1,0 +1,94 @@
+"""Stage 3 → 4 of SfM-TTR: the supervision of each registered frame.
+
+After the scale alignment (Sec. 3.2, :mod:`sfm_ttr_ros.core.alignment`) every selected SfM
+observation of frame j gives a pixel p_lj, a target depth ŝ·D_sfm(l, j) in the network's units
+and the confidence weight exp(−r_lj²) of Eq. (5). This module holds that per-frame record, the
+sampling of a depth map at those pixels (D_nn(p_lj)) and Eq. (5) itself, so the refinement
+(:mod:`sfm_ttr_ros.core.refinement`), the pipeline and the checks all read the same numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from sfm_ttr_ros.core.alignment import AlignmentResult
+from sfm_ttr_ros.core.sfm import SfmResult
+
+
+@dataclass
+class FrameSupervision:
+    """Supervision of one registered frame: pixels (OpenCV convention, image resolution),
+    target depth ŝ·D_sfm in network units, per-point weights exp(−r²)."""
+
+    name: str
+    image: np.ndarray  # H x W x 3 uint8 RGB
+    pixels: np.ndarray  # N x 2 (x, y)
+    target: np.ndarray  # N
+    weights: np.ndarray  # N
+
+    def __len__(self) -> int:
+        return int(self.target.shape[0])
+
+
+def observation_weights(reproj_errors: np.ndarray) -> np.ndarray:
+    """Eq. (5)'s confidence weight exp(−r²) of each observation."""
+    return np.exp(-np.square(np.asarray(reproj_errors, np.float64)))
+
+
+def normalized_grid(pixels: np.ndarray, width: int, height: int) -> torch.Tensor:
+    """Pixel centres (OpenCV convention) of an image of width x height → grid_sample coords."""
+    g = np.empty((1, 1, len(pixels), 2), np.float32)
+    g[0, 0, :, 0] = (pixels[:, 0] + 0.5) / width * 2.0 - 1.0
+    g[0, 0, :, 1] = (pixels[:, 1] + 0.5) / height * 2.0 - 1.0
+    return torch.from_numpy(g)
+
+
+def sample_depth(depth: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    """Read a 1 x 1 x h x w depth map at grid points (any resolution: coords are normalised)."""
+    return F.grid_sample(depth, grid, mode=mode, padding_mode="border",
+                         align_corners=False).reshape(-1)
+
+
+def weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Eq. (5): mean of exp(−r²)·|ŝ·D_sfm − D_nn| over a frame's selected points."""
+    return (weights * (pred - target).abs()).mean()
+
+
+def sample_at(depth: np.ndarray, pixels: np.ndarray, mode: str = "bilinear") -> np.ndarray:
+    """An image-resolution depth map read at pixels (OpenCV convention)."""
+    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
+    return sample_depth(d, normalized_grid(pixels, depth.shape[1], depth.shape[0]), mode).numpy()
+
+
+def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -> float:
+    """Eq. (5) for one frame evaluated on a predicted depth map (any resolution), no grad."""
+    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
+    h, w = s.image.shape[:2]
+    pred = sample_depth(d, normalized_grid(s.pixels, w, h), mode).numpy()
+    return float(np.mean(s.weights * np.abs(pred - s.target))) if len(s) else float("nan")
+
+
+def build_supervision(sfm: SfmResult, registered: Sequence[str],
+                      images: dict[str, np.ndarray], align: AlignmentResult,
+                      weighting: str = "observation") -> list[FrameSupervision]:
+    """Split a window's selected points back into frames: target ŝ·D_sfm (network units) and
+    the Eq. (5) weight exp(−r²) with r per observation, per track, or w = 1 (``weighting``)."""
+    sup, start = [], 0
+    for n in registered:
+        obs = sfm.frames[n]
+        sel = align.selected[start:start + len(obs)]
+        start += len(obs)
+        if weighting == "observation":
+            w = observation_weights(obs.reproj_errors[sel])
+        elif weighting == "track":
+            w = observation_weights(obs.track_errors[sel])
+        else:
+            w = np.ones(int(sel.sum()))
+        sup.append(FrameSupervision(n, images[n], obs.pixels[sel],
+                                    align.scale * obs.depths[sel], w))
+    return sup
