@@ -68,6 +68,7 @@ setup(
         "dev": [
             "pytest",
             "pytest-timeout",
+            "hypothesis",
             "ruff",
             "colcon-core",
             "colcon-ros",

@@ -1,5 +1,6 @@
 """Conversions between ROS 2 messages and the ROS-free core: the only code in the project that
-knows ROS message layouts (sensor_msgs Image / CameraInfo / PointCloud2, diagnostic_msgs).
+knows ROS message layouts (sensor_msgs Image / CompressedImage / CameraInfo / PointCloud2,
+diagnostic_msgs).
 
 Importing the package is cheap and needs no ROS: the names are loaded on first use (PEP 562).
 Reading (``image_to_numpy``, ``image_to_depth``, ``camera_info_to_intrinsics``,
@@ -14,12 +15,14 @@ import importlib
 
 _LOCATIONS = {
     "CameraInfoError": "msg_adapters.camera_info",
+    "CompressedImageError": "msg_adapters.compressed",
     "ImageConversionError": "msg_adapters.image",
     "MessageClasses": "msg_adapters.classes",
     "PointCloudError": "msg_adapters.pointcloud",
     "SUPPORTED_ENCODINGS": "msg_adapters.image",
     "camera_info_msg": "msg_adapters.camera_info",
     "clock_message": "msg_adapters.stamp",
+    "compressed_to_rgb8": "msg_adapters.compressed",
     "camera_info_to_intrinsics": "msg_adapters.camera_info",
     "depth_to_colored_image": "msg_adapters.image",
     "depth_to_image": "msg_adapters.image",
@@ -37,6 +40,7 @@ _LOCATIONS = {
     "pointcloud2_to_numpy": "msg_adapters.pointcloud",
     "pointcloud2_to_xyz": "msg_adapters.pointcloud",
     "rclpy_classes": "msg_adapters.classes",
+    "rgb8_to_compressed": "msg_adapters.compressed",
     "stamp_to_ns": "msg_adapters.stamp",
     "stamp_to_seconds": "msg_adapters.stamp",
     "typestore_classes": "msg_adapters.classes",

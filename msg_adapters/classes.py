@@ -35,13 +35,14 @@ class MessageClasses:
     region_of_interest: type  # sensor_msgs/msg/RegionOfInterest
     bytes_field: Callable[[np.ndarray], Any]  # contiguous uint8 array -> a uint8[] value
     doubles_field: Callable[[np.ndarray], Any]  # float64 array -> a float64[] / float64[N] value
+    compressed_image: type | None = None  # sensor_msgs/msg/CompressedImage
 
 
 @functools.cache
 def rclpy_classes() -> MessageClasses:
     """The classes of the ROS 2 message packages (what rclpy publishes and subscribes)."""
     from builtin_interfaces.msg import Time
-    from sensor_msgs.msg import CameraInfo, Image, RegionOfInterest
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image, RegionOfInterest
     from std_msgs.msg import Header
 
     return MessageClasses(
@@ -49,6 +50,7 @@ def rclpy_classes() -> MessageClasses:
         region_of_interest=RegionOfInterest,
         bytes_field=lambda a: array.array("B", a.tobytes()),
         doubles_field=lambda a: np.asarray(a, np.float64).ravel().tolist(),
+        compressed_image=CompressedImage,
     )
 
 
@@ -61,6 +63,7 @@ def typestore_classes(store) -> MessageClasses:
         region_of_interest=types["sensor_msgs/msg/RegionOfInterest"],
         bytes_field=lambda a: np.ascontiguousarray(a).view(np.uint8).reshape(-1),
         doubles_field=lambda a: np.asarray(a, np.float64).reshape(-1),
+        compressed_image=types["sensor_msgs/msg/CompressedImage"],
     )
 
 

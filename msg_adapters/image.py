@@ -5,6 +5,13 @@ mono8, mono16, 8UC1 (read like mono8), 8UC3 (read like bgr8), 16UC1 and 32FC1. R
 (``step`` > width x bytes per pixel) and ``is_bigendian`` are honoured when reading; messages
 written here are unpadded and little-endian.
 
+Malformed messages are refused the way cv_bridge refuses them (ros-perception/vision_opencv,
+``cv_bridge/src/cv_bridge.cpp``): encoding names are matched exactly, case included
+(``getCvType`` compares with the ``image_encodings`` constants: ``RGB8`` is an
+"Unrecognized image encoding"), and the data must hold exactly ``step x height`` bytes
+(``matFromImage``: "Image is wrongly formed: height * step != size"), so truncated AND
+over-long data are both errors. Every refusal is an :class:`ImageConversionError`.
+
 The builders make rclpy messages by default, or those of a rosbags type store when given its
 :class:`~msg_adapters.classes.MessageClasses` (the bag tools): same fields, same CDR bytes.
 Filling ``msg.data``: assigning ``array.array('B', arr.tobytes())`` is ~0.3 ms for a KITTI-size
@@ -57,16 +64,19 @@ ENCODINGS: dict[str, _Enc] = {
     "32FC1": _Enc(_F32, 1),
 }
 SUPPORTED_ENCODINGS = tuple(ENCODINGS)
-_BY_LOWER = {k.lower(): k for k in ENCODINGS}
 
 
 def _encoding(name: str) -> tuple[str, _Enc]:
-    key = _BY_LOWER.get(str(name).lower())
-    if key is None:
+    """The encoding named exactly ``name`` (case-sensitive, as cv_bridge's getCvType)."""
+    enc = ENCODINGS.get(name) if isinstance(name, str) else None
+    if enc is None:
+        near = [k for k in ENCODINGS if isinstance(name, str) and k.lower() == name.lower()]
+        hint = f" (encoding names are case-sensitive: did you mean {near[0]!r}?)" if near else ""
         raise ImageConversionError(
-            f"unsupported image encoding {name!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}"
+            f"unsupported image encoding {name!r}{hint}; supported: "
+            f"{', '.join(SUPPORTED_ENCODINGS)}"
         )
-    return key, ENCODINGS[key]
+    return name, enc
 
 
 def image_to_numpy(msg: Image) -> np.ndarray:
@@ -84,9 +94,10 @@ def image_to_numpy(msg: Image) -> np.ndarray:
         )
     expected = step * h
     got = len(msg.data)
-    if got < expected:
+    if got != expected:
+        what = "truncated" if got < expected else "over-long"
         raise ImageConversionError(
-            f"truncated {name} image {w}x{h}: expected step x height = {step} x {h} = "
+            f"{what} {name} image {w}x{h}: expected step x height = {step} x {h} = "
             f"{expected} bytes, got {got}"
         )
     buf = np.frombuffer(msg.data, dtype=np.uint8, count=expected)

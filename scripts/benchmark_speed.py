@@ -377,7 +377,7 @@ class Publisher:
         return self._timed("input_image", self._decode, msg)
 
     def output(self, out: FrameOutput) -> None:
-        for msg in self._outputs.frame_messages(out, self.publish_colored, self.t).values():
+        for msg in self._outputs.frame_messages(out, self.t).values():
             self._send(msg)
 
     def window(self, ws: WindowStats, diagnostics: StreamDiagnostics) -> None:

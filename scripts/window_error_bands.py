@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     model = build_model(ModelConfig(type="default"))
     for text in args.variant or ["{}"]:
         cfg = TTRConfig(sfm=SfmConfig(max_image_size=640, num_threads=2, init_min_tri_angle=1.0),
-                        refinement=RefinementConfig(**json.loads(text)), reset_each_window=True)
+                        refinement=RefinementConfig(**json.loads(text)), weight_policy="reset")
         ttr = SfmTTR(model, cfg)
         try:
             t0 = time.perf_counter()

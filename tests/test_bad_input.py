@@ -315,3 +315,49 @@ def test_cli_bad_input_exits_2_with_one_line(case, cli_data, capfd):
     assert len(lines) == 1, err
     assert lines[0].startswith("sfm-ttr: error: ") and "Traceback" not in err
     assert re.search(match, lines[0]), lines[0]
+
+
+def test_fallback_principal_point_outside_the_frame_gives_intrinsics_for_another_size():
+    from sfm_ttr_ros.core.camera import FallbackIntrinsics, IntrinsicsResolver
+
+    kitti = FallbackIntrinsics(721.5377, 721.5377, 609.5593, 172.854)
+    assert kitti.for_size(1242, 375) == Intrinsics(721.5377, 721.5377, 609.5593, 172.854,
+                                                   1242, 375)
+    for size in ((416, 128), (100, 50), (1242, 100), (300, 375)):
+        intr = kitti.for_size(*size)  # never raises: the stream sees intrinsics_mismatch
+        assert (intr.width, intr.height) != size
+        assert intr.width >= size[0] and intr.height >= size[1]
+        assert (intr.cx, intr.cy) == (609.5593, 172.854)
+    assert FallbackIntrinsics(100.0, 100.0, 5000.0, 0.0).for_size(64, 48).width == 5001
+    resolver = IntrinsicsResolver(lambda: kitti)
+    ready = resolver.add_frame(Frame(0, np.zeros((50, 100, 3), np.uint8), 1.0), None).ready
+    assert len(ready) == 1 and ready[0][1].width != 100
+    # a fallback that cannot make intrinsics at all holds the frame instead of raising
+
+    def broken():
+        raise InputError("fallback unreadable")
+
+    held = IntrinsicsResolver(broken)
+    assert held.add_frame(Frame(1, np.zeros((50, 100, 3), np.uint8), 2.0), None).ready == []
+    assert held.held == 1
+
+
+def test_no_parameter_reaches_a_pycolmap_option_that_ends_the_process():
+    import dataclasses
+
+    from sfm_ttr_ros.core import params, sfm
+
+    # measured with pycolmap 4.2.1: max_image_size 1 segfaults SIFT extraction; an initial
+    # triangulation angle of 0 fails the mapper's options check in every window
+    assert "or >= 16" in params.validate({"sfm.max_image_size": 1})
+    assert params.validate({"sfm.max_image_size": 0}) == ""
+    assert params.validate({"sfm.max_image_size": 16}) == ""
+    assert "init_min_tri_angle" in params.validate({"sfm.init_min_tri_angle": 0.0})
+    with pytest.raises(InputError, match="max_image_size"):
+        sfm.SfmConfig(max_image_size=8)
+    # loop detection (aborts offline: no vocabulary tree) is not an option of ours at all
+    fields = {f.name for f in dataclasses.fields(sfm.SfmConfig)}
+    assert not any("loop" in name or "vocab" in name for name in fields)
+    assert not any("loop" in t or "vocab" in t for p in params.PARAMS for t in p.targets)
+    source = Path(sfm.__file__).read_text()
+    assert "pairing.loop_detection = False" in source

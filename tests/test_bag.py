@@ -486,3 +486,23 @@ def test_bag_module_is_ros_free():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60, cwd=REPO)
     assert out.returncode == 0, out.stderr
+
+
+def test_compressed_bag_holds_jpeg_images_of_the_drive(drive, tmp_path):
+    from msg_adapters.compressed import compressed_to_rgb8
+    from sfm_ttr_ros.ros.kitti_bag import COMPRESSED_IMAGE_MSGTYPE
+
+    raw, _, name, seq = drive
+    res = kitti_to_bag(raw, name, tmp_path / "c", storage="mcap", max_frames=4, compressed=True)
+    topic = IMAGE_TOPIC + "/compressed"
+    assert res.counts == {topic: 4, CAMERA_INFO_TOPIC: 4}
+    assert bag_topics(tmp_path / "c")[topic].msgtype == COMPRESSED_IMAGE_MSGTYPE
+    msgs = [m for _, _, _, m in read_bag(tmp_path / "c", [topic])]
+    assert [m.format for m in msgs] == ["rgb8; jpeg compressed bgr8"] * 4
+    for m, rgb in zip(msgs, seq.images[:4], strict=True):
+        decoded = compressed_to_rgb8(m)
+        assert decoded.shape == rgb.shape
+        assert np.abs(decoded.astype(int) - rgb).mean() < 6  # JPEG quality 95
+    raw_res = kitti_to_bag(raw, name, tmp_path / "r", storage="mcap", max_frames=4)
+    size = {p: sum(f.stat().st_size for f in (tmp_path / p).rglob("*")) for p in ("c", "r")}
+    assert size["c"] < size["r"] and raw_res.frames == 4

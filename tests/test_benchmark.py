@@ -181,6 +181,130 @@ def test_saved_depth_evaluates_to_the_same_numbers(bench, data):
         assert np.abs(after - before).max() > 0
 
 
+def hand_bands(depth_dir: Path, gt: Path, names: list[str]) -> dict[str, tuple[float, float,
+                                                                              int]]:
+    """abs rel, RMSE and pixel count per GT band, pooled over the frames' pixels, from the saved
+    depths and the GT PNGs (median scaling, clamped to 1e-3 .. 80 m): written out by hand."""
+    g_all, p_all = [], []
+    for name in names:
+        g = cv2.imread(str(gt / f"{name}.png"), cv2.IMREAD_UNCHANGED) / 256.0
+        p = cv2.resize(np.load(depth_dir / f"{name}.npy").astype(np.float64),
+                       (g.shape[1], g.shape[0]))
+        m = (g > 1e-3) & (g < 80)
+        g, p = g[m], p[m]
+        g_all.append(g)
+        p_all.append(np.clip(p * np.median(g) / np.median(p), 1e-3, 80))
+    g, p = np.concatenate(g_all), np.concatenate(p_all)
+    out = {}
+    for lo, hi in ((0, 10), (10, 20), (20, 40), (40, 80)):
+        k = (g >= lo) & (g < hi)
+        out[f"{lo}-{hi}"] = (float(np.mean(np.abs(p[k] - g[k]) / g[k])) if k.any() else None,
+                             float(np.sqrt(np.mean((p[k] - g[k]) ** 2))) if k.any() else None,
+                             int(k.sum()))
+    return out
+
+
+@pytest.mark.slow
+def test_every_mode_has_depth_bands_and_the_error_by_depth_figure(bench, data):
+    """``bands`` (pooled over pixels) agree with a hand computation from the saved depths; the
+    fine bins add up to the bands; error_by_depth.png is drawn."""
+    out, res = bench
+    names = sorted(p.stem for p in gt_dir(data).glob("*.png"))
+    assert len(names) == N_GT
+    for m in MODES:
+        bands = res[m]["bands"]
+        assert list(bands) == ["0-10", "10-20", "20-40", "40-80"]
+        want = hand_bands(out / "depth" / m, gt_dir(data), names)
+        for band, (abs_rel, rmse, pixels) in want.items():
+            assert bands[band]["pixels"] == pixels, (m, band)
+            if pixels:
+                assert bands[band]["abs_rel"] == pytest.approx(abs_rel, rel=1e-5), (m, band)
+                assert bands[band]["rmse"] == pytest.approx(rmse, rel=1e-5), (m, band)
+            else:
+                assert bands[band]["abs_rel"] is None
+        fine = res[m]["error_by_depth"]
+        assert len(fine["edges"]) == len(fine["pixels"]) + 1 and fine["edges"][-1] == 80
+        assert sum(fine["pixels"]) == sum(b["pixels"] for b in bands.values())
+    assert sum(b["pixels"] for b in res["no_ttr"]["bands"].values()) > 0
+    md = (out / "results.md").read_text()
+    assert "| no_ttr | " in md and "0-10 m" in md and "error_by_depth.png" in md
+    fig = cv2.imread(str(out / "error_by_depth.png"))
+    assert fig is not None and fig.shape[2] == 3 and fig.std() > 10
+
+
+@pytest.fixture(scope="module")
+def loss_bench(data):
+    """The photometric and hybrid modes (issue 16) on the same drive and windows."""
+    out = data / "out_loss"
+    modes = ["no_ttr", "ph_ttr_online", "hybrid_online", "ph_ttr_offline", "hybrid_offline"]
+    argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "5",
+                      "--lr", "1e-3", "--save-depth", "--figure-frames", "1", "--modes", *modes)
+    assert cli(argv) == 0
+    return out, json.loads((out / "results.json").read_text()), modes
+
+
+@pytest.mark.slow
+def test_photometric_and_hybrid_modes(loss_bench, bench):
+    out, res, modes = loss_bench
+    assert res["modes"] == modes
+    sfm_out, sfm_res = bench
+    for m in modes[1:]:
+        r = res[m]
+        assert r["frames"] == N_GT and r["lost_frames"] == 0 and r["refined_frames"] > 0, m
+        assert math.isfinite(r["abs_rel"]) and set(r["bands"]) == {"0-10", "10-20", "20-40",
+                                                                   "40-80"}
+        assert r["windows"] == (3 if m.endswith("_online") else 1)
+        # refined with its own objective: other depths than SfM-TTR's on the same windows
+        twin = "sfm_ttr_" + m.split("_")[-1]
+        name = "0000000003.npy"
+        assert np.abs(np.load(out / "depth" / m / name)
+                      - np.load(sfm_out / "depth" / twin / name)).max() > 0
+    # the file's loss (sfm) is recorded; each mode ran its own (runners.mode_config)
+    assert res["settings"]["ttr"]["refinement"]["loss"] == "sfm"
+    assert set(res["relative_gain"]) == set(modes[1:])
+    md = (out / "results.md").read_text()
+    for m in modes:
+        assert f"| {m} | {res[m]['abs_rel']:.4f} |" in md
+    assert (out / "error_by_depth.png").is_file() and (out / "figure.png").is_file()
+
+
+def test_each_mode_runs_its_own_loss():
+    from sfm_ttr_ros.core.pipeline import TTRConfig
+    from sfm_ttr_ros.tools.benchmark import MODES as ALL_MODES
+    from sfm_ttr_ros.tools.benchmark.runners import mode_config
+
+    cfg = TTRConfig()
+    cfg.refinement.loss, cfg.refinement.photometric_weight = "hybrid", 0.3
+    want = {"sfm_ttr_online": "sfm", "sfm_ttr_offline": "sfm", "ph_ttr_online": "photometric",
+            "ph_ttr_offline": "photometric", "hybrid_online": "hybrid",
+            "hybrid_offline": "hybrid"}
+    assert set(want) <= set(ALL_MODES)
+    for mode, loss in want.items():
+        out = mode_config(mode, cfg)
+        assert out.refinement.loss == loss and out.refinement.photometric_weight == 0.3
+    assert cfg.refinement.loss == "hybrid"  # not modified in place
+    assert mode_config("no_ttr", cfg) is cfg
+
+
+def test_depth_bands_by_hand():
+    """Two frames without median scaling: pooled abs rel / RMSE per band, by hand."""
+    from sfm_ttr_ros.core.evaluation import EvalConfig
+    from sfm_ttr_ros.tools.benchmark.bands import DepthBands
+
+    acc = DepthBands(EvalConfig(median_scaling=False))
+    acc.add(np.array([[4.0, 12.0], [30.0, 100.0]]), np.array([[5.0, 10.0], [25.0, 50.0]]))
+    acc.add(np.array([[6.0, 0.0]]), np.array([[5.0, 0.0]]))  # GT 0: not a valid pixel
+    b = acc.bands()
+    assert b["0-10"] == {"abs_rel": pytest.approx(0.2), "rmse": pytest.approx(1.0),
+                         "pixels": 2}
+    assert b["10-20"] == {"abs_rel": pytest.approx(0.2), "rmse": pytest.approx(2.0),
+                          "pixels": 1}
+    assert b["20-40"]["abs_rel"] == pytest.approx(0.2) and b["20-40"]["pixels"] == 1
+    # 100 m is clamped to the 80 m cap: |80 - 50| / 50
+    assert b["40-80"]["abs_rel"] == pytest.approx(0.6) and b["40-80"]["rmse"] == 30.0
+    assert sum(acc.by_depth()["pixels"]) == 5
+
+
 def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_path):
     """Without settings, run_benchmark uses params/kitti.yaml; offline_max_frames splits."""
     from bench_tiny_model import factory

@@ -190,6 +190,27 @@ def test_image_errors():
         numpy_to_image(np.zeros((4, 4), np.uint8), "jpeg")
 
 
+def test_wrong_case_encodings_and_over_long_data_are_refused_as_cv_bridge_does():
+    # cv_bridge's getCvType matches encoding names exactly; its matFromImage requires
+    # data size == height x step (README "Topics")
+    good = numpy_to_image(_random("rgb8"), "rgb8")
+    for name in ("RGB8", "MONO8", "Bgr8", "8uc3"):
+        wrong = Image(height=good.height, width=good.width, encoding=name, step=good.step,
+                      data=good.data)
+        with pytest.raises(ImageConversionError, match="case-sensitive"):
+            image_to_rgb8(wrong)
+    longer = Image(height=good.height, width=good.width, encoding="rgb8", step=good.step)
+    longer.data = array.array("B", bytes(good.data) + b"\0")
+    with pytest.raises(ImageConversionError, match=r"over-long rgb8 .* 105 bytes, got 106"):
+        image_to_numpy(longer)
+    # padded rows are still fine: the padding is part of step x height
+    padded = Image(height=good.height, width=good.width, encoding="rgb8", step=good.step + 3)
+    rows = np.frombuffer(bytes(good.data), np.uint8).reshape(good.height, good.step)
+    padded.data = array.array("B", np.pad(rows, ((0, 0), (0, 3))).tobytes())
+    np.testing.assert_array_equal(image_to_rgb8(padded), image_to_rgb8(good))
+
+
+
 def test_depth_to_image_rep118():
     d = RNG.uniform(1.0, 80.0, size=(6, 8))  # float64 in, float32 out
     invalid = [(0, 0, 0.0), (1, 1, -2.0), (2, 2, np.inf), (3, 3, np.nan), (4, 4, -np.inf)]

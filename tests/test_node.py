@@ -34,7 +34,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from msg_adapters import (  # noqa: E402
@@ -88,13 +88,19 @@ class Graph:
                                    parameter_overrides=overrides)
         self.node = Node("player", context=context)
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub_image = self.node.create_publisher(Image, names.IMAGE_TOPIC, reliable)
+        if params.get("image_transport") == "compressed":
+            self.pub_image = self.node.create_publisher(
+                CompressedImage, names.compressed_topic(names.IMAGE_TOPIC), reliable)
+        else:
+            self.pub_image = self.node.create_publisher(Image, names.IMAGE_TOPIC, reliable)
         self.pub_info = self.node.create_publisher(CameraInfo, names.CAMERA_INFO_TOPIC, reliable)
-        self.depths: list[Image] = []
+        self.depths: list[Image] = []  # ~/depth_refined: each frame once its window is done
+        self.live: list[Image] = []  # ~/depth: every frame at once
         self.colored: list[Image] = []
         self.points: list[PointCloud2] = []
         self.diags: list[DiagnosticArray] = []
-        for msg_type, topic, sink in ((Image, names.DEPTH_TOPIC_RESOLVED, self.depths),
+        for msg_type, topic, sink in ((Image, names.DEPTH_REFINED_TOPIC_RESOLVED, self.depths),
+                                      (Image, names.DEPTH_TOPIC_RESOLVED, self.live),
                                       (Image, names.DEPTH_COLORED_TOPIC_RESOLVED, self.colored),
                                       (PointCloud2, names.POINTS_TOPIC_RESOLVED, self.points)):
             self.node.create_subscription(msg_type, topic, sink.append, reliable)
@@ -107,7 +113,8 @@ class Graph:
         self.thread.start()
         wait_for(lambda: self.pub_image.get_subscription_count() >= 1
                  and self.pub_info.get_subscription_count() >= 1
-                 and self.refiner.pub_depth.get_subscription_count() >= 1, 20, "discovery")
+                 and self.refiner.pub_depth.get_subscription_count() >= 1
+                 and self.refiner.pub_refined.get_subscription_count() >= 1, 20, "discovery")
 
     def close(self) -> None:
         self.refiner.stop_worker()
@@ -172,7 +179,12 @@ def test_every_frame_comes_back_with_its_header(graph_factory, sequence):
         assert (d.encoding, d.width, d.height, d.step) == ("32FC1", WIDTH, HEIGHT, WIDTH * 4)
         depth = np.frombuffer(d.data, np.float32)
         assert np.isfinite(depth).mean() > 0.99 and np.nanmin(depth) > 0
-    wait_for(lambda: len(g.colored) == len(sent), 10, "every coloured depth")
+    # the live path: each frame once on ~/depth and ~/depth_colored, or skipped and counted
+    # (live_max_queue: a slow moment serves the newest frames)
+    live = g.refiner.online.live
+    wait_for(lambda: live.pending == 0 and len(g.colored) == len(g.live) == live.published,
+             20, "every live depth")
+    assert live.received == len(sent) == live.published + sum(live.skipped.values())
     assert all(c.encoding == "bgr8" for c in g.colored)
 
     windows = list(g.refiner.stream.windows)
@@ -336,6 +348,126 @@ def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence)
     wait_for(lambda: g.refiner.intrinsics.latest == intr, 10, "intrinsics from P")
 
 
+def test_fallback_principal_point_outside_the_frame_is_a_mismatch_not_fatal(graph_factory,
+                                                                            sequence):
+    # issue 17: params/kitti.yaml's fallback (cx, cy) on a smaller frame ended the process
+    g = graph_factory(window_size=50, window_stride=1, fx=721.5377, fy=721.5377, cx=609.5593,
+                      cy=172.854)
+    small = np.ascontiguousarray(sequence.images[0][:50, :100])
+    g.send_image(small, 1.0)
+    g.send_image(np.ascontiguousarray(sequence.images[1][:128, :300]), 2.0)
+    wait_for(lambda: len(g.depths) == 2, 30, "both frames back, unrefined")
+    assert [(m.width, m.height) for m in g.depths] == [(100, 50), (300, 96)]
+    c = g.refiner.stream.counters()
+    assert c["unrefined_by_reason"] == {"intrinsics_mismatch": 2} and c["pending"] == 0
+    # a live principal point far outside every frame: accepted, the next frames pass unrefined
+    result = g.refiner.set_parameters([Parameter("cx", value=5000.0)])[0]
+    assert result.successful, result.reason
+    g.send_image(sequence.images[2], 3.0)
+    wait_for(lambda: len(g.depths) == 3, 30, "the third frame")
+    c = g.refiner.stream.counters()
+    assert c["unrefined_by_reason"] == {"intrinsics_mismatch": 3}
+    assert g.refiner.worker_alive and g.refiner.diagnostics.faults == {}
+    assert sum(c["dropped_by_reason"].values()) == 0
+
+
+def test_faults_in_callbacks_are_counted_never_fatal(graph_factory, sequence, monkeypatch):
+    from sfm_ttr_ros.ros import node as node_module
+
+    g = graph_factory(window_size=50, window_stride=1)
+    refiner = g.refiner
+    intr = sequence.intrinsics
+
+    def boom(*args, **kwargs):
+        raise ZeroDivisionError("injected")
+
+    # a decoder raising something unforeseen: the message is dropped as bad_image, with the type
+    monkeypatch.setattr(node_module, "image_to_rgb8", boom)
+    g.send_image(sequence.images[0], 1.0)
+    wait_for(lambda: refiner.stream.counters()["dropped_by_reason"].get("bad_image") == 1, 10,
+             "the image dropped")
+    monkeypatch.undo()
+    # the CameraInfo adapter raising: the CameraInfo is rejected
+    monkeypatch.setattr(node_module, "camera_info_to_intrinsics", boom)
+    g.send_info(intr, 1.0)
+    wait_for(lambda: refiner.diagnostics.rejected_camera_info == 1, 10, "CameraInfo rejected")
+    monkeypatch.undo()
+    # a fault building the output messages (worker side): counted, the worker goes on
+    monkeypatch.setattr(node_module.outputs, "frame_messages", boom)
+    g.send_info(intr, 2.0)
+    g.send_image(sequence.images[1], 2.0)
+    wait_for(lambda: refiner.diagnostics.faults.get("publish") == 1, 20, "publish fault")
+    monkeypatch.undo()
+    # the timer and the parameter check raising
+    monkeypatch.setattr(refiner.intrinsics, "release", boom)
+    wait_for(lambda: refiner.diagnostics.faults.get("timer", 0) >= 1, 10, "timer fault")
+    monkeypatch.undo()
+    monkeypatch.setattr(node_module.node_params, "validate", boom)
+    result = refiner.set_parameters([Parameter("refinement.steps", value=3)])[0]
+    monkeypatch.undo()
+    assert not result.successful and "ZeroDivisionError: injected" in result.reason
+    assert refiner.diagnostics.faults["parameters"] == 1
+
+    # still serving: the next frame comes back
+    g.send_image(sequence.images[2], 3.0)
+    wait_for(lambda: len(g.depths) == 1, 30, "a depth after the faults")
+    assert refiner.worker_alive
+    d = wait_for(lambda: (lambda v: v if v.get("faults.parameters") else None)(g.last_diag()),
+                 10, "diagnostics with the faults")
+    assert int(d["faults"]) >= 3 and d["faults.publish"] == "1"
+    assert counts_add_up(d)
+
+
+def test_compressed_transport_decodes_jpeg_and_png_and_drops_the_undecodable(graph_factory,
+                                                                           sequence):
+    from msg_adapters import rgb8_to_compressed
+
+    intr = sequence.intrinsics
+    g = graph_factory(image_transport="compressed", window_size=50, window_stride=1,
+                      fx=intr.fx, fy=intr.fy)
+    assert g.refiner.image_topic == "/image/compressed"
+    for i, codec in enumerate(("jpeg", "png")):
+        g.pub_image.publish(rgb8_to_compressed(sequence.images[i], codec,
+                                               Header(stamp=stamp_of(i + 1.0), frame_id=FRAME_ID)))
+    junk = CompressedImage(format="rgb8; jpeg compressed bgr8")
+    junk.data = array.array("B", b"\xff\xd8\xff\xe0 not really a jpeg")
+    g.pub_image.publish(junk)
+    wait_for(lambda: len(g.depths) == 2, 30, "the two decoded frames back")
+    assert [(m.width, m.height) for m in g.depths] == [(WIDTH, HEIGHT)] * 2
+    wait_for(lambda: g.refiner.stream.counters()["dropped_by_reason"].get("bad_image") == 1, 10,
+             "the undecodable one dropped")
+    assert g.refiner.diagnostics.faults == {}
+
+
+def test_unwritable_save_weights_path_is_logged_and_the_stop_clean(context, tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    node = RefinerNode(model=tiny_model(), context=context, parameter_overrides=[
+        Parameter("save_weights_path", value=str(blocker / "sub" / "enc.pth"))])
+    node.destroy_node()  # stop_worker tries to save: logged, no exception
+    assert blocker.read_text() == "not a folder" and not node.worker_alive
+
+
+@pytest.mark.parametrize("case", ["corrupt_weights", "missing_model_files", "corrupt_model"])
+def test_start_up_failures_exit_1_with_one_line_before_spinning(case, tmp_path):
+    corrupt = tmp_path / "corrupt.pth"
+    corrupt.write_bytes(b"PK\x03\x04 this is not a torch file")
+    args = {"corrupt_weights": ["-p", f"load_weights_path:={corrupt}"],
+            "missing_model_files": ["-p", "model_type:=monodepth2", "-p",
+                                    f"encoder_path:={tmp_path / 'no_enc.pth'}", "-p",
+                                    f"decoder_path:={tmp_path / 'no_dec.pth'}"],
+            "corrupt_model": ["-p", "model_type:=mobilenet", "-p", f"encoder_path:={corrupt}",
+                              "-p", f"decoder_path:={corrupt}"]}[case]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = subprocess.run([sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args", *args],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    text = out.stdout + out.stderr
+    assert out.returncode == 1, text[-2000:]
+    assert "Traceback" not in text and "refiner ready" not in text, text[-2000:]
+    lines = [ln for ln in text.splitlines() if "cannot start" in ln]
+    assert len(lines) == 1, text[-2000:]
+
+
 @pytest.mark.slow
 def test_stop_cancels_a_running_window(graph_factory, sequence):
     g = graph_factory(window_size=3, window_stride=3, **{"refinement.steps": 1_000_000})
@@ -348,7 +480,7 @@ def test_stop_cancels_a_running_window(graph_factory, sequence):
     t0 = time.monotonic()
     g.refiner.stop_worker()
     assert time.monotonic() - t0 < 3.0
-    assert not g.refiner._worker.is_alive()
+    assert not g.refiner.worker_alive
     assert g.depths == []  # nothing is published once stopping
 
 
@@ -447,3 +579,35 @@ def test_installed_refiner_runs_and_stops_on_sigint(installed, context, tmp_path
     assert "Traceback" not in stderr, stderr[-3000:]
     assert "refiner ready" in stdout + stderr and "stopped:" in stdout + stderr
     assert elapsed < 10
+
+
+@pytest.mark.slow
+def test_live_depth_serves_every_frame_at_once_and_takes_the_refined_weights(graph_factory,
+                                                                             sequence):
+    # issue 15: ~/depth answers every frame from the serving copy, without waiting for windows
+    g = graph_factory(window_size=6, window_stride=6, **{"refinement.steps": 20,
+                                                          "refinement.lr": 1e-2})
+    g.send_info(sequence.intrinsics, sequence.stamps[0])
+    for rgb, t in zip(sequence.images[:3], sequence.stamps[:3], strict=True):
+        g.send_image(rgb, t)
+    # three frames: no window yet (6 keyframes needed), yet all three are served live
+    wait_for(lambda: len(g.live) == 3, 20, "three live depths")
+    assert g.depths == [] and g.refiner.online.serving.version == 0
+    assert [m.header.stamp.sec for m in g.live] == [stamp_of(t).sec for t in sequence.stamps[:3]]
+    assert all((m.encoding, m.width, m.height) == ("32FC1", WIDTH, HEIGHT) for m in g.live)
+    before = np.frombuffer(g.live[0].data, np.float32).copy()
+    for rgb, t in zip(sequence.images[3:6], sequence.stamps[3:6], strict=True):
+        g.send_image(rgb, t)
+    wait_for(lambda: len(g.depths) == 6, 120, "the window's refined depths")
+    assert g.refiner.stream.last_window.refined
+    wait_for(lambda: g.refiner.online.serving.version == 1, 10, "the refined weights served")
+    g.send_image(sequence.images[0], sequence.stamps[6])  # the first image again, new stamp
+    wait_for(lambda: len(g.live) == 7, 20, "a live depth with the refined weights")
+    after = np.frombuffer(g.live[-1].data, np.float32)
+    assert not np.allclose(before, after)  # served by the refined network now
+    d = wait_for(lambda: (lambda v: v if v.get("live.received") == "7" and
+                          v.get("live.pending") == "0" and
+                          v.get("serving.version") == "1" else None)(g.last_diag()),
+                 10, "live diagnostics")
+    assert d["live.published"] == "7" and d["live.skipped"] == "0" and d["live.pending"] == "0"
+    assert int(d["serving.updates"]) == 1 and float(d["serving.age_s"]) >= 0

@@ -12,6 +12,7 @@ from std_msgs.msg import Header  # noqa: E402
 
 from msg_adapters import image_to_numpy, pointcloud2_to_numpy  # noqa: E402
 from sfm_ttr_ros.core.frames import Frame  # noqa: E402
+from sfm_ttr_ros.core.live import LiveOutput  # noqa: E402
 from sfm_ttr_ros.core.stream import FrameOutput, WindowStats  # noqa: E402
 from sfm_ttr_ros.ros import names, outputs  # noqa: E402
 
@@ -24,21 +25,27 @@ def header(sec: int, frame_id: str) -> Header:
     return h
 
 
-def test_a_frame_gives_depth_and_coloured_depth_with_the_image_header():
+def test_live_and_refined_frames_keep_the_image_header():
     depth = np.full((4, 6), 2.0, np.float32)
     depth[0, 0] = 0.0  # invalid
-    out = FrameOutput(Frame(index=0, image=np.zeros((4, 6, 3), np.uint8),
-                            header=header(7, "cam")), depth, refined=True)
+    frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
+    live = LiveOutput(frame, depth, version=3, weights_age_s=1.0, arrival=0.0, served=0.01)
     timings: dict[str, float] = {}
-    msgs = outputs.frame_messages(out, colored=True, timings=timings)
+    msgs = outputs.live_messages(live, colored=True, timings=timings)
     assert list(msgs) == [names.DEPTH_TOPIC, names.DEPTH_COLORED_TOPIC]
     d, c = msgs[names.DEPTH_TOPIC], msgs[names.DEPTH_COLORED_TOPIC]
     assert (d.encoding, c.encoding) == ("32FC1", "bgr8")
-    assert d.header == c.header == out.frame.header
+    assert d.header == c.header == frame.header
     got = image_to_numpy(d)
     assert np.isnan(got[0, 0]) and np.all(got.ravel()[1:] == 2.0)
     assert set(timings) == {"depth_image", "colored_image"}
-    assert list(outputs.frame_messages(out, colored=False)) == [names.DEPTH_TOPIC]
+    assert list(outputs.live_messages(live, colored=False)) == [names.DEPTH_TOPIC]
+    # the windowed output: ~/depth_refined only, same header and encoding
+    refined = outputs.frame_messages(FrameOutput(frame, depth, refined=True))
+    assert list(refined) == [names.DEPTH_REFINED_TOPIC]
+    r = refined[names.DEPTH_REFINED_TOPIC]
+    assert r.header == frame.header and r.encoding == "32FC1"
+    np.testing.assert_array_equal(image_to_numpy(r), got)
 
 
 def test_a_window_gives_its_cloud_in_the_newest_registered_frame():

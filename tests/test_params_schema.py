@@ -39,7 +39,8 @@ def test_every_default_is_the_dataclass_field_default():
 
 def _other_value(p: schema.Param):
     """A valid value of ``p`` that is not its default."""
-    special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True}
+    special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True,
+               "refinement.photometric_sources": "-2,2"}
     if p.name in special:
         return special[p.name]
     if p.choices:
@@ -100,7 +101,7 @@ def test_set_values_are_typed_by_the_schema():
     ("refinement.steps=-1", "refinement.steps must be >= 0"),
     ("refinement.lr=2.0", "refinement.lr must be <= 1"),
     ("refinement.bn_mode=sideways", "must be one of frozen, train"),
-    ("reset_each_window=maybe", "must be a bool"),
+    ("weight_policy=maybe", "must be one of"),
     ("window_size=true", "must be an integer"),
     ("fx=abc", "fx must be a double"),
 ])

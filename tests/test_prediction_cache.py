@@ -64,9 +64,9 @@ class FakeReconstructor:
         pass
 
 
-def make_ttr(reuse: bool, reset_each_window: bool = False, batch: int = 1) -> SfmTTR:
+def make_ttr(reuse: bool, weight_policy: str = "continue", batch: int = 1) -> SfmTTR:
     cfg = TTRConfig(refinement=RefinementConfig(steps=3, lr=1e-2),
-                    reuse_predictions=reuse, reset_each_window=reset_each_window,
+                    reuse_predictions=reuse, weight_policy=weight_policy,
                     predict_batch=batch)
     ttr = SfmTTR(bn_model(), cfg)
     ttr.reconstructor.close()
@@ -98,7 +98,7 @@ def test_overlapping_windows_predict_the_overlap_once_with_the_same_numbers(one_
 
 
 def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
-    ttr = make_ttr(True, reset_each_window=True)
+    ttr = make_ttr(True, weight_policy="reset")
     res = windows(ttr, images(15))
     assert all(r.refined for r in res)
     # window 2 starts from the original weights again: the "before" of its overlap frames 5-9
@@ -107,7 +107,7 @@ def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
     for name in ("0000000005", "0000000009"):
         assert np.array_equal(res[1].depths_before[name], res[0].depths_before[name])
         assert not np.array_equal(res[1].depths_before[name], res[0].depths[name])
-    fresh = make_ttr(False, reset_each_window=True)
+    fresh = make_ttr(False, weight_policy="reset")
     recomputed = windows(fresh, images(15))
     for name in res[1].names:
         assert np.array_equal(res[1].depths_before[name], recomputed[1].depths_before[name])

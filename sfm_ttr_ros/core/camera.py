@@ -9,13 +9,20 @@ For each frame, the first that applies:
    reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known.
 
 Intrinsics for another image size than the frame's are returned as they are: the stream
-publishes such a frame unrefined (``intrinsics_mismatch``). Stamps are integer nanoseconds (or
-None when the frame has none: only rules 2-4 apply); converting messages is msg_adapters' job.
+publishes such a frame unrefined (``intrinsics_mismatch``). A fallback principal point that lies
+outside the frame (``cx``, ``cy`` set for a larger image, e.g. KITTI's on a 416x128 frame, or a
+live ``cx`` of 5000) is the same case: the fallback gives intrinsics for the smallest image that
+contains that principal point, i.e. for another image size, so the frame is published unrefined
+(``intrinsics_mismatch``) instead of raising. A fallback that cannot make intrinsics at all
+(fx, fy unset, or an error reading it) holds the frame (rule 4). Stamps are integer nanoseconds
+(or None when the frame has none: only rules 2-4 apply); converting messages is msg_adapters'
+job.
 """
 
 from __future__ import annotations
 
 import collections
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,12 +43,18 @@ class FallbackIntrinsics:
     cy: float = 0.0
 
     def for_size(self, width: int, height: int) -> Intrinsics | None:
-        """Intrinsics for a ``width`` x ``height`` image, or None when fx / fy are unset."""
+        """Intrinsics for a ``width`` x ``height`` image, or None when fx / fy are unset.
+
+        When (cx, cy) lies outside that image (pixel centres at integers: the image spans
+        [-0.5, size - 0.5]), the result is for the smallest image holding it, i.e. NOT the
+        frame's size: callers compare sizes and treat it as ``intrinsics_mismatch``."""
         if not (self.fx > 0 and self.fy > 0):
             return None
         cx = float(self.cx) or (width - 1) / 2.0
         cy = float(self.cy) or (height - 1) / 2.0
-        return Intrinsics(float(self.fx), float(self.fy), cx, cy, int(width), int(height))
+        w = max(int(width), math.ceil(cx + 0.5))
+        h = max(int(height), math.ceil(cy + 0.5))
+        return Intrinsics(float(self.fx), float(self.fy), cx, cy, w, h)
 
 
 @dataclass
@@ -92,7 +105,10 @@ class IntrinsicsResolver:
                 return intr
         if self._latest is not None:
             return self._latest
-        return self._fallback().for_size(*size)
+        try:
+            return self._fallback().for_size(*size)
+        except InputError:  # a fallback that cannot describe any image: as if unset (held)
+            return None
 
     def add_intrinsics(self, intr: Intrinsics, stamp_ns: int) -> Resolved:
         """Intrinsics received (a CameraInfo) for ``stamp_ns``: remembered, held frames released."""

@@ -1,11 +1,21 @@
 """What the node reports on ``/diagnostics``, ROS-free: the counters the stream does not keep
 (rejected CameraInfos, incompatible-QoS events, frames published unrefined since the last
-report) and the status built from them and from the stream's frame accounting.
+report, faults contained in a callback) and the status built from them and from the stream's
+frame accounting.
+
+A *fault* is an exception no check foresaw, caught at a callback boundary of the node (a
+subscription, the timer, the parameter callback, the worker, a publication) so that it cannot
+end the process: counted per place (``faults.<place>``), logged (throttled) and reported as a
+WARN status; the frame it concerned, if any, is still accounted for (dropped with a reason).
 
 ``msg_adapters.make_diagnostic_array`` turns a :class:`Status` into a DiagnosticArray; the keys
-are listed in README "Diagnostics". The frame accounting always satisfies
+are listed in README "Diagnostics". The frame accounting of the windowed output
+(``~/depth_refined``) always satisfies
 ``frames_received = frames_refined + frames_unrefined + frames_dropped + frames_pending``
-(frames held for want of intrinsics count as received and pending).
+(frames held for want of intrinsics count as received and pending); that of the live output
+(``~/depth``, when a ``live`` provider is given) ``live.received = live.published +
+live.skipped + live.pending``, with the served weights' ``serving.version`` (the window that
+produced them, 0 = start-up) and ``serving.age_s``.
 """
 
 from __future__ import annotations
@@ -35,12 +45,16 @@ class StreamDiagnostics:
     and pending.
     """
 
-    def __init__(self, stream: StreamProcessor, held: Callable[[], int] = lambda: 0):
+    def __init__(self, stream: StreamProcessor, held: Callable[[], int] = lambda: 0,
+                 live: Callable[[], dict] | None = None):
         self.stream = stream
         self._held = held
+        self._live = live
         self.rejected_camera_info = 0
         self.qos_incompatible: collections.Counter[str] = collections.Counter()
         self._unrefined_since_status = 0
+        self.faults: collections.Counter[str] = collections.Counter()
+        self._faults_since_status = 0
         self._lock = threading.Lock()
 
     # -- counting ------------------------------------------------------------------------------
@@ -52,6 +66,14 @@ class StreamDiagnostics:
         """An incompatible-QoS event on ``what`` (a topic or an input's name)."""
         with self._lock:
             self.qos_incompatible[what] += 1
+
+    def fault(self, place: str) -> int:
+        """An exception contained at ``place`` (e.g. ``image_callback``); returns how many
+        faults ``place`` has had so far."""
+        with self._lock:
+            self.faults[place] += 1
+            self._faults_since_status += 1
+            return self.faults[place]
 
     def output_published(self, refined: bool) -> None:
         if not refined:
@@ -82,7 +104,16 @@ class StreamDiagnostics:
             "windows_failed": c["windows_failed"],
             "windows_skipped_overload": c["windows_skipped"],
             "windows_disabled": c["windows_disabled"],
+            "faults": sum(self.faults.values()),
         })
+        v.update({f"faults.{k}": n for k, n in sorted(self.faults.items())})
+        if self._live is not None:  # ~/depth: received = published + skipped + pending
+            lv = self._live()
+            v.update({"live.received": lv["received"], "live.published": lv["published"],
+                      "live.skipped": sum(lv["skipped"].values()), "live.pending": lv["pending"]})
+            v.update({f"live.skipped.{k}": n for k, n in sorted(lv["skipped"].items())})
+            v.update({"serving.version": lv["version"], "serving.age_s": lv["weights_age_s"],
+                      "serving.updates": lv["serving_updates"]})
         w = self.stream.last_window
         if w is not None:
             v.update({
@@ -104,8 +135,8 @@ class StreamDiagnostics:
 
     def status(self) -> Status:
         """The status now: WARN listing what went wrong since the last status (frames passed
-        through unrefined, the last window not refined, frames held, incompatible QoS), else OK.
-        Resets the unrefined-since-last-status count."""
+        through unrefined, the last window not refined, frames held, incompatible QoS, faults
+        contained), else OK. Resets the since-last-status counts."""
         with self._lock:
             v = self.values()
             w = self.stream.last_window
@@ -119,7 +150,10 @@ class StreamDiagnostics:
                 problems.append("no intrinsics: frames held")
             if v["qos_incompatible"]:
                 problems.append("incompatible QoS")
+            if self._faults_since_status:
+                problems.append(f"{self._faults_since_status} fault(s) contained")
             self._unrefined_since_status = 0
+            self._faults_since_status = 0
         if problems:
             return Status("warn", "; ".join(problems), v)
         return Status("ok", f"{v['frames_refined']} refined, {v['windows_ok']} window(s) ok", v)

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from sfm_ttr_ros.core.frames import InputError
 
 QOS_RELIABILITIES = ("reliable", "best_effort")
+IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, CompressedImage on
+# image/compressed (the image_transport convention)
 USE_PROJECTION_CHOICES = ("auto", "true", "false")
 
 
@@ -33,15 +35,20 @@ class NodeSettings:
 
     ``fx``/``fy``/``cx``/``cy``: fallback intrinsics until a CameraInfo arrives (0 = unset; cx,
     cy 0 = image centre). ``camera_info_use_projection``: ``"auto"``, ``"true"``/True (P) or
-    ``"false"``/False (K). ``torch_num_threads`` 0 = torch's default."""
+    ``"false"``/False (K). ``image_transport``: ``"raw"`` (sensor_msgs/Image on ``image``) or
+    ``"compressed"`` (sensor_msgs/CompressedImage on ``<image>/compressed``).
+    ``torch_num_threads`` 0 = torch's default."""
 
     fx: float = 0.0
     fy: float = 0.0
     cx: float = 0.0
     cy: float = 0.0
     camera_info_use_projection: str | bool = "auto"
+    image_transport: str = "raw"
     qos_reliability: str = "reliable"
     qos_depth: int = 30
+    publish_live: bool = True
+    publish_refined: bool = True
     publish_colored: bool = True
     publish_points: bool = True
     publish_diagnostics: bool = True
@@ -59,6 +66,9 @@ class NodeSettings:
             raise InputError("set both fallback focal lengths fx and fy, or neither "
                              f"(got fx={self.fx}, fy={self.fy})")
         parse_use_projection(self.camera_info_use_projection)
+        if self.image_transport not in IMAGE_TRANSPORTS:
+            raise InputError(f"image_transport must be one of {', '.join(IMAGE_TRANSPORTS)}; "
+                             f"got {self.image_transport!r}")
         if self.qos_reliability not in QOS_RELIABILITIES:
             raise InputError(f"qos_reliability must be one of {', '.join(QOS_RELIABILITIES)}; "
                              f"got {self.qos_reliability!r}")

@@ -35,23 +35,26 @@ from typing import Any
 
 from sfm_ttr_ros.core.alignment import AlignmentConfig
 from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.models.hf import OUTPUT_KINDS
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.node_settings import (
+    IMAGE_TRANSPORTS,
     QOS_RELIABILITIES,
     USE_PROJECTION_CHOICES,
     NodeSettings,
 )
-from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.refinement import BN_MODES, WEIGHTINGS, RefinementConfig
+from sfm_ttr_ros.core.pipeline import WEIGHT_POLICIES, TTRConfig
+from sfm_ttr_ros.core.refinement import BN_MODES, LOSSES, WEIGHTINGS, RefinementConfig
 from sfm_ttr_ros.core.sfm import SfmConfig
 from sfm_ttr_ros.core.stream import StreamSettings
+from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in
 SECTIONS: dict[str, type] = {"sfm": SfmConfig, "alignment": AlignmentConfig,
                              "refinement": RefinementConfig, "ttr": TTRConfig,
                              "stream": StreamSettings, "model": ModelConfig, "node": NodeSettings}
-BUILTIN_MODELS = ("default", "monodepth2", "mobilenet")
+BUILTIN_MODELS = ("default", "monodepth2", "mobilenet", "hf")
 _TYPE_NAMES = {bool: "bool", int: "integer", float: "double", str: "string"}
 _ARTICLES = {bool: "a bool", int: "an integer", float: "a double", str: "a string"}
 
@@ -129,9 +132,16 @@ PARAMS: tuple[Param, ...] = (
     _p("idle_flush_s", "stream.idle_flush_s", "After this long without input, frames waiting in "
        "an incomplete window are processed as a final partial window; 0 = wait for more "
        "frames.", 0.0, 3600.0),
+    _p("live_max_queue", "stream.live_max_queue", "Bound of the live-serving queue: when a "
+       "frame arrives while this many wait for their live depth, the OLDEST is skipped and "
+       "counted.", 1, 10_000, **_START_UP),
+    _p("worker_nice", "stream.worker_nice", "Nice value added to the background window "
+       "worker (SfM + refinement) so live serving gets the cores first (Linux, per thread); "
+       "0 = same priority.", 0, 19, **_START_UP),
     # -- SfM (live) -------------------------------------------------------------------------
     _p("sfm.max_image_size", "sfm.max_image_size", "SIFT runs on images downscaled to this "
-       "longest side; 0 = full resolution.", 0, 100_000),
+       "longest side; 0 = full resolution.", 0, 100_000,
+       constraints="0 or >= 16 (1 crashes pycolmap)"),
     _p("sfm.max_num_features", "sfm.max_num_features", "Maximum SIFT features per image.", 16,
        1_000_000),
     _p("sfm.num_threads", "sfm.num_threads", "Threads of feature extraction, matching and "
@@ -141,7 +151,8 @@ PARAMS: tuple[Param, ...] = (
     _p("sfm.overlap", "sfm.overlap", "Sequential matching: each frame is matched with the next "
        "N frames.", 1, 1000),
     _p("sfm.init_min_tri_angle", "sfm.init_min_tri_angle", "Minimum triangulation angle "
-       "(degrees) of the initial pair (COLMAP's 16 rejects forward driving).", 0.0, 90.0),
+       "(degrees) of the initial pair (COLMAP's 16 rejects forward driving).", 0.0, 90.0,
+       constraints="> 0"),
     _p("sfm.refine_intrinsics", "sfm.refine_intrinsics", "Refine the focal length in bundle "
        "adjustment (the paper holds the known intrinsics fixed)."),
     _p("sfm.min_points", "sfm.min_points", "Fewer 3D points than this: the window's SfM "
@@ -171,15 +182,60 @@ PARAMS: tuple[Param, ...] = (
        "keep the encoder fixed up to its L-th feature map too (1 = 1/2, 2 = 1/4, 3 = 1/8, "
        "4 = 1/16 of the input), computed once per frame instead of once per step; 0 = the "
        "paper's whole-encoder refinement.", 0, 4),
-    _p("reset_each_window", "ttr.reset_each_window", "True (default, measured better: "
-       "BENCHMARKS.md): every window starts from the original weights; False: refinement "
-       "continues from the previous window's weights."),
+    _p("refinement.trainable", "refinement.trainable", "What a step trains: encoder = every "
+       "encoder parameter (the paper); norm = only the encoder's normalisation (LayerNorm / "
+       "BatchNorm) affine weights; lora = low-rank adapters on a transformer encoder's "
+       "attention projections (needs peft), merged into the encoder after each window.",
+       choices=TRAINABLE_MODES),
+    _p("refinement.lora_rank", "refinement.lora_rank", "Rank of the LoRA adapters "
+       "(refinement.trainable = lora); new adapters are made for every window.", 1, 1024),
+    _p("refinement.trainable_blocks", "refinement.trainable_blocks", "Train only inside the "
+       "last N transformer blocks of the encoder (any refinement.trainable mode; ~2x cheaper "
+       "steps on a ViT-S); 0 = all. Transformer encoders only.", 0, 1000),
+    _p("refinement.loss", "refinement.loss", "A step's objective: sfm = the paper's Eq. (5) on "
+       "the aligned SfM points; photometric = Ph-TTR, Monodepth2's photometric + smoothness "
+       "loss with the window's SfM poses (scaled by the alignment scale); hybrid = Eq. (5) + "
+       "refinement.photometric_weight x (photometric + smoothness).", choices=LOSSES),
+    _p("refinement.photometric_weight", "refinement.photometric_weight", "lambda of the hybrid "
+       "loss (weight of photometric + smoothness against Eq. (5)); 0 = Eq. (5) alone.", 0.0,
+       1e6),
+    _p("refinement.photometric_alpha", "refinement.photometric_alpha", "Weight of the SSIM term "
+       "in the photometric error alpha*(1-SSIM)/2 + (1-alpha)*L1(I_t, I_s->t) (Monodepth2: "
+       "0.85).", 0.0, 1.0),
+    _p("refinement.smoothness_weight", "refinement.smoothness_weight", "Weight of the "
+       "edge-aware disparity smoothness in the photometric loss (Monodepth2: 1e-3).", 0.0, 1e3),
+    _p("refinement.photometric_sources", "refinement.photometric_sources", "Source frames of "
+       "the photometric loss: window offsets of the target, comma-separated (\"-1,1\" = the "
+       "previous and the next frame); unregistered sources give no term.",
+       constraints="distinct non-zero integers, e.g. -1,1 or -2,-1,1,2"),
+    _p("weight_policy", "ttr.weight_policy", "Weights across windows: 'reset' (every window "
+       "refines from the start-up weights), 'continue' (from the previous window's result), "
+       "'continual' (continue, replaying earlier windows' supervision, pulled toward the "
+       "start-up weights).", choices=WEIGHT_POLICIES),
+    _p("continual.replay_windows", "ttr.replay_windows", "continual: how many earlier refined "
+       "windows' supervision is kept and replayed.", 0, 1000),
+    _p("continual.replay_ratio", "ttr.replay_ratio", "continual: share of the refinement steps "
+       "spent on a replayed frame.", 0.0, 1.0),
+    _p("continual.anchor_weight", "ttr.anchor_weight", "continual: weight of the L2 pull "
+       "sum((theta - theta0)^2) toward the start-up encoder; 0 = off.", 0.0, 1e6),
+    _p("max_loss_ratio", "ttr.max_loss_ratio", "Roll a window back to the weights before it "
+       "when its loss after refinement exceeds this many times the loss before (non-finite "
+       "losses or weights always roll back); 0 = only the non-finite check.", 0.0, 1e6),
     _p("seed", "sfm.seed,alignment.seed,refinement.seed", "Random seed of SfM, RANSAC and "
        "refinement.", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------
     _p("model_type", "model.type", "Depth network: 'default' (embedded weights), 'monodepth2', "
-       "'mobilenet' or a plug-in 'python:<module>:<factory>'.",
-       constraints="default, monodepth2, mobilenet or python:<module>:<factory>", **_START_UP),
+       "'mobilenet', 'hf' (a transformers depth-estimation model, model_path) or a plug-in "
+       "'python:<module>:<factory>'.",
+       constraints="default, monodepth2, mobilenet, hf or python:<module>:<factory>",
+       **_START_UP),
+    _p("model_path", "model.model_path", "model_type hf: a directory written by "
+       "save_pretrained or a hub id (e.g. depth-anything/Depth-Anything-V2-Small-hf; from the "
+       "Hugging Face cache, downloaded there on first use when online).", **_START_UP),
+    _p("output_kind", "model.output_kind", "model_type hf: what the network predicts; empty = "
+       "detected from its config. relative_inverse_depth (MiDaS / DPT / Depth Anything "
+       "relative) is aligned in scale AND shift; the others by the paper's scale.",
+       choices=("", *OUTPUT_KINDS), **_START_UP),
     _p("encoder_path", "model.encoder_path", "Encoder weights file (monodepth2 / mobilenet); "
        "empty = none.", **_START_UP),
     _p("decoder_path", "model.decoder_path", "Decoder weights file (monodepth2 / mobilenet); "
@@ -208,12 +264,21 @@ PARAMS: tuple[Param, ...] = (
        "CameraInfo P (rectified images: true) or K (false); auto: P when it is set and D is "
        "zero.", choices=USE_PROJECTION_CHOICES, dynamic_typing=True),
     # -- transport (start-up) -------------------------------------------------------------
+    _p("image_transport", "node.image_transport", "Input images: 'raw' = sensor_msgs/Image on "
+       "image; 'compressed' = sensor_msgs/CompressedImage (JPEG / PNG) on <image>/compressed, "
+       "the image_transport convention of recorded robot bags.", choices=IMAGE_TRANSPORTS,
+       **_START_UP),
     _p("qos_reliability", "node.qos_reliability", "Reliability of the image and camera_info "
        "subscriptions (best_effort for sensor-data publishers).", choices=QOS_RELIABILITIES,
        **_START_UP),
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),
-    _p("publish_colored", "node.publish_colored", "Publish ~/depth_colored (bgr8)."),
+    _p("publish_live", "node.publish_live", "Publish ~/depth: every frame at once, predicted by "
+       "the serving copy of the network (the newest refined weights)."),
+    _p("publish_refined", "node.publish_refined", "Publish ~/depth_refined: every frame again "
+       "once its window is done (refined, or unrefined with a reason)."),
+    _p("publish_colored", "node.publish_colored", "Publish ~/depth_colored (bgr8, of the live "
+       "depth)."),
     _p("publish_points", "node.publish_points", "Publish ~/points (the window's sparse SfM "
        "cloud)."),
     _p("publish_diagnostics", "node.publish_diagnostics", "Publish /diagnostics after each "
@@ -249,7 +314,13 @@ def _close(name: str, fields: bool = True) -> str:
     return f" (did you mean {', '.join(close)}?)" if close else ""
 
 
+#: parameters that were replaced, and what replaces them
+RENAMED = {"reset_each_window": "weight_policy (true = reset, false = continue)"}
+
+
 def _unknown(name: str) -> str:
+    if name in RENAMED:
+        return f"parameter {name!r} was replaced by {RENAMED[name]}"
     return f"unknown parameter {name!r}{_close(name)}; `sfm-ttr params` lists them"
 
 
@@ -288,8 +359,11 @@ def check_value(name: str, value: Any) -> str:
 def _check_model(values: Mapping[str, Any]) -> None:
     kind = str(values["model_type"]).strip()
     if kind.lower() not in BUILTIN_MODELS and ":" not in kind:
-        raise InputError(f"model_type must be default, monodepth2, mobilenet or "
+        raise InputError(f"model_type must be default, monodepth2, mobilenet, hf or "
                          f"python:<module>:<factory>; got {kind!r}")
+    if kind.lower() == "hf" and not str(values["model_path"]).strip():
+        raise InputError("model_type hf needs model_path: a save_pretrained directory or a hub "
+                         "id, e.g. depth-anything/Depth-Anything-V2-Small-hf")
     if bool(str(values["encoder_path"]).strip()) != bool(str(values["decoder_path"]).strip()):
         raise InputError("give both encoder_path and decoder_path, or neither")
 
@@ -382,6 +456,8 @@ def read_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
         raise InputError(f"{path}: no ros__parameters for node {node_name!r}")
     for key, value in values.items():
         if key not in SCHEMA:
+            if key in RENAMED:
+                raise InputError(f"{path}: {_unknown(key)}")
             raise InputError(f"{path}: {key!r} is not a parameter of the {node_name} node"
                              f"{_close(key, fields=False)}")
         reason = check_value(key, value)

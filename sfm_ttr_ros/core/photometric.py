@@ -106,6 +106,20 @@ class PhotometricConfig:
         object.__setattr__(self, "scales", scales)
 
 
+def parse_offsets(text: str | Iterable[int]) -> tuple[int, ...]:
+    """Source offsets from the parameter text ``"-1,1"`` (comma- or space-separated integers;
+    a sequence of integers is taken as it is). :class:`InputError` when a piece is no integer;
+    :class:`PhotometricConfig` checks the rest (non-zero, distinct)."""
+    if isinstance(text, str):
+        pieces = [p for p in text.replace(",", " ").split() if p]
+        try:
+            return tuple(int(p) for p in pieces)
+        except ValueError:
+            raise InputError(f"source offsets must be integers separated by commas, e.g. "
+                             f"\"-1,1\"; got {text!r}") from None
+    return tuple(int(o) for o in text)
+
+
 @dataclass
 class PhotometricMaps:
     """Per-pixel by-products of :func:`photometric_loss` (N x 1 x H x W each), for tests and

@@ -8,16 +8,23 @@ encoder continued from the previous window or reset to the original weights).
 from __future__ import annotations
 
 import itertools
+import math
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.alignment import AlignmentConfig, AlignmentResult, align_scale
-from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.alignment import AlignmentConfig, AlignmentResult
+from sfm_ttr_ros.core.alignment_affine import (
+    AffineAlignmentResult,
+    align_output,
+    is_affine_output,
+)
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.photometric import PhotometricFrame, prepare_frames
 from sfm_ttr_ros.core.refinement import (
     RefinementConfig,
     RefinementResult,
@@ -26,8 +33,17 @@ from sfm_ttr_ros.core.refinement import (
     restore_encoder,
     snapshot_encoder,
 )
+from sfm_ttr_ros.core.serving import finite_state
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
-from sfm_ttr_ros.core.supervision import build_supervision, frame_loss, sample_at
+from sfm_ttr_ros.core.supervision import (
+    FrameSupervision,
+    build_supervision,
+    frame_loss,
+    sample_at,
+)
+from sfm_ttr_ros.core.trainable import check_trainable
+
+WEIGHT_POLICIES = ("reset", "continue", "continual")
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16
@@ -38,9 +54,17 @@ class TTRConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
-    # True: every window starts from the original weights (measured better than continuing
-    # from the previous window's: BENCHMARKS.md); False: continue.
-    reset_each_window: bool = True
+    # Weights across windows (WEIGHT_POLICIES): "reset" every window starts from the start-up
+    # weights (measured better than "continue": BENCHMARKS.md); "continue" from the previous
+    # window's result; "continual" continues with a replay of earlier windows' supervision and
+    # an L2 pull toward the start-up encoder (see refine_encoder).
+    weight_policy: str = "reset"
+    replay_windows: int = 3  # continual: earlier windows whose supervision is replayed
+    replay_ratio: float = 0.5  # continual: share of the steps spent on a replayed frame
+    anchor_weight: float = 0.01  # continual: λ of λ·Σ‖θ − θ₀‖² over the trainable encoder
+    # Roll a window back to the weights before it when its loss after refinement exceeds this
+    # many times its loss before (or anything is non-finite); 0 = only the non-finite check.
+    max_loss_ratio: float = 2.0
     min_supervision_points: int = 50  # fewer selected points in the window: do not refine
     predict_batch: int = 8
     # Reuse a prediction made with the same weights for the same pixels instead of running the
@@ -49,6 +73,19 @@ class TTRConfig:
     # the last bits a different batch composition gives; bit for bit with predict_batch 1).
     # False: always recompute.
     reuse_predictions: bool = True
+
+    def __post_init__(self) -> None:
+        if self.weight_policy not in WEIGHT_POLICIES:
+            raise InputError(f"weight_policy must be one of {WEIGHT_POLICIES}, got "
+                             f"{self.weight_policy!r}")
+        if self.replay_windows < 0:
+            raise InputError(f"replay_windows must be >= 0, got {self.replay_windows}")
+        for name in ("replay_ratio", "anchor_weight", "max_loss_ratio"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"{name} must be a finite number >= 0, got {v}")
+        if self.replay_ratio > 1:
+            raise InputError(f"replay_ratio must lie in [0, 1], got {self.replay_ratio}")
 
 
 @dataclass
@@ -97,6 +134,8 @@ class SfmTTR:
         self.check_config(self.config)
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._original = snapshot_encoder(model)
+        # continual policy: the supervision of the last replay_windows refined windows
+        self._replay: deque[list[FrameSupervision]] = deque()
         self._stop = False
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
@@ -118,6 +157,11 @@ class SfmTTR:
         """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
         without the staged-encoder protocol, or all of its levels)."""
         frozen_stage_count(self.model.encoder, config.refinement.frozen_encoder_levels)
+        r = config.refinement
+        check_trainable(self.model, r.trainable, r.trainable_blocks)
+        if r.uses_photometric and is_affine_output(self.model):
+            raise InputError(f"refinement.loss {r.loss!r} needs depth up to scale; this model "
+                             "predicts affine-invariant inverse depth: use 'sfm'")
 
     def set_config(self, config: TTRConfig) -> None:
         """New options, used from the next window on."""
@@ -216,7 +260,7 @@ class SfmTTR:
         def stop() -> bool:
             return self._stop or (should_stop is not None and should_stop())
 
-        if cfg.reset_each_window:
+        if cfg.weight_policy == "reset":
             self.reset_model()
         t0 = time.perf_counter()
         before = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
@@ -245,7 +289,10 @@ class SfmTTR:
         d_sfm = np.concatenate([sfm.frames[n].depths for n in reg])
         d_nn = np.concatenate([
             sample_at(before[n], sfm.frames[n].pixels, cfg.refinement.sampling) for n in reg])
-        align = align_scale(d_sfm, d_nn, cfg.alignment)
+        # The paper's scale fit; an affine fit in inverse depth for relative inverse-depth
+        # networks (issue 18: the targets are then in the network's own output space).
+        align = align_output(d_sfm, d_nn, getattr(self.model, "output_kind", ""),
+                             cfg.alignment, [len(sfm.frames[n].depths) for n in reg])
         res.alignment, res.scale = align, align.scale
         t["align"] = time.perf_counter() - t0
         if not align.ok or int(align.selected.sum()) < cfg.min_supervision_points:
@@ -255,8 +302,15 @@ class SfmTTR:
 
         sup = build_supervision(sfm, reg, images, align, cfg.refinement.weighting)
         res.loss_before = float(np.mean([frame_loss(before[s.name], s) for s in sup]))
+        continual = cfg.weight_policy == "continual"
+        replay = [s for window in self._replay for s in window] if continual else []
+        anchor = self._original if continual and cfg.anchor_weight > 0 else None
+        start = snapshot_encoder(self.model)  # the weights before the window (rollback)
         t0 = time.perf_counter()
-        res.refinement = refine_encoder(self.model, sup, cfg.refinement, should_stop=stop)
+        res.refinement = refine_encoder(
+            self.model, sup, cfg.refinement, should_stop=stop, replay=replay,
+            replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
+            photometric=self._photometric_frames(names, images, sfm, align.scale, intrinsics))
         t["refine"] = time.perf_counter() - t0
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
             res.reason = "refinement cancelled"
@@ -269,14 +323,56 @@ class SfmTTR:
         res.refined = res.refinement.steps_done > 0
         if not res.refined:
             res.reason = "refinement cancelled" if res.refinement.cancelled else "no usable frame"
+            return res
+        why = self._rollback_reason(res)
+        if why:
+            restore_encoder(self.model, start)
+            res.refined, res.reason, res.depths = False, f"rolled back: {why}", dict(before)
+            return res
+        if continual and cfg.replay_windows > 0:
+            self._replay.append(sup)
+            while len(self._replay) > cfg.replay_windows:
+                self._replay.popleft()
         self._cloud(res, sfm, reg)
         return res
+
+    def _rollback_reason(self, res: WindowResult) -> str:
+        """Why a refined window must not be kept ("" when it may): a non-finite loss or
+        encoder weight, or a loss after refinement above ``max_loss_ratio`` x the loss before
+        (the refinement exploded)."""
+        history = np.asarray(res.refinement.loss_history, np.float64)
+        if not np.all(np.isfinite(history)) or not math.isfinite(res.loss_after):
+            return "non-finite loss"
+        if not finite_state(self.model.encoder.state_dict()):
+            return "non-finite weights"
+        ratio = self.config.max_loss_ratio
+        if ratio > 0 and res.loss_after > ratio * res.loss_before:
+            return (f"loss {res.loss_before:.4g} -> {res.loss_after:.4g} exceeds "
+                    f"max_loss_ratio {ratio:g}")
+        return ""
+
+    def _photometric_frames(self, names: list[str], images: dict[str, np.ndarray],
+                            sfm: SfmResult, scale: float,
+                            intrinsics: Intrinsics) -> list[PhotometricFrame]:
+        """The window's photometric terms (issue 16), prepared once per window when the loss
+        needs them: network-size images, the SfM poses of each registered frame's registered
+        neighbours with their translations times the alignment scale ŝ (SfM units → network
+        depth units: Ph-TTR needs the SfM scale too), K at the network's size and the
+        auto-masking identity errors. [] for ``sfm`` (and ``hybrid`` with λ = 0)."""
+        r = self.config.refinement
+        if not r.uses_photometric:
+            return []
+        return prepare_frames(self.model, names, images, sfm.frames, scale, intrinsics,
+                              r.photometric_config())
 
     @staticmethod
     def _cloud(res: WindowResult, sfm: SfmResult, reg: list[str]) -> None:
         """The sparse cloud in the newest registered frame's optical frame, network units."""
         newest = reg[-1]
-        xyz = sfm.points_in_frame(newest) * res.scale
+        # Depth outputs: network units (× ŝ). An affine fit has no depth unit of its own: the
+        # cloud stays in SfM units, those of affine_to_depth(fit, prediction).
+        scale = 1.0 if isinstance(res.alignment, AffineAlignmentResult) else res.scale
+        xyz = sfm.points_in_frame(newest) * scale
         res.cloud_frame = newest
         res.cloud_xyz = xyz.astype(np.float32)
         res.cloud_error = sfm.points_error.astype(np.float32)

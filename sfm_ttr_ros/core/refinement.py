@@ -24,6 +24,13 @@ the paper's whole-encoder refinement. The encoder must implement the staged-enco
 features)``), as the MobileNetV2 and ResNet encoders here do. With ``bn_mode="train"`` the
 frozen stages normalise with the frame's own statistics once (their running statistics are
 updated once per frame, not once per step).
+
+The objective (``loss``, issue 16; not in the paper, whose Sec. 5-6 and Fig. 4 compare against
+it): ``sfm`` is Eq. (5); ``photometric`` is photometric test-time refinement (Ph-TTR) with
+Monodepth2's self-supervised loss, the poses taken from the window's SfM and brought into network
+units with ŝ (:mod:`sfm_ttr_ros.core.photometric`); ``hybrid`` adds λ times that loss to Eq. (5)
+(the paper's future work: photometric gradients where SfM has few points, near the camera).
+``loss_history`` records the step objective (without any anchor term).
 """
 
 from __future__ import annotations
@@ -38,6 +45,14 @@ import torch
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.photometric import (
+    PhotometricConfig,
+    PhotometricFrame,
+    ScaleOutput,
+    parse_offsets,
+    photometric_objective,
+    scale_outputs,
+)
 from sfm_ttr_ros.core.supervision import (  # noqa: F401 - frame_loss: part of this stage's API
     FrameSupervision,
     frame_loss,
@@ -45,10 +60,12 @@ from sfm_ttr_ros.core.supervision import (  # noqa: F401 - frame_loss: part of t
     sample_depth,
     weighted_l1,
 )
+from sfm_ttr_ros.core.trainable import TRAINABLE_MODES, merge_lora, select_trainable
 
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
 SAMPLINGS = ("bilinear", "nearest")
+LOSSES = ("sfm", "photometric", "hybrid")  # a step's objective, see _step_loss (issue 16)
 MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32 stages train
 
 
@@ -62,11 +79,39 @@ class RefinementConfig:
     min_points: int = 10  # frames with fewer selected points are not used for training
     early_stop_patience: int = 0  # >0: stop when the running loss has not improved for N steps
     frozen_encoder_levels: int = 0  # 1..4: encoder fixed up to its 1/2^L feature map (speed)
+    # Which parameters a step trains (issue 18, core/trainable.py): "encoder" (the paper),
+    # "norm" (normalisation affine weights only) or "lora" (adapters of rank lora_rank on the
+    # attention projections, merged into the encoder when the refinement ends);
+    # trainable_blocks > 0: only inside the encoder's last N transformer blocks.
+    trainable: str = "encoder"
+    lora_rank: int = 8
+    trainable_blocks: int = 0
     seed: int = 0
+    # A step's objective (issue 16, see _step_loss): "sfm" Eq. (5); "photometric" Monodepth2's
+    # photometric + smoothness loss with the window's SfM poses (Ph-TTR); "hybrid" Eq. (5) +
+    # photometric_weight · (photometric + smoothness). The photometric loss's α, smoothness
+    # weight and source frames (offsets in the window, "-1,1" = t-1 and t+1) follow.
+    loss: str = "sfm"
+    photometric_weight: float = 1.0
+    photometric_alpha: float = 0.85
+    smoothness_weight: float = 1e-3
+    photometric_sources: str = "-1,1"
 
     def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise InputError(f"loss must be one of {LOSSES}, got {self.loss!r}")
+        if not (np.isfinite(self.photometric_weight) and self.photometric_weight >= 0):
+            raise InputError(f"photometric_weight must be a finite number >= 0, got "
+                             f"{self.photometric_weight}")
+        self.photometric_config()  # InputError on a bad alpha, smoothness weight or sources
         if self.steps < 0:
             raise InputError(f"steps must be >= 0, got {self.steps}")
+        if self.trainable not in TRAINABLE_MODES:
+            raise InputError(f"trainable must be one of {TRAINABLE_MODES}, got "
+                             f"{self.trainable!r}")
+        if self.lora_rank < 1 or self.trainable_blocks < 0:
+            raise InputError(f"lora_rank must be >= 1 and trainable_blocks >= 0, got "
+                             f"{self.lora_rank}, {self.trainable_blocks}")
         if not 0 <= self.frozen_encoder_levels <= MAX_FROZEN_LEVELS:
             raise InputError(f"frozen_encoder_levels must lie in 0..{MAX_FROZEN_LEVELS}, got "
                              f"{self.frozen_encoder_levels}")
@@ -77,6 +122,20 @@ class RefinementConfig:
                                      ("sampling", self.sampling, SAMPLINGS)):
             if value not in allowed:
                 raise InputError(f"{name} must be one of {allowed}, got {value!r}")
+
+    def photometric_config(self) -> PhotometricConfig:
+        """The photometric loss's settings (:class:`PhotometricConfig`) these fields give."""
+        return PhotometricConfig(alpha=self.photometric_alpha,
+                                 smoothness_weight=self.smoothness_weight,
+                                 source_offsets=parse_offsets(self.photometric_sources),
+                                 seed=self.seed)
+
+    @property
+    def uses_photometric(self) -> bool:
+        """Whether a step needs the window's photometric frames: ``photometric``, or
+        ``hybrid`` with λ > 0 (λ = 0 is Eq. (5) alone, bit for bit)."""
+        return self.loss == "photometric" or (self.loss == "hybrid"
+                                              and self.photometric_weight > 0)
 
 
 @dataclass
@@ -94,21 +153,6 @@ def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
     model.eval()
     if bn_mode == "train":
         model.encoder.train()
-
-
-def trainable_parameters(model: DepthModel, frozen_stages: int = 0) -> list[torch.nn.Parameter]:
-    """The encoder's parameters minus those of its first ``frozen_stages`` stages, with
-    requires_grad on exactly them (no gradients are computed for the decoder or frozen stages)."""
-    frozen = {id(p) for i in range(frozen_stages)
-              for module in model.encoder.stage_modules(i) for p in module.parameters()}
-    for p in model.decoder.parameters():
-        p.requires_grad_(False)
-    params = []
-    for p in model.encoder.parameters():
-        p.requires_grad_(id(p) not in frozen)
-        if p.requires_grad:
-            params.append(p)
-    return params
 
 
 def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
@@ -138,24 +182,44 @@ def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
 def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
                    config: RefinementConfig | None = None,
                    should_stop: Callable[[], bool] | None = None,
-                   optimizer_state: dict | None = None) -> RefinementResult:
+                   optimizer_state: dict | None = None, *,
+                   replay: Sequence[FrameSupervision] = (), replay_ratio: float = 0.5,
+                   anchor: dict[str, torch.Tensor] | None = None,
+                   anchor_weight: float = 0.0,
+                   photometric: Sequence[PhotometricFrame] = ()) -> RefinementResult:
     """Run SfM-TTR's refinement in place on ``model``'s encoder; returns the loss history.
 
+    ``config.loss`` picks a step's objective (:func:`_step_loss`); ``photometric`` holds the
+    window's :class:`~sfm_ttr_ros.core.photometric.PhotometricFrame` s (prepared once per
+    window with the SfM poses, :func:`~sfm_ttr_ros.core.photometric.prepare_frames`), used by
+    ``photometric`` and ``hybrid``.
+
     ``should_stop`` is polled between steps (cancellation). Deterministic for a seed on CPU.
+
+    Continual refinement (not in the paper): with ``replay`` (frames of earlier windows) a step
+    trains on a replayed frame with probability ``replay_ratio``, else on one of this window's;
+    with ``anchor`` (an encoder state dict, the start-up weights θ₀) every step adds
+    ``anchor_weight``·Σ‖θ − θ₀‖² over the trainable encoder parameters (L2-SP), so the weights
+    drift from θ₀ only as far as the scene asks. ``loss_history`` records Eq. (5) alone.
     """
     cfg = config or RefinementConfig()
     result = RefinementResult()
-    usable = [s for s in supervision if len(s) >= cfg.min_points]
+    usable = _training_frames(supervision, photometric, cfg)
+    by_name = {f.name: f for f in photometric} if cfg.uses_photometric else {}
+    photometric_cfg = cfg.photometric_config()
     result.frames_used = len(usable)
     if not usable or cfg.steps == 0:
         return result
+    n_own = len(usable)
+    usable += [s for s in replay if len(s) >= cfg.min_points]
     t0 = time.perf_counter()
     device = model.device
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
 
     frozen = frozen_stage_count(model.encoder, cfg.frozen_encoder_levels)
-    params = trainable_parameters(model, frozen)
+    params = select_trainable(model, cfg.trainable, cfg.lora_rank, frozen,
+                              blocks=cfg.trainable_blocks)
     set_bn_mode(model, cfg.bn_mode)
     # Everything per frame that does not change between steps is prepared once: the input, the
     # sampling grid, targets, weights and, with frozen leading stages, their outputs.
@@ -171,6 +235,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
         weights.append(torch.as_tensor(s.weights, dtype=torch.float32, device=device))
 
+    pull = _anchor_pairs(model, params, anchor) if anchor is not None and anchor_weight > 0 \
+        else []
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
     if optimizer_state:
         optimizer.load_state_dict(optimizer_state)
@@ -181,14 +247,19 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
             if should_stop is not None and should_stop():
                 result.cancelled = True
                 break
-            if not order:
-                order = list(rng.permutation(len(usable)))
-            j = order.pop()
-            depth = _forward(model, inputs[j], frozen)
-            pred = sample_depth(depth, grids[j], cfg.sampling)
-            loss = weighted_l1(pred, targets[j], weights[j])
+            if len(usable) > n_own and rng.random() < replay_ratio:
+                j = int(rng.integers(n_own, len(usable)))
+            else:
+                if not order:
+                    order = list(rng.permutation(n_own))
+                j = order.pop()
+            loss = _step_loss(model, inputs[j], frozen, (grids[j], targets[j], weights[j]),
+                              by_name.get(usable[j].name), cfg, photometric_cfg)
+            total = loss
+            if pull:
+                total = loss + anchor_weight * sum(((p - p0) ** 2).sum() for p, p0 in pull)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
+            total.backward()
             optimizer.step()
             value = float(loss.detach())
             result.loss_history.append(value)
@@ -204,19 +275,87 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
                         break
     finally:
         model.eval()
+        merge_lora(model)  # the encoder leaves with its own module tree and state_dict keys
         for p in model.parameters():
             p.requires_grad_(False)
     result.seconds = time.perf_counter() - t0
     return result
 
 
+def _anchor_pairs(model: DepthModel, params: Sequence[torch.nn.Parameter],
+                  anchor: dict[str, torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(θ, θ₀) for every trainable encoder parameter that ``anchor`` holds."""
+    wanted = {id(p) for p in params}
+    return [(p, anchor[name].to(p.device, p.dtype))
+            for name, p in model.encoder.named_parameters()
+            if id(p) in wanted and name in anchor]
+
+
+def _training_frames(supervision: Sequence[FrameSupervision],
+                     photometric: Sequence[PhotometricFrame],
+                     cfg: RefinementConfig) -> list[FrameSupervision]:
+    """The window's frames a step may train on: with ``sfm`` and ``hybrid`` those with at least
+    ``min_points`` selected SfM points (hybrid adds the photometric term where the frame has
+    one); with ``photometric`` those with a photometric term (a registered neighbour)."""
+    if cfg.loss == "photometric":
+        names = {f.name for f in photometric}
+        return [s for s in supervision if s.name in names]
+    return [s for s in supervision if len(s) >= cfg.min_points]
+
+
+def _step_loss(model: DepthModel, x, frozen_stages: int,
+               sfm_term: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+               frame: PhotometricFrame | None, cfg: RefinementConfig,
+               photometric_cfg: PhotometricConfig) -> torch.Tensor:
+    """One step's objective on one frame (issue 16), from one forward pass of the network:
+
+    * ``sfm``: Eq. (5), L_j = mean_l exp(−r_lj²)·|ŝ·D_sfm(l, j) − D_nn(p_lj)| (``sfm_term`` =
+      the frame's sampling grid, targets and weights);
+    * ``photometric`` (Ph-TTR): Monodepth2's L_p + w_s·L_s (:mod:`~sfm_ttr_ros.core.photometric`)
+      with the window's SfM poses scaled by ŝ;
+    * ``hybrid``: Eq. (5) + λ·(L_p + w_s·L_s), λ = ``photometric_weight``.
+
+    A frame without a photometric term (``frame`` None: no registered neighbour, a replayed
+    frame of an earlier window, or hybrid with λ = 0) gets Eq. (5) alone."""
+    grid, target, weight = sfm_term
+    if frame is None or cfg.loss == "sfm":
+        return weighted_l1(sample_depth(_forward(model, x, frozen_stages), grid, cfg.sampling),
+                           target, weight)
+    outputs = _scale_outputs(model, x, frozen_stages, photometric_cfg.scales)
+    ph = photometric_objective(outputs, frame.target, frame.sources, frame.K, frame.poses,
+                               photometric_cfg, frame.identity).total
+    if cfg.loss == "photometric":
+        return ph
+    sfm = weighted_l1(sample_depth(outputs[0].depth, grid, cfg.sampling), target, weight)
+    return sfm + cfg.photometric_weight * ph
+
+
+def _scale_outputs(model: DepthModel, x, frozen_stages: int,
+                   scales: Sequence[int]) -> list[ScaleOutput]:
+    """The photometric loss's depth / disparity per output scale from one forward pass; a
+    model with its own ``forward`` (not encoder → decoder, e.g. a transformers model) gives
+    its one output with disparity 1 / depth."""
+    if frozen_stages or type(model).forward is DepthModel.forward:
+        return scale_outputs(model, _encode(model, x, frozen_stages), scales)
+    if tuple(scales) != (0,):
+        raise InputError(f"{type(model).__name__} has a single output scale, got {scales}")
+    depth = model(x)
+    return [ScaleOutput(0, depth, 1.0 / depth)]
+
+
+def _encode(model: DepthModel, x, frozen_stages: int):
+    """g(I); with frozen leading stages ``x`` is their cached (output, features)."""
+    if not frozen_stages:
+        return model.encoder(x)
+    enc = model.encoder
+    return enc.forward_stages(x[0], frozen_stages, enc.num_stages, x[1])[1]
+
+
 def _forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
     """D_nn = h(g(I)); with frozen leading stages ``x`` is their cached (output, features)."""
     if not frozen_stages:
         return model(x)
-    enc = model.encoder
-    return model.depth_from_features(enc.forward_stages(x[0], frozen_stages, enc.num_stages,
-                                                        x[1])[1])
+    return model.depth_from_features(_encode(model, x, frozen_stages))
 
 
 def snapshot_encoder(model: DepthModel) -> dict[str, torch.Tensor]:

@@ -31,11 +31,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
 
 log = logging.getLogger(__name__)
 
 _PYCOLMAP_LOGGING_SET = False
+MIN_MAX_IMAGE_SIZE = 16  # smallest SIFT downscale accepted (1 crashes pycolmap 4.2.1)
 
 
 def quiet_pycolmap(verbose: bool = False) -> None:
@@ -69,6 +70,18 @@ class SfmConfig:
     min_parallax_px: float = 1.0  # cheap pre-check on matched keypoint motion (full-res px)
     seed: int = 0
     verbose: bool = False
+
+    def __post_init__(self) -> None:
+        # Values that reach pycolmap options known to end the process or to fail every window
+        # (measured with pycolmap 4.2.1: max_image_size 1 segfaults in SIFT extraction,
+        # init_min_tri_angle 0 fails the mapper's options check). Loop detection, which aborts
+        # offline, is never enabled (see _match) and no option reaches it.
+        if 0 < int(self.max_image_size) < MIN_MAX_IMAGE_SIZE:
+            raise InputError(f"sfm.max_image_size must be 0 (full size) or >= "
+                             f"{MIN_MAX_IMAGE_SIZE}, got {self.max_image_size}")
+        if not float(self.init_min_tri_angle) > 0:
+            raise InputError(f"sfm.init_min_tri_angle must be > 0, got "
+                             f"{self.init_min_tri_angle}")
 
 
 @dataclass

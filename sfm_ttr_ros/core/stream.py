@@ -78,6 +78,7 @@ UNREFINED_REASONS = {
     "cancelled": "refinement cancelled",
     "disabled": "refinement disabled (refinement.steps = 0)",
     "window_error": "window failed with an error",
+    "rolled_back": "refinement rolled back (non-finite or exploding loss)",
     "end_of_stream": "end of stream with a single frame",
 }
 #: Reason keys of frames that were never published.
@@ -103,6 +104,10 @@ class StreamSettings:
     max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
     overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
     idle_flush_s: float = 2.0  # > 0: flush an incomplete window after this long without input
+    # Live serving (core/online.py): bound of the live queue (oldest skipped when full) and the
+    # nice value added to the background window worker, so live prediction gets the cores first.
+    live_max_queue: int = 4
+    worker_nice: int = 10
 
     def __post_init__(self) -> None:
         if self.window_size < 2:
@@ -116,6 +121,10 @@ class StreamSettings:
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"{name} must be a finite number >= 0, got {v}")
+        if self.live_max_queue < 1:
+            raise InputError(f"live_max_queue must be >= 1, got {self.live_max_queue}")
+        if not 0 <= self.worker_nice <= 19:
+            raise InputError(f"worker_nice must lie in 0..19, got {self.worker_nice}")
         if self.overload_pending < 0:
             raise InputError(f"overload_pending must be >= 0, got {self.overload_pending}")
 
@@ -180,6 +189,8 @@ def reason_key_of(result: WindowResult) -> str:
         return "cancelled"
     if r.startswith("refinement disabled"):
         return "disabled"
+    if r.startswith("rolled back"):
+        return "rolled_back"
     return "window_error"
 
 

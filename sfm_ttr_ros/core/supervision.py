@@ -17,6 +17,11 @@ import torch
 import torch.nn.functional as F
 
 from sfm_ttr_ros.core.alignment import AlignmentResult
+from sfm_ttr_ros.core.alignment_affine import (
+    AffineAlignmentResult,
+    FrameAffineAlignment,
+    affine_targets,
+)
 from sfm_ttr_ros.core.sfm import SfmResult
 
 
@@ -76,10 +81,11 @@ def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -
 def build_supervision(sfm: SfmResult, registered: Sequence[str],
                       images: dict[str, np.ndarray], align: AlignmentResult,
                       weighting: str = "observation") -> list[FrameSupervision]:
-    """Split a window's selected points back into frames: target ŝ·D_sfm (network units) and
+    """Split a window's selected points back into frames: target ŝ·D_sfm (network units; in
+    inverse-depth space for an affine fit, :func:`supervision_targets`) and
     the Eq. (5) weight exp(−r²) with r per observation, per track, or w = 1 (``weighting``)."""
     sup, start = [], 0
-    for n in registered:
+    for k, n in enumerate(registered):
         obs = sfm.frames[n]
         sel = align.selected[start:start + len(obs)]
         start += len(obs)
@@ -90,5 +96,19 @@ def build_supervision(sfm: SfmResult, registered: Sequence[str],
         else:
             w = np.ones(int(sel.sum()))
         sup.append(FrameSupervision(n, images[n], obs.pixels[sel],
-                                    align.scale * obs.depths[sel], w))
+                                    supervision_targets(align, obs.depths[sel], k), w))
     return sup
+
+
+def supervision_targets(align: AlignmentResult, d_sfm: np.ndarray, frame: int = 0) -> np.ndarray:
+    """The targets of Eq. (5) in the network's output space: ŝ·D_sfm for the paper's scale
+    fit; a/D_sfm + b for an affine fit of relative inverse depth (issue 18,
+    :func:`~sfm_ttr_ros.core.alignment_affine.affine_targets`; per-frame fits: frame
+    ``frame``'s, none selected where it failed)."""
+    if isinstance(align, FrameAffineAlignment):
+        if not np.isfinite(align.frame_scale[frame]):
+            return np.zeros(0)
+        return affine_targets(align.frame(frame), d_sfm)
+    if isinstance(align, AffineAlignmentResult):
+        return affine_targets(align, d_sfm)
+    return align.scale * d_sfm

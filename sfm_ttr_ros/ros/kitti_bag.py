@@ -3,7 +3,11 @@
 KITTI topics (kitti2bag's names, camera 02 = left colour camera):
 
 * ``/kitti/camera_color_left/image_raw``: sensor_msgs/Image ``rgb8``, one per frame, stamped
-  with ``image_02/timestamps.txt`` (nanoseconds exactly as written in the file);
+  with ``image_02/timestamps.txt`` (nanoseconds exactly as written in the file); with
+  ``compressed`` instead ``/kitti/camera_color_left/image_raw/compressed``:
+  sensor_msgs/CompressedImage, JPEG at compressed_image_transport's default quality 95, format
+  ``"rgb8; jpeg compressed bgr8"`` (the image_transport convention of recorded robot bags;
+  :mod:`msg_adapters.compressed`);
 * ``/kitti/camera_color_left/camera_info``: sensor_msgs/CameraInfo with the image's stamp,
   from ``P_rect_02`` / ``S_rect_02`` of ``calib_cam_to_cam.txt``
   (see :func:`camera_info_from_calib`);
@@ -28,6 +32,7 @@ import numpy as np
 
 from msg_adapters.camera_info import camera_info_msg
 from msg_adapters.classes import make_header
+from msg_adapters.compressed import rgb8_to_compressed
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.data.kitti import KittiDrive, kitti_intrinsics, parse_kitti_timestamp
 from sfm_ttr_ros.ros.bag import (
@@ -47,6 +52,8 @@ KITTI_NAMESPACE = "/kitti"
 IMAGE_TOPIC = "/kitti/camera_color_left/image_raw"
 CAMERA_INFO_TOPIC = "/kitti/camera_color_left/camera_info"
 DEPTH_GT_TOPIC = "/kitti/camera_color_left/depth_gt"
+COMPRESSED_IMAGE_MSGTYPE = "sensor_msgs/msg/CompressedImage"
+COMPRESSED_SUFFIX = "/compressed"  # image_transport's (sfm_ttr_ros.ros.names.compressed_topic)
 
 
 def kitti_timestamp_ns(text: str) -> int:
@@ -118,13 +125,15 @@ def kitti_to_bag(
     start: int = 0,
     max_frames: int = 0,
     progress: bool = False,
+    compressed: bool = False,
 ) -> ConvertResult:
     """Convert a KITTI raw drive (``raw_root/<date>/<drive>``) into the rosbag2 folder ``out``.
 
     Topics and conventions: see the module docstring. ``gt_root`` (the depth benchmark root,
     ``{train,val}/<drive>/proj_depth/groundtruth``) adds the improved ground truth; it is an
     error when that root has no ground truth for the drive. ``start`` / ``max_frames`` (0 = all)
-    select a range of frames. Frames are read and written one at a time. Raises
+    select a range of frames. ``compressed`` writes the images as JPEG CompressedImages on
+    ``.../image_raw/compressed``. Frames are read and written one at a time. Raises
     :class:`InputError` for a missing drive / calibration / GT, an image whose size is not
     ``S_rect``, or an existing ``out``; a failed conversion leaves no partial bag behind.
     """
@@ -146,6 +155,10 @@ def kitti_to_bag(
     frame_id = name
     ns = f"{KITTI_NAMESPACE}/{name}"
     topics = {"image": f"{ns}/image_raw", "info": f"{ns}/camera_info", "gt": f"{ns}/depth_gt"}
+    image_type = IMAGE_MSGTYPE
+    if compressed:
+        topics["image"] += COMPRESSED_SUFFIX
+        image_type = COMPRESSED_IMAGE_MSGTYPE
     intr = kd.intrinsics
 
     t0 = time.perf_counter()
@@ -153,7 +166,7 @@ def kitti_to_bag(
     bar = ProgressBar(stop - start, f"kitti-to-bag {drive}", enabled=progress)
     rec = BagRecorder(out, storage)
     try:
-        rec.add_topic(topics["image"], IMAGE_MSGTYPE)
+        rec.add_topic(topics["image"], image_type)
         rec.add_topic(topics["info"], CAMERA_INFO_MSGTYPE)
         if kd.gt_dir is not None:
             rec.add_topic(topics["gt"], IMAGE_MSGTYPE)
@@ -165,7 +178,12 @@ def kitti_to_bag(
                     f"{kd.image_path(i)} is {rgb.shape[1]}x{rgb.shape[0]} but S_rect_{camera} "
                     f"of {kd.calib_path} says {intr.width}x{intr.height}")
             rec.write(topics["info"], camera_info_from_calib(kd.calib, camera, st, frame_id))
-            rec.write(topics["image"], make_image_msg(rgb, "rgb8", st, frame_id))
+            if compressed:
+                c = message_classes()
+                rec.write(topics["image"], rgb8_to_compressed(
+                    rgb, "jpeg", make_header(st, frame_id, c), classes=c))
+            else:
+                rec.write(topics["image"], make_image_msg(rgb, "rgb8", st, frame_id))
             gt = kd.load_gt(i)
             if gt is not None:
                 if gt.shape != rgb.shape[:2]:
@@ -187,6 +205,7 @@ def kitti_to_bag(
 
 
 __all__ = [
-    "CAMERA_INFO_TOPIC", "DEPTH_GT_TOPIC", "IMAGE_TOPIC", "KITTI_CAMERA_NAMES", "KITTI_NAMESPACE",
+    "CAMERA_INFO_TOPIC", "COMPRESSED_IMAGE_MSGTYPE", "DEPTH_GT_TOPIC", "IMAGE_TOPIC",
+    "KITTI_CAMERA_NAMES", "KITTI_NAMESPACE",
     "ConvertResult", "camera_info_from_calib", "kitti_timestamp_ns", "kitti_to_bag",
 ]

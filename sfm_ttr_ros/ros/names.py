@@ -15,10 +15,17 @@ DIAG_NAME = f"{PACKAGE}: {NODE_NAME}"  # the DiagnosticStatus name on /diagnosti
 # subscriptions (relative: remappable)
 IMAGE_TOPIC = "image"
 CAMERA_INFO_TOPIC = "camera_info"
+COMPRESSED_SUFFIX = "/compressed"  # image_transport: <image>/compressed carries CompressedImage
+
+
+def compressed_topic(image_topic: str) -> str:
+    """The CompressedImage topic of an image topic (image_transport's naming)."""
+    return image_topic.rstrip("/") + COMPRESSED_SUFFIX
 
 # publications
-DEPTH_TOPIC = "~/depth"
-DEPTH_COLORED_TOPIC = "~/depth_colored"
+DEPTH_TOPIC = "~/depth"  # live: every frame, the newest served weights
+DEPTH_COLORED_TOPIC = "~/depth_colored"  # live, colourised
+DEPTH_REFINED_TOPIC = "~/depth_refined"  # each frame again once its window is done
 POINTS_TOPIC = "~/points"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
@@ -39,4 +46,5 @@ def resolve(topic: str, node_name: str = NODE_NAME, namespace: str = "/") -> str
 NODE_FQN = resolve("~")  # "/refiner": the diagnostics' hardware_id
 DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth"
 DEPTH_COLORED_TOPIC_RESOLVED = resolve(DEPTH_COLORED_TOPIC)
+DEPTH_REFINED_TOPIC_RESOLVED = resolve(DEPTH_REFINED_TOPIC)  # "/refiner/depth_refined"
 POINTS_TOPIC_RESOLVED = resolve(POINTS_TOPIC)

@@ -1,15 +1,21 @@
 """The ``refiner`` ROS 2 node: SfM-TTR on a live image stream (thin glue over the core).
 
 Threads: the executor (main thread) runs the subscription callbacks, the parameter services and
-the diagnostics timer; callbacks only convert the message (``msg_adapters``) and queue the frame
-in :class:`~sfm_ttr_ros.core.stream.StreamProcessor`. One worker thread runs the stream (SfM, model,
-refinement) and publishes its outputs, so the executor never blocks on heavy work.
+the diagnostics timer; callbacks only convert the message (``msg_adapters``) and hand the frame
+to :class:`~sfm_ttr_ros.core.online.OnlineRefiner`: its live server thread answers ``~/depth``
+at once, its worker thread runs the windows (SfM, model, refinement) and publishes their
+outputs, so the executor never blocks on heavy work.
 
 Topics (names remappable): subscribes ``image`` (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8,
-bgra8, mono16, ...) and ``camera_info``; publishes ``~/depth`` (32FC1, NaN = invalid, the input
-image's header), ``~/depth_colored`` (bgr8), ``~/points`` (PointCloud2 x, y, z,
-reprojection_error in the optical frame of the window's newest registered image, with that
-image's header; units = the depth's units) and ``/diagnostics``.
+bgra8, mono16, ...; with ``image_transport: compressed`` sensor_msgs/CompressedImage JPEG / PNG
+on ``<image>/compressed`` instead) and ``camera_info``; publishes ``~/depth`` (32FC1, NaN =
+invalid, the input image's header: EVERY frame at once, predicted by the serving copy of the
+network with the newest refined weights), ``~/depth_colored`` (bgr8, the same),
+``~/depth_refined`` (32FC1: every frame again once its window is done, refined or unrefined with
+a reason), ``~/points`` (PointCloud2 x, y, z, reprojection_error in the optical frame of the
+window's newest registered image, with that image's header; units = the depth's units) and
+``/diagnostics``. Threads: the live server (core/live.py) predicts and publishes ``~/depth``;
+the worker (core/online.py, at a lower OS priority) runs the windows.
 
 Topic and node names: :mod:`sfm_ttr_ros.ros.names`; the messages: :mod:`sfm_ttr_ros.ros.outputs`.
 
@@ -18,6 +24,18 @@ image's stamp, else the latest one; without any CameraInfo the fallback paramete
 cy; 0 = image centre); with neither, frames are held (bounded by ``max_pending``, oldest dropped
 and counted) with a throttled warning, and processed once intrinsics are known. Diagnostics:
 :class:`~sfm_ttr_ros.core.diagnostics.StreamDiagnostics`.
+
+Containment: no single message, parameter or fault can end the process. Every callback the
+executor runs (subscriptions, QoS events, the timer, the parameter check) and the worker's loop
+and publications are wrapped (:func:`contained`): an exception no check foresaw is counted
+(``faults.<place>`` on /diagnostics, WARN status), logged once per ``WARN_PERIOD_S`` per place
+with its type, message and where it was raised, and the node goes on; a frame it concerned is
+still accounted for (``dropped.bad_image`` when its message could not be read). A parameter
+change whose check raises is refused with the reason.
+
+Exit codes: 0 after a normal shutdown; 1 when the node cannot START (bad parameters, a missing
+or corrupt model / weights file: one ``cannot start: ...`` line, before spinning); 2 for a
+fault of the run itself that escaped the containment (``run-time fault: ...``; none is known).
 
 Shutdown (SIGINT / SIGTERM / external shutdown): the worker is cancelled (``SfmTTR.cancel``:
 refinement stops at the next step, pycolmap through its cancellation token) and joined, the
@@ -31,11 +49,13 @@ saving the weights.
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import sys
 import threading
 import time
+import traceback
 from functools import partial
 from pathlib import Path
 
@@ -51,22 +71,51 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
-from msg_adapters import camera_info_to_intrinsics, image_to_rgb8
+from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
 from sfm_ttr_ros.core.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
 from sfm_ttr_ros.core.diagnostics import StreamDiagnostics
 from sfm_ttr_ros.core.frames import Frame, InputError
+from sfm_ttr_ros.core.live import LiveOutput
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.models.registry import build_model
+from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR
-from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, WindowStats
+from sfm_ttr_ros.core.stream import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import names, outputs
 from sfm_ttr_ros.ros import params as node_params
 
 WARN_PERIOD_S = 5.0
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
+EXIT_START_UP = 1  # the node could not start (parameters, model, weights)
+EXIT_RUN_TIME = 2  # a fault escaped the containment while running
+
+
+def where(exc: BaseException) -> str:
+    """``file:line in function`` where ``exc`` was raised (its innermost frame), for a one-line
+    log without a traceback."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    if not frames:
+        return "?"
+    f = frames[-1]
+    return f"{Path(f.filename).name}:{f.lineno} in {f.name}"
+
+
+def contained(place: str):
+    """Decorator of a :class:`RefinerNode` callback: an exception is counted as a fault of
+    ``place`` and logged (throttled) instead of reaching the executor or the worker."""
+    def wrap(method):
+        @functools.wraps(method)
+        def call(self, *args):
+            try:
+                return method(self, *args)
+            except Exception as exc:
+                self.fault(place, exc)
+                return None
+        return call
+    return wrap
 
 
 class RefinerNode(Node):
@@ -104,27 +153,34 @@ class RefinerNode(Node):
         if nv["load_weights_path"]:
             self._load_encoder(model, nv["load_weights_path"])
         self.ttr = SfmTTR(model, node_params.build_ttr_config(values))
-        self.stream = StreamProcessor(
+        self.online = OnlineRefiner(
             self.ttr, node_params.build_stream_settings(values),
             config_provider=lambda: node_params.build_ttr_config(self._values()),
             settings_provider=lambda: node_params.build_stream_settings(self._values()),
-            on_output=self._publish_output, on_window=self._on_window,
-            logger=self.get_logger())
+            on_live=self._publish_live, on_refined=self._publish_output,
+            on_window=self._on_window, on_fault=self.fault, logger=self.get_logger())
+        self.stream = self.online.stream
         self.intrinsics = IntrinsicsResolver(self._fallback_intrinsics,
                                              max_held=int(values["max_pending"]))
-        self.diagnostics = StreamDiagnostics(self.stream, held=lambda: self.intrinsics.held)
+        self.diagnostics = StreamDiagnostics(self.stream, held=lambda: self.intrinsics.held,
+                                             live=self.online.counters_live)
         self._diag_lock = threading.Lock()  # one status published at a time, in order
         self._closed = False
         self._stop = threading.Event()
+        self._logged_at: dict[str, float] = {}  # throttle of warn_every, per key
 
         reliability = (ReliabilityPolicy.BEST_EFFORT if nv["qos_reliability"] == "best_effort"
                        else ReliabilityPolicy.RELIABLE)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(nv["qos_depth"]),
                          reliability=reliability)
         overrides = QoSOverridingOptions.with_default_policies()
-        for msg_type, topic, callback in ((Image, names.IMAGE_TOPIC, self._on_image),
-                                          (CameraInfo, names.CAMERA_INFO_TOPIC,
-                                           self._on_camera_info)):
+        image_input = (Image, names.IMAGE_TOPIC, self._on_image)
+        if nv["image_transport"] == "compressed":  # image_transport: <resolved image>/compressed
+            image_input = (CompressedImage, names.compressed_topic(
+                self.resolve_topic_name(names.IMAGE_TOPIC)), self._on_compressed_image)
+        self.image_topic = self.resolve_topic_name(image_input[1])
+        for msg_type, topic, callback in (image_input, (CameraInfo, names.CAMERA_INFO_TOPIC,
+                                                        self._on_camera_info)):
             self.create_subscription(
                 msg_type, topic, callback, qos, qos_overriding_options=overrides,
                 event_callbacks=SubscriptionEventCallbacks(
@@ -139,20 +195,22 @@ class RefinerNode(Node):
 
         self.pub_depth = pub(Image, names.DEPTH_TOPIC)
         self.pub_colored = pub(Image, names.DEPTH_COLORED_TOPIC)
+        self.pub_refined = pub(Image, names.DEPTH_REFINED_TOPIC)
         self.pub_points = pub(PointCloud2, names.POINTS_TOPIC)
         self.pub_diag = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, 10)
         self._publishers_by_topic = {names.DEPTH_TOPIC: self.pub_depth,
                                      names.DEPTH_COLORED_TOPIC: self.pub_colored,
+                                     names.DEPTH_REFINED_TOPIC: self.pub_refined,
                                      names.POINTS_TOPIC: self.pub_points}
         self.create_timer(float(nv["diagnostics_period_s"]), self._on_timer)
 
-        self._worker = threading.Thread(target=self._work, name="refiner-worker", daemon=True)
-        self._worker.start()
+        self.online.start()
         self.get_logger().info(
             f"refiner ready: model {type(model).__name__} (input {model.input_size}), window "
             f"{values['window_size']}/{values['window_stride']}, refinement "
-            f"{values['refinement.steps']} steps, reset_each_window="
-            f"{values['reset_each_window']}, QoS {nv['qos_reliability']} depth {nv['qos_depth']}")
+            f"{values['refinement.steps']} steps, weight_policy "
+            f"{values['weight_policy']}, input {self.image_topic} ({nv['image_transport']}), "
+            f"QoS {nv['qos_reliability']} depth {nv['qos_depth']}")
 
     # -- parameters ------------------------------------------------------------------------------
     def _values(self) -> dict:
@@ -165,9 +223,11 @@ class RefinerNode(Node):
         return FallbackIntrinsics(*(float(self._param(k)) for k in ("fx", "fy", "cx", "cy")))
 
     def _validate_parameters(self, params) -> SetParametersResult:
-        values = self._values()
-        values.update({p.name: p.value for p in params})
+        """The on-set check: never raises (an exception would reach the parameter service);
+        anything unexpected refuses the change with the reason and counts a fault."""
         try:
+            values = self._values()
+            values.update({p.name: p.value for p in params})
             reason = node_params.validate(values)
             if not reason:
                 self.ttr.check_config(node_params.build_ttr_config(values))
@@ -175,6 +235,9 @@ class RefinerNode(Node):
             reason = str(exc)
         except Exception as exc:  # a value no check foresaw: refuse it, with the reason
             reason = f"{type(exc).__name__}: {exc}"
+            self.fault("parameters", exc)
+        if reason:
+            self.warn_every("parameters", f"parameter change refused: {reason}")
         return SetParametersResult(successful=not reason, reason=reason)
 
     @staticmethod
@@ -188,42 +251,90 @@ class RefinerNode(Node):
             raise InputError(f"load_weights_path: cannot load encoder weights from {path}: "
                              f"{type(exc).__name__}: {exc}") from exc
 
-    # -- callbacks (executor thread: convert and hand over only) -------------------------------
-    def _on_image(self, msg: Image) -> None:
-        try:
-            rgb = image_to_rgb8(msg)
-        except InputError as exc:
-            self.stream.reject("bad_image", f"image rejected: {exc}")
-            return
-        frame = Frame(index=self.stream.counters()["received"] + self.intrinsics.held,
-                      image=rgb, stamp=stamp_to_seconds(msg.header.stamp), header=msg.header)
-        self._hand_over(self.intrinsics.add_frame(frame, stamp_to_ns(msg.header.stamp)))
-        if self.intrinsics.held:
-            self.get_logger().warning(
-                f"{self.intrinsics.held} frame(s) held: no intrinsics yet - waiting for a "
-                f"CameraInfo on {self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set the "
-                "fallback parameters fx and fy", throttle_duration_sec=WARN_PERIOD_S)
+    # -- faults and throttled logs -------------------------------------------------------------
+    def fault(self, place: str, exc: BaseException) -> None:
+        """Count and log (throttled per place) an exception contained at ``place``."""
+        n = self.diagnostics.fault(place)
+        self.warn_every(f"fault:{place}", f"{place}: contained {type(exc).__name__}: {exc} (at "
+                        f"{where(exc)}; {n} so far); the node goes on", error=True)
 
+    def warn_every(self, key: str, message: str, *, error: bool = False) -> None:
+        """Log ``message`` at most once per ``WARN_PERIOD_S`` per ``key``."""
+        now = time.monotonic()
+        if now - self._logged_at.get(key, -1e9) < WARN_PERIOD_S:
+            return
+        self._logged_at[key] = now
+        # two call sites: rclpy refuses one call site logging at two severities
+        try:
+            if error:
+                self.get_logger().error(message)
+            else:
+                self.get_logger().warning(message)
+        except Exception:  # noqa: S110 - a log that cannot be written must not become a fault
+            pass
+
+    # -- callbacks (executor thread: convert and hand over only) -------------------------------
+    @contained("image_callback")
+    def _on_image(self, msg: Image) -> None:
+        self._take_image(msg, image_to_rgb8)
+
+    @contained("image_callback")
+    def _on_compressed_image(self, msg: CompressedImage) -> None:
+        self._take_image(msg, compressed_to_rgb8)
+
+    def _take_image(self, msg, decode) -> None:
+        """Decode an image message into a frame and hand it to the intrinsics rule; a message
+        that cannot be read (any exception: it is the message that is bad) is dropped and
+        counted as ``bad_image``."""
+        try:
+            rgb = decode(msg)
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+            frame = Frame(index=self.stream.counters()["received"] + self.intrinsics.held,
+                          image=rgb, stamp=stamp_to_seconds(msg.header.stamp),
+                          header=msg.header)
+        except Exception as exc:
+            detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
+            self.stream.reject("bad_image", f"image rejected: {detail}")
+            return
+        if self._param("publish_live"):
+            self.online.submit_live(frame)  # live depth needs no intrinsics
+        self._hand_over(self.intrinsics.add_frame(frame, stamp_ns))
+        if self.intrinsics.held:
+            self.warn_every(
+                "held", f"{self.intrinsics.held} frame(s) held: no intrinsics yet - waiting for "
+                f"a CameraInfo on {self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set the "
+                "fallback parameters fx and fy")
+
+    @contained("camera_info_callback")
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             use_p = node_params.parse_use_projection(self._param("camera_info_use_projection"))
             intr = camera_info_to_intrinsics(msg, use_p)
-        except InputError as exc:
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+        except Exception as exc:  # it is the message that is bad
             self.diagnostics.camera_info_rejected()
-            self.get_logger().warning(f"CameraInfo rejected: {exc}",
-                                      throttle_duration_sec=WARN_PERIOD_S)
+            detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
+            self.warn_every("camera_info", f"CameraInfo rejected: {detail}")
             return
-        self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_to_ns(msg.header.stamp)))
+        self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_ns))
 
     def _hand_over(self, resolved: Resolved) -> None:
         """Queue the frames that have intrinsics; count the held frames pushed out."""
         for frame, intr in resolved.ready:
+            if frame.size != (intr.width, intr.height):
+                source = ("the CameraInfo" if self.intrinsics.latest is not None else
+                          "the fallback fx, fy, cx, cy (principal point outside the frame)")
+                self.warn_every(
+                    "mismatch", f"intrinsics for {intr.width}x{intr.height} from {source} on a "
+                    f"{frame.size[0]}x{frame.size[1]} frame: published unrefined "
+                    "(intrinsics_mismatch)")
             self.stream.submit(frame, intr)
         for frame in resolved.dropped:
             self.stream.reject(NO_INTRINSICS, "no intrinsics (no CameraInfo, fallback fx/fy "
                                f"unset): held frame dropped (max_pending="
                                f"{self.intrinsics.max_held})", frame)
 
+    @contained("qos_event")
     def _on_incompatible_qos(self, what: str, event) -> None:
         self.diagnostics.qos_event(what)
         policy = getattr(event, "last_policy_kind", "?")
@@ -232,31 +343,33 @@ class RefinerNode(Node):
             "check the other side's reliability/durability (qos_reliability parameter)",
             throttle_duration_sec=WARN_PERIOD_S)
 
+    @contained("timer")
     def _on_timer(self) -> None:
         self._hand_over(self.intrinsics.release())  # the fallback may have been set meanwhile
         self.publish_diagnostics()
 
-    # -- worker thread -------------------------------------------------------------------------
-    def _work(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.stream.step(timeout=0.1)
-            except Exception as exc:  # never let the worker die
-                if self._stop.is_set():
-                    break
-                self.get_logger().error(f"worker: {type(exc).__name__}: {exc}",
-                                        throttle_duration_sec=WARN_PERIOD_S)
-                time.sleep(0.1)
+    # -- outputs (live thread, worker thread) --------------------------------------------------
+    def _publish_live(self, out: LiveOutput) -> None:
+        """The live server's sink: ~/depth (+ ~/depth_colored). An exception here is counted by
+        the live server (``live.skipped.publish_error``) and logged, throttled."""
+        if self._stop.is_set():
+            return
+        self._publish(outputs.live_messages(out, colored=self._param("publish_colored")))
 
+    @contained("publish")
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
-        self._publish(outputs.frame_messages(out, colored=self._param("publish_colored")))
+        if self._param("publish_refined"):
+            self._publish(outputs.frame_messages(out))
         self.diagnostics.output_published(out.refined)
 
+    @contained("publish")
     def _on_window(self, stats: WindowStats) -> None:
         if self._stop.is_set():
             return
+        if stats.reason_key == "rolled_back":
+            self.warn_every("rolled_back", f"window {stats.index}: {stats.reason}")
         self._publish(outputs.window_messages(stats, points=self._param("publish_points")))
         self.publish_diagnostics()
 
@@ -289,9 +402,8 @@ class RefinerNode(Node):
             return
         self._closed = True
         self._stop.set()
-        self.stream.cancel()
-        self._worker.join(timeout)
-        if self._worker.is_alive():
+        self.online.stop(timeout)
+        if self.online.worker_alive:
             self.get_logger().warning(
                 f"worker did not stop within {timeout:g} s (busy in an uninterruptible network "
                 "call); not waiting for it")
@@ -300,21 +412,29 @@ class RefinerNode(Node):
             f"stopped: {v['frames_received']} received, {v['frames_refined']} refined, "
             f"{v['frames_unrefined']} unrefined, {v['frames_dropped']} dropped, "
             f"{v['frames_pending']} pending not published (no flush on shutdown)")
-        if self._worker.is_alive():
+        if self.online.worker_alive:
             return  # the model and the SfM workspace are still in use: leave them alone
-        path = self._param("save_weights_path")
+        try:
+            path = self._param("save_weights_path")
+        except Exception as exc:  # the node's parameters are gone (destroyed): nothing to save
+            path = ""
+            self.fault("shutdown", exc)
         if path:
             try:
                 Path(path).parent.mkdir(parents=True, exist_ok=True)
                 torch.save(self.ttr.model.encoder.state_dict(), path)
                 self.get_logger().info(f"refined encoder saved to {path}")
-            except Exception as exc:
-                self.get_logger().error(f"cannot save the encoder to {path}: {exc}")
-        self.ttr.close()
+            except Exception as exc:  # unwritable path, full disk: logged, the exit stays clean
+                self.get_logger().error(f"cannot save the encoder to {path}: "
+                                        f"{type(exc).__name__}: {exc}")
+        try:
+            self.ttr.close()
+        except Exception as exc:
+            self.fault("shutdown", exc)
 
     @property
     def worker_alive(self) -> bool:
-        return self._worker.is_alive()
+        return self.online.worker_alive
 
     def destroy_node(self) -> None:
         self.stop_worker()
@@ -335,17 +455,28 @@ def main(args=None) -> int:
     node = None
     executor = None
     code = 0
+    log = get_logger(names.NODE_NAME)
     try:
-        node = RefinerNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.2)
+        try:
+            node = RefinerNode()
+        except (InputError, ParameterException) as exc:  # bad parameters / model: one line
+            log.fatal(f"cannot start: {type(exc).__name__}: {exc}")
+            code = EXIT_START_UP
+        except (KeyboardInterrupt, ExternalShutdownException):
+            raise
+        except Exception as exc:  # any other start-up failure: still one line, no traceback
+            log.fatal(f"cannot start: {type(exc).__name__}: {exc} (at {where(exc)})")
+            code = EXIT_START_UP
+        if node is not None:
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while rclpy.ok():
+                executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (InputError, ParameterException) as exc:  # bad parameters / model: no traceback
-        get_logger(names.NODE_NAME).fatal(f"cannot start: {type(exc).__name__}: {exc}")
-        code = 1
+    except Exception as exc:  # escaped the callbacks' containment: a run-time fault
+        log.fatal(f"run-time fault: {type(exc).__name__}: {exc} (at {where(exc)}); stopping")
+        code = EXIT_RUN_TIME
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)

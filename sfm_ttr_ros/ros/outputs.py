@@ -1,7 +1,8 @@
 """The messages the ``refiner`` node publishes for one stream output (README "Topics").
 
-* per frame (:func:`frame_messages`): ``~/depth``, a 32FC1 depth (NaN = invalid) with the input
-  image's header unchanged, and, when asked, ``~/depth_colored`` (bgr8, by inverse depth);
+* per live frame (:func:`live_messages`): ``~/depth``, a 32FC1 depth (NaN = invalid) with the
+  input image's header unchanged, and, when asked, ``~/depth_colored`` (bgr8, by inverse depth);
+* per frame out of its window (:func:`frame_messages`): ``~/depth_refined`` (32FC1, same header);
 * per window (:func:`window_messages`): ``~/points``, the window's sparse SfM cloud (x, y, z,
   reprojection_error) with the header of the image whose optical frame it is in, when the
   window has a cloud;
@@ -26,6 +27,7 @@ from msg_adapters import (
     numpy_to_pointcloud2,
 )
 from sfm_ttr_ros.core.diagnostics import Status
+from sfm_ttr_ros.core.live import LiveOutput
 from sfm_ttr_ros.core.stream import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import names
 
@@ -42,16 +44,23 @@ def _timed(timings: Timings | None, key: str, build: Callable, *args):
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
 
-def frame_messages(out: FrameOutput, colored: bool = True,
-                   timings: Timings | None = None) -> dict[str, object]:
-    """{topic: message} for one published frame: ``~/depth`` and (``colored``)
-    ``~/depth_colored``, both with the input image's header."""
+def live_messages(out: LiveOutput, colored: bool = True,
+                  timings: Timings | None = None) -> dict[str, object]:
+    """{topic: message} for one live frame: ``~/depth`` and (``colored``) ``~/depth_colored``,
+    both with the input image's header."""
     header = out.frame.header
     msgs = {names.DEPTH_TOPIC: _timed(timings, "depth_image", depth_to_image, out.depth, header)}
     if colored:
         msgs[names.DEPTH_COLORED_TOPIC] = _timed(timings, "colored_image",
                                                  depth_to_colored_image, out.depth, header)
     return msgs
+
+
+def frame_messages(out: FrameOutput, timings: Timings | None = None) -> dict[str, object]:
+    """{topic: message} for one frame out of its window: ``~/depth_refined`` with the input
+    image's header."""
+    return {names.DEPTH_REFINED_TOPIC: _timed(timings, "depth_image", depth_to_image, out.depth,
+                                              out.frame.header)}
 
 
 def window_messages(stats: WindowStats, points: bool = True,

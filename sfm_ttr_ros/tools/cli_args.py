@@ -24,6 +24,7 @@ PARAM_FLAGS: dict[str, tuple[str, str]] = {
     "--encoder": ("encoder_path", "model"),
     "--decoder": ("decoder_path", "model"),
     "--num-layers": ("num_layers", "model"),
+    "--model-path": ("model_path", "model"),
     "--device": ("device", "model"),
     "--threads": ("torch_num_threads", "model"),
     "--steps": ("refinement.steps", "method"),
@@ -36,7 +37,7 @@ PARAM_FLAGS: dict[str, tuple[str, str]] = {
     "--seed": ("seed", "method"),
     "--window-size": ("window_size", "windows"),
     "--window-stride": ("window_stride", "windows"),
-    "--reset-each-window": ("reset_each_window", "windows"),
+    "--policy": ("weight_policy", "windows"),
 }
 GROUP_TITLES = {"model": "model", "method": "SfM-TTR method", "windows": "online windows"}
 
@@ -82,7 +83,7 @@ def parameter_values(args: argparse.Namespace, default_file: Path | None = None
                      ) -> tuple[Path | None, dict[str, Any]]:
     """(the parameter file read, or None; the values): the file's (``--params-file``, else
     ``default_file``), then the flags given, then ``--set``. A ``--model`` flag drops the
-    file's encoder and decoder paths (they belong to its model)."""
+    file's encoder, decoder and model paths and output kind (they belong to its model)."""
     path = Path(args.params_file) if args.params_file else default_file
     values: dict[str, Any] = {}
     if path is not None:
@@ -91,6 +92,7 @@ def parameter_values(args: argparse.Namespace, default_file: Path | None = None
         values.update(schema.read_params_file(path, NODE_NAME))
     if getattr(args, "model", None) is not None:
         values["encoder_path"], values["decoder_path"] = "", ""
+        values["model_path"], values["output_kind"] = "", ""
     for flag, (name, _) in PARAM_FLAGS.items():
         v = getattr(args, _dest(flag), None)
         if v is not None:

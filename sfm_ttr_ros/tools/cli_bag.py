@@ -25,7 +25,7 @@ def cmd_kitti_to_bag(args: argparse.Namespace) -> int:
 
     res = kitti_to_bag(args.kitti_raw, args.drive, args.out, gt_root=args.kitti_gt,
                        storage=args.storage, start=args.start, max_frames=args.max_frames,
-                       progress=not args.quiet)
+                       progress=not args.quiet, compressed=args.compressed)
     print(f"wrote {res.path} ({res.storage}): {res.frames} frames {res.width}x{res.height}, "
           f"{res.gt_frames} with ground truth, {res.seconds:.1f} s")
     for topic, n in res.counts.items():
@@ -147,6 +147,9 @@ def add_commands(subparsers) -> None:
                    help="rosbag2 storage plugin (default mcap, Jazzy's default)")
     k.add_argument("--start", type=int, default=0, help="first frame index")
     k.add_argument("--max-frames", type=int, default=0, help="0 = all")
+    k.add_argument("--compressed", action="store_true",
+                   help="images as sensor_msgs/CompressedImage (JPEG, quality 95) on "
+                        ".../image_raw/compressed (image_transport's compressed transport)")
     k.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     k.set_defaults(func=cmd_kitti_to_bag)
 

@@ -54,7 +54,7 @@ def _eval_config(args: argparse.Namespace):
 
 
 def add_benchmark_parser(sub) -> argparse.ArgumentParser:
-    from sfm_ttr_ros.tools.benchmark import MODES
+    from sfm_ttr_ros.tools.benchmark import DEFAULT_MODES, MODES
 
     b = sub.add_parser(
         "benchmark",
@@ -69,8 +69,12 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
                        "params/kitti.yaml, installed or from the repository")
     g = b.add_argument_group("benchmark")
     g.add_argument("--out", required=True, help="output folder")
-    g.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
-                   help="which modes to run (default: all three)")
+    g.add_argument("--modes", nargs="+", choices=MODES, default=list(DEFAULT_MODES),
+                   help=f"which modes to run (default: {' '.join(DEFAULT_MODES)}); "
+                        "sfm_ttr_live feeds the frames in real time at --rate; ph_ttr_* and "
+                        "hybrid_* refine with refinement.loss photometric / hybrid")
+    g.add_argument("--rate", type=float, default=10.0,
+                   help="input rate of sfm_ttr_live in Hz (default 10, a KITTI camera)")
     g.add_argument("--offline-max-frames", type=int, default=0,
                    help="offline mode in chunks of at most N frames, each from the original "
                         "weights (0 = the whole sequence in one window, as the paper)")
@@ -115,7 +119,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         seq, factory, settings.ttr, settings.stream, args.out, args.modes, _eval_config(args),
         start=args.start, max_frames=args.max_frames,
         offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
-        save_depth=args.save_depth, model_description=description,
+        save_depth=args.save_depth, model_description=description, rate=args.rate,
         settings_info={"params_file": str(params_path),
                        "torch_threads": torch.get_num_threads()},
         command=command_line())

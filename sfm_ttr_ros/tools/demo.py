@@ -42,7 +42,9 @@ import numpy as np
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.ros import names
 
-DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's ~/depth: /refiner/depth
+DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live ~/depth: /refiner/depth
+REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
+LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
 
 
 def _say(msg: str) -> None:
@@ -70,6 +72,22 @@ class DemoOptions:
     storage: str = "mcap"
     eigen_crop: bool = False
     overwrite: bool = False
+    compressed: bool = False  # the bag's images as JPEG CompressedImages (image_transport)
+
+
+def bag_image_topic(compressed: bool) -> str:
+    """The bag's image topic: kitti2bag's image_raw, or its image_transport ``/compressed``."""
+    from sfm_ttr_ros.ros.kitti_bag import COMPRESSED_SUFFIX, IMAGE_TOPIC
+
+    return IMAGE_TOPIC + COMPRESSED_SUFFIX if compressed else IMAGE_TOPIC
+
+
+def bag_rgb(msg) -> np.ndarray:
+    """The RGB pixels of a bag's Image or CompressedImage message."""
+    from msg_adapters.compressed import compressed_to_rgb8
+    from msg_adapters.image import image_to_rgb8
+
+    return compressed_to_rgb8(msg) if hasattr(msg, "format") else image_to_rgb8(msg)
 
 
 def _prepare_out(opts: DemoOptions) -> Path:
@@ -99,17 +117,16 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     return str(raw), str(gt), drive
 
 
-def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str) -> int:
+def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str,
+                    compressed: bool = False) -> int:
     """The unrefined network's depth for every image of ``bag``, same stamps, into ``out_bag``."""
-    from msg_adapters.image import image_to_numpy
     from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE, BagRecorder, depth_msg, read_bag
-    from sfm_ttr_ros.ros.kitti_bag import IMAGE_TOPIC
 
     n = 0
     with BagRecorder(out_bag, storage) as rec:
         rec.add_topic(DEPTH_TOPIC, IMAGE_MSGTYPE)
-        for _, _, stamp_ns, msg in read_bag(bag, [IMAGE_TOPIC]):
-            rgb = image_to_numpy(msg)
+        for _, _, stamp_ns, msg in read_bag(bag, [bag_image_topic(compressed)]):
+            rgb = bag_rgb(msg)
             depth = model.predict(rgb)[0]
             rec.write(DEPTH_TOPIC, depth_msg(depth, stamp_ns, msg.header.frame_id))
             n += 1
@@ -124,22 +141,27 @@ def _ros_env() -> dict[str, str]:
     return env
 
 
-def refiner_command(params_file: Path, overrides: list[str]) -> list[str]:
-    """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag."""
+def refiner_command(params_file: Path, overrides: list[str],
+                    compressed: bool = False) -> list[str]:
+    """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag
+    (``compressed``: ``image_transport:=compressed``, it then reads ``<image>/compressed``)."""
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 
     cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args", "--params-file",
            str(params_file), "-r", f"{names.IMAGE_TOPIC}:={IMAGE_TOPIC}", "-r",
            f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
+    if compressed:
+        cmd += ["-p", "image_transport:=compressed"]
     for o in overrides:
         cmd += ["-p", o]
     return cmd
 
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
-    """Start the node, play the bag into it, record ``/refiner/depth`` until all frames are back."""
+    """Start the node, play the bag into it, record ``/refiner/depth`` (live) and
+    ``/refiner/depth_refined`` (windows) until every frame is back on both."""
     from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE
-    from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
+    from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC
     from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
     from sfm_ttr_ros.tools.benchmark import default_params_file
 
@@ -148,32 +170,38 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
         raise InputError(f"params file not found: {params}")
     env = _ros_env()
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
-    cmd = refiner_command(params, opts.overrides)
+    cmd = refiner_command(params, opts.overrides, opts.compressed)
     log_path = out / "refiner.log"
     _say(f"4/5 starting refiner ({params.name}; log {log_path}) and playing the bag into it")
     t0 = time.perf_counter()
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
-            with TopicRecorder(out / "refined_bag", {DEPTH_TOPIC: IMAGE_MSGTYPE},
-                               storage=opts.storage) as rec:
-                played = play_bag(bag, rate=opts.rate, wait_topics=[IMAGE_TOPIC,
-                                                                     CAMERA_INFO_TOPIC],
+            wanted = {DEPTH_TOPIC: IMAGE_MSGTYPE, REFINED_TOPIC: IMAGE_MSGTYPE}
+            with TopicRecorder(out / "refined_bag", wanted, storage=opts.storage) as rec:
+                played = play_bag(bag, rate=opts.rate,
+                                  wait_topics=[bag_image_topic(opts.compressed),
+                                               CAMERA_INFO_TOPIC],
                                   wait_timeout=120.0, progress=True)
                 _say(f"   played {played.total} messages; waiting for the refined depth of "
                      f"{expected} frames")
                 last, t_wait = -1, time.monotonic()
                 while time.monotonic() - t_wait < opts.timeout_s:
-                    if rec.wait_for({DEPTH_TOPIC: expected}, timeout=10.0):
+                    if rec.wait_for({REFINED_TOPIC: expected}, timeout=10.0):
+                        # live frames come first; one skipped under load (live_max_queue) is
+                        # counted by the node, not waited for
+                        rec.wait_for({DEPTH_TOPIC: expected}, timeout=LIVE_GRACE_S)
                         break
                     if proc.poll() is not None:
                         raise InputError(f"refiner exited with code {proc.returncode} "
                                          f"before publishing every frame; see {log_path}")
-                    got = rec.counts.get(DEPTH_TOPIC, 0)
+                    got = rec.counts.get(REFINED_TOPIC, 0)
                     if got != last:
-                        _say(f"   {got}/{expected} refined depth images received")
+                        _say(f"   {got}/{expected} refined depth images received "
+                             f"({rec.counts.get(DEPTH_TOPIC, 0)} live)")
                         last = got
-                received = rec.counts.get(DEPTH_TOPIC, 0)
+                received = rec.counts.get(REFINED_TOPIC, 0)
+                live_received = rec.counts.get(DEPTH_TOPIC, 0)
         finally:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
@@ -186,8 +214,8 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
     if received < expected:
         raise InputError(f"only {received} of {expected} depth images came back from refiner "
                          f"within {opts.timeout_s:.0f} s; see {log_path}")
-    return {"received": received, "seconds": seconds, "exit_code": proc.returncode,
-            "command": " ".join(cmd)}
+    return {"received": received, "live_received": live_received, "seconds": seconds,
+            "exit_code": proc.returncode, "command": " ".join(cmd)}
 
 
 def run_demo(opts: DemoOptions) -> dict:
@@ -195,12 +223,12 @@ def run_demo(opts: DemoOptions) -> dict:
     import cv2
     import torch
 
-    from msg_adapters.image import image_to_depth, image_to_numpy
+    from msg_adapters.image import image_to_depth
     from sfm_ttr_ros.core.evaluation import EvalConfig, format_table, relative_gain
     from sfm_ttr_ros.core.models import build_model
     from sfm_ttr_ros.ros.bag import bag_topics, read_bag
     from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
-    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC, IMAGE_TOPIC, kitti_to_bag
+    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC, kitti_to_bag
     from sfm_ttr_ros.tools.benchmark import (
         default_params_file,
         qualitative_figure,
@@ -214,8 +242,9 @@ def run_demo(opts: DemoOptions) -> dict:
     _say(f"2/5 converting {drive} to a rosbag2 ({opts.storage})")
     bag = out / "drive_bag"
     conv = kitti_to_bag(raw, drive, bag, gt_root, storage=opts.storage,
-                        max_frames=opts.max_frames)
-    expected = bag_topics(bag)[IMAGE_TOPIC].count
+                        max_frames=opts.max_frames, compressed=opts.compressed)
+    image_topic = bag_image_topic(opts.compressed)
+    expected = bag_topics(bag)[image_topic].count
     _say(f"   {conv.frames} images, {conv.gt_frames} with ground truth")
     if conv.gt_frames == 0:
         raise InputError(f"{drive} has no frame with ground truth: nothing to evaluate (a "
@@ -226,18 +255,22 @@ def run_demo(opts: DemoOptions) -> dict:
     _, _, model_config = settings_from_params(read_params_file(params))
     _say(f"3/5 unrefined depth (model {model_config.type!r} of {params.name}, no refinement)")
     model = build_model(model_config)
-    _predict_no_ttr(bag, out / "no_ttr_bag", model, opts.storage)
+    _predict_no_ttr(bag, out / "no_ttr_bag", model, opts.storage, opts.compressed)
 
     node = _run_refiner(opts, bag, out, expected)
 
     _say("5/5 evaluating against the ground truth topic (matched by stamp)")
     cfg = EvalConfig(eigen_crop=opts.eigen_crop)
     evals = {}
-    for key, pred_bag in (("no_ttr", out / "no_ttr_bag"), ("sfm_ttr", out / "refined_bag")):
-        evals[key] = evaluate_bag(pred_bag, bag, DEPTH_TOPIC, DEPTH_GT_TOPIC, cfg)
+    sources = {"no_ttr": (out / "no_ttr_bag", DEPTH_TOPIC),
+               "sfm_ttr_live": (out / "refined_bag", DEPTH_TOPIC),
+               "sfm_ttr": (out / "refined_bag", REFINED_TOPIC)}
+    for key, (pred_bag, topic) in sources.items():
+        evals[key] = evaluate_bag(pred_bag, bag, topic, DEPTH_GT_TOPIC, cfg)
     metrics = {k: {m: v for m, v in e.items() if not isinstance(v, list | dict)}
                for k, e in evals.items()}
     gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr"])
+    live_gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr_live"])
     table = format_table(metrics)
 
     # figure: the middle GT frame
@@ -245,11 +278,11 @@ def run_demo(opts: DemoOptions) -> dict:
     stamp = sorted(gts)[len(gts) // 2] if gts else None
     fig_path = None
     if stamp is not None:
-        image = next(image_to_numpy(m) for _, _, s, m in read_bag(bag, [IMAGE_TOPIC])
+        image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic])
                      if s == stamp)
-        preds = {k: next(image_to_depth(m) for _, _, s, m in read_bag(p, [DEPTH_TOPIC])
+        preds = {k: next(image_to_depth(m) for _, _, s, m in read_bag(p, [topic])
                          if s == stamp)
-                 for k, p in (("no_ttr", out / "no_ttr_bag"), ("sfm_ttr", out / "refined_bag"))}
+                 for k, (p, topic) in sources.items()}
         gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
         fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
         fig_path = out / "figure.png"
@@ -257,16 +290,25 @@ def run_demo(opts: DemoOptions) -> dict:
 
     results = {
         "drive": drive, "frames": expected, "gt_frames": conv.gt_frames,
-        "metrics": metrics, "relative_gain": gain, "refiner": node,
+        "metrics": metrics, "relative_gain": gain, "relative_gain_live": live_gain,
+        "refiner": node,
         "seconds_total": time.perf_counter() - t_start,
         "figure": str(fig_path) if fig_path else None,
     }
     (out / "results.json").write_text(json.dumps(results, indent=2, default=_json_default))
     gain_line = ", ".join(f"{k} {v:+.1%}" for k, v in gain.items() if k in ("abs_rel", "rmse"))
-    (out / "results.md").write_text(f"# sfm-ttr demo: {drive}\n\n{table}\n\nRelative change "
-                                    f"(positive = lower error than no TTR): {gain_line}\n")
+    live_line = ", ".join(f"{k} {v:+.1%}" for k, v in live_gain.items()
+                          if k in ("abs_rel", "rmse"))
+    (out / "results.md").write_text(
+        f"# sfm-ttr demo: {drive}\n\n{table}\n\nsfm_ttr = /refiner/depth_refined (each frame "
+        f"once its window is done), sfm_ttr_live = /refiner/depth (every frame at once, served "
+        f"with the newest refined weights).\n\nRelative change (positive = lower error than "
+        f"no TTR): windowed {gain_line}; live {live_line}\n")
     print(table)
-    print(f"SfM-TTR vs no TTR: {gain_line} (gain; positive = lower error)")
+    print(f"SfM-TTR (windowed, ~/depth_refined) vs no TTR: {gain_line} (gain; positive = lower "
+          "error)")
+    print(f"SfM-TTR live (~/depth) vs no TTR: {live_line} ({node['live_received']}/{expected} "
+          "live frames received)")
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if fig_path:
@@ -292,7 +334,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                        max_frames=args.max_frames, params_file=args.params_file,
                        overrides=list(args.param or []), rate=args.rate,
                        timeout_s=args.timeout, threads=args.threads, storage=args.storage,
-                       eigen_crop=args.eigen_crop, overwrite=args.overwrite)
+                       eigen_crop=args.eigen_crop, overwrite=args.overwrite,
+                       compressed=args.compressed)
     run_demo(opts)
     return 0
 
@@ -320,4 +363,7 @@ def add_commands(sub) -> None:
     d.add_argument("--threads", type=int, default=2, help="torch threads for no-TTR prediction")
     d.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     d.add_argument("--eigen-crop", action="store_true")
+    d.add_argument("--compressed", action="store_true",
+                   help="write the bag's images as JPEG CompressedImages and run the refiner "
+                        "with image_transport:=compressed")
     d.set_defaults(func=cmd_demo)

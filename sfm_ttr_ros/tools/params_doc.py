@@ -26,9 +26,10 @@ Each default is the default of the config field the parameter sets.
 
 LIVE = """
 When live values apply: windows, keyframes, overload and idle flush at the next frame; `sfm.*`,
-`alignment.*`, `refinement.*`, `min_supervision_points`, `reset_each_window` and `seed` at the
-next window; `fx`..`cy` at the next frame that needs them; `camera_info_use_projection` at the
-next CameraInfo; `publish_*` at the next message; `save_weights_path` at shutdown.
+`alignment.*`, `refinement.*`, `min_supervision_points`, `weight_policy`, `continual.*`,
+`max_loss_ratio` and `seed` at the next window; `fx`..`cy` at the next frame that needs them;
+`camera_info_use_projection` at the next CameraInfo; `publish_*` at the next message;
+`save_weights_path` at shutdown.
 """
 
 

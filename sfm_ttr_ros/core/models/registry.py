@@ -29,7 +29,7 @@ from sfm_ttr_ros.core.models.monodepth2 import (
 
 log = logging.getLogger(__name__)
 
-MODEL_TYPES = ("default", "monodepth2", "mobilenet", "python:<module>:<factory>")
+MODEL_TYPES = ("default", "monodepth2", "mobilenet", "hf", "python:<module>:<factory>")
 DEFAULT_WEIGHTS_PACKAGE = "sfm_ttr_ros.core.models"
 DEFAULT_ENCODER_FILE = "default_encoder.pth"
 DEFAULT_DECODER_FILE = "default_depth.pth"
@@ -42,8 +42,13 @@ class ModelConfig:
     ``type``: ``"default"`` (embedded trained weights), ``"monodepth2"`` (published
     ``encoder.pth`` / ``depth.pth`` in ``encoder_path`` / ``decoder_path``, or random weights
     when both are empty), ``"mobilenet"`` (MobileDepthNet from a pair written by
-    ``save_monodepth2``, or random), or a plug-in ``"python:some.module:factory"`` (also plain
-    ``"some.module:factory"``): ``factory(config)`` must return a ``DepthModel``.
+    ``save_monodepth2``, or random), ``"hf"`` (a transformers depth-estimation model, see
+    :mod:`sfm_ttr_ros.core.models.hf`), or a plug-in ``"python:some.module:factory"`` (also
+    plain ``"some.module:factory"``): ``factory(config)`` must return a ``DepthModel``.
+    ``model_path``: for ``"hf"``, a directory written by ``save_pretrained`` or a hub id (its own
+    field: ``encoder_path`` / ``decoder_path`` are state-dict files of two halves, a transformers
+    model is one directory). ``output_kind``: for ``"hf"``, "" detects it from the model's
+    config, else ``metric_depth``, ``relative_depth`` or ``relative_inverse_depth``.
     ``num_layers``: ResNet depth for a randomly initialised Monodepth2 (files say their own).
     ``input_height`` / ``input_width``: 0 keeps the model's own input size.
     ``device``: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"`` (cuda when available).
@@ -60,6 +65,8 @@ class ModelConfig:
     input_width: int = 0
     device: str = "cpu"
     channels_last: bool = False
+    model_path: str = ""
+    output_kind: str = ""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -180,6 +187,10 @@ def build_model(config: ModelConfig | None = None) -> DepthModel:
             warnings.warn("model type 'mobilenet' without encoder_path/decoder_path: the "
                           "network has RANDOM weights", UserWarning, stacklevel=2)
             model = MobileDepthNet()
+    elif kind.lower() == "hf":
+        from sfm_ttr_ros.core.models.hf import from_config  # transformers only when asked for
+
+        model = from_config(config)
     else:
         raise InputError(f"unknown model type {config.type!r}; choose one of {MODEL_TYPES}")
 

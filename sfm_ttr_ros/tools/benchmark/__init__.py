@@ -8,6 +8,10 @@
 * ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.process_window` over the whole
   sequence, the paper's setting (or consecutive chunks of ``offline_max_frames`` frames, each
   from the original weights, when the sequence is too long for one reconstruction).
+* ``ph_ttr_online`` / ``ph_ttr_offline`` and ``hybrid_online`` / ``hybrid_offline`` (issue 16,
+  on request with ``--modes``): the same windows with ``refinement.loss`` ``photometric``
+  (Ph-TTR: Monodepth2's loss with the window's SfM poses) and ``hybrid`` (Eq. 5 + λ·photometric);
+  the ``sfm_ttr_*`` modes always run ``sfm`` (:func:`.runners.mode_config`).
 
 Each mode starts from a fresh copy of the original weights (``model_factory()``). Every frame
 that has ground truth is evaluated (KITTI protocol, :mod:`sfm_ttr_ros.core.evaluation`); frames that
@@ -18,19 +22,24 @@ what the node does.
 
 Outputs in ``out_dir``: ``results.json`` (per mode: the metrics, ``frames``,
 ``seconds_per_frame``, ``refined_frames``, per-stage timings; the relative gains against
-``no_ttr``; the settings, the model, the command line), ``results.md`` (the same as tables),
+``no_ttr``; ``bands``: abs rel, RMSE and pixels per GT depth band 0-10, 10-20, 20-40, 40-80 m,
+pooled over pixels, and ``error_by_depth`` in finer bins; the settings, the model, the command
+line), ``results.md`` (the same as tables), ``error_by_depth.png`` (abs rel against GT depth,
+one line per mode: the paper's Fig. 4),
 ``per_frame.csv`` (abs rel and RMSE of every GT frame in every mode) and ``figure.png`` (for a
 few frames: image, depth of each mode on one colour scale, abs-rel error maps at the GT pixels
 and predicted-vs-GT density plots, drawn with OpenCV).
 
-Modules: :mod:`.settings` (the parameter file), :mod:`.runners` (the three modes), :mod:`.run`
-(:func:`run_benchmark`), :mod:`.report` (json / markdown / csv), :mod:`.figure`.
+Modules: :mod:`.settings` (the parameter file), :mod:`.runners` (the windowed modes),
+:mod:`.live` (``sfm_ttr_live``: the node's live serving fed in real time at ``--rate``), :mod:`.run`
+(:func:`run_benchmark`), :mod:`.report` (json / markdown / csv), :mod:`.figure`, :mod:`.bands`
+(the depth bands and the error-against-depth figure).
 """
 
 from sfm_ttr_ros.tools.benchmark.figure import qualitative_figure, scatter_panel
 from sfm_ttr_ros.tools.benchmark.report import describe_model, json_safe, results_markdown
 from sfm_ttr_ros.tools.benchmark.run import run_benchmark
-from sfm_ttr_ros.tools.benchmark.runners import MODES, STAGES
+from sfm_ttr_ros.tools.benchmark.runners import DEFAULT_MODES, MODES, STAGES
 from sfm_ttr_ros.tools.benchmark.settings import (
     PARAMS_FILE,
     default_params_file,
@@ -39,6 +48,7 @@ from sfm_ttr_ros.tools.benchmark.settings import (
 )
 
 __all__ = [
+    "DEFAULT_MODES",
     "MODES",
     "PARAMS_FILE",
     "STAGES",

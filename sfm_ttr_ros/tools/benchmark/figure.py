@@ -12,6 +12,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.evaluation import EvalConfig, valid_mask
 from sfm_ttr_ros.core.visualize import colorize_depth, colorize_error
+from sfm_ttr_ros.tools.benchmark.bands import scaled_prediction
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _BG = (255, 255, 255)
@@ -32,19 +33,6 @@ def _labelled(img: np.ndarray, label: str, width: int, height: int) -> np.ndarra
     cv2.putText(cell, label[: max(8, width // 8)], (4, 16), _FONT, 0.45, (0, 0, 0), 1,
                 cv2.LINE_AA)
     return cell
-
-
-def _scaled_pred(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray,
-                 cfg: EvalConfig) -> np.ndarray:
-    """The prediction as the evaluation sees it: resized, median-scaled, clamped."""
-    p = np.asarray(pred, np.float64)
-    if p.shape != gt.shape:
-        p = cv2.resize(p, (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR)
-    if cfg.median_scaling:
-        sel = mask & np.isfinite(p)
-        if sel.any() and np.median(p[sel]) > 0:
-            p = p * (np.median(gt[sel]) / np.median(p[sel]))
-    return np.clip(p, cfg.min_depth, cfg.max_depth)
 
 
 def _nice_ticks(lo: float, hi: float) -> list[float]:
@@ -139,7 +127,7 @@ def qualitative_figure(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np
     pw = min(int(panel_width), w)
     ph = max(1, round(h * pw / w))
     sh = min(pw, max(ph, 256))  # scatter row height
-    scaled = {k: _scaled_pred(v, gt, mask, cfg) for k, v in preds.items()}
+    scaled = {k: scaled_prediction(v, gt, mask, cfg) for k, v in preds.items()}
     if mask.any():
         vmin, vmax = (float(v) for v in np.percentile(gt[mask], (5, 95)))
         vmax = max(vmax, vmin * 1.01)

@@ -13,6 +13,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.evaluation import ERROR_METRICS, METRICS, format_table
 from sfm_ttr_ros.data.sequence import ImageSequence
+from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE
 from sfm_ttr_ros.tools.benchmark.runners import MODES, ModeRun
 
 
@@ -63,6 +64,30 @@ def write_per_frame(path: Path, seq: ImageSequence, gt_indices: Sequence[int],
             wr.writerow(row)
 
 
+def band_table(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
+    """results.md's lines for the ``bands`` of every mode: abs rel / RMSE per GT depth band
+    (pooled over pixels) and each band's pixel count."""
+    names = next((list(results[m]["bands"]) for m in modes if results[m].get("bands")), [])
+    if not names:
+        return []
+
+    def cell(b: Mapping[str, Any] | None) -> str:
+        if not b or not b.get("pixels"):
+            return "n/a"
+        return f"{b['abs_rel']:.4f} / {b['rmse']:.3f}"
+
+    lines = ["By GT depth band (abs rel / RMSE over the band's pixels of all GT frames):", "",
+             "| method | " + " | ".join(f"{n} m" for n in names) + " |",
+             "|---|" + "---:|" * len(names)]
+    for m in modes:
+        bands = results[m].get("bands") or {}
+        lines.append(f"| {m} | " + " | ".join(cell(bands.get(n)) for n in names) + " |")
+    first = results[modes[0]].get("bands") or {}
+    lines += ["| pixels | " + " | ".join(str((first.get(n) or {}).get("pixels", 0))
+                                         for n in names) + " |", ""]
+    return lines
+
+
 def _fmt_gain(v) -> str:
     return "n/a" if v is None or not math.isfinite(float(v)) else f"{100 * float(v):+.1f} %"
 
@@ -84,6 +109,7 @@ def results_markdown(results: Mapping[str, Any]) -> str:
                                          else results[m].get(k))
                                      for k in (*METRICS, 'frames')} for m in modes},
                                decimals=4)]
+    lines += band_table(results, modes)
     gains = results.get("relative_gain") or {}
     if gains:
         lines += ["Relative gain against no_ttr (positive = better):", "",
@@ -107,6 +133,7 @@ def results_markdown(results: Mapping[str, Any]) -> str:
     lines += ["", "Lower is better for " + ", ".join(ERROR_METRICS)
               + "; higher for a1-a3. Frames SfM could not use count with the prediction the "
               "mode published for them.", ""]
+    lines += [f"![error by GT depth]({ERROR_FIGURE})", ""]
     if results.get("figure_frames"):
         lines += [f"![qualitative results, frames {', '.join(results['figure_frames'])}]"
                   "(figure.png)", ""]

@@ -17,7 +17,9 @@ from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.stream import StreamSettings
 from sfm_ttr_ros.data.sequence import ImageSequence
+from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE, error_by_depth_figure
 from sfm_ttr_ros.tools.benchmark.figure import pick_figure_frames, qualitative_figure
+from sfm_ttr_ros.tools.benchmark.live import run_live
 from sfm_ttr_ros.tools.benchmark.report import (
     config_dict,
     describe_model,
@@ -26,9 +28,11 @@ from sfm_ttr_ros.tools.benchmark.report import (
     write_per_frame,
 )
 from sfm_ttr_ros.tools.benchmark.runners import (
+    DEFAULT_MODES,
     MODES,
     ModeRun,
     log,
+    mode_config,
     run_no_ttr,
     run_offline,
     run_online,
@@ -50,7 +54,7 @@ def run_benchmark(
     ttr_config: TTRConfig | None = None,
     stream_settings: StreamSettings | None = None,
     out_dir: str | Path = "benchmark",
-    modes: Sequence[str] = MODES,
+    modes: Sequence[str] = DEFAULT_MODES,
     eval_config: EvalConfig | None = None,
     *,
     start: int = 0,
@@ -62,6 +66,7 @@ def run_benchmark(
     settings_info: Mapping[str, Any] | None = None,
     command: str | None = None,
     progress: Callable[[str], None] | None = _stderr,
+    rate: float = 10.0,
 ) -> dict[str, Any]:
     """Run ``modes`` over frames ``start .. start+max_frames`` (0 = to the end) of ``seq`` and
     write ``results.json``, ``results.md``, ``per_frame.csv`` and ``figure.png`` to
@@ -72,6 +77,7 @@ def run_benchmark(
     ``offline_max_frames`` > 0 splits the offline mode into chunks of that many frames.
     ``save_depth`` also writes every depth as ``out_dir/depth/<mode>/<frame>.npy`` (network
     units, for ``sfm-ttr evaluate --pred``). ``progress`` gets one line per step (None: quiet).
+    ``rate``: the input rate (Hz) of the real-time ``sfm_ttr_live`` mode.
     """
     modes = list(dict.fromkeys(modes))
     bad = [m for m in modes if m not in MODES]
@@ -117,10 +123,14 @@ def run_benchmark(
         t0 = time.perf_counter()
         if mode == "no_ttr":
             run_no_ttr(run, seq, indices, model, ttr_config, progress)
-        elif mode == "sfm_ttr_online":
-            run_online(run, seq, indices, model, ttr_config, stream_settings, progress)
+        elif mode.endswith("_online"):  # sfm_ttr / ph_ttr / hybrid: the mode's loss
+            run_online(run, seq, indices, model, mode_config(mode, ttr_config), stream_settings,
+                       progress)
+        elif mode == "sfm_ttr_live":
+            run_live(run, seq, indices, model, ttr_config, stream_settings, progress, rate)
         else:
-            run_offline(run, seq, indices, model, ttr_config, offline_max_frames, progress)
+            run_offline(run, seq, indices, model, mode_config(mode, ttr_config),
+                        offline_max_frames, progress)
         runs[mode] = run
         del model
         s = run.summary(len(indices))
@@ -158,6 +168,10 @@ def run_benchmark(
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     (out / "results.md").write_text(results_markdown(results))
     write_per_frame(out / "per_frame.csv", seq, gt_indices, runs)
+    curves = {m: results[m]["error_by_depth"] for m in modes if m in results}
+    if not cv2.imwrite(str(out / ERROR_FIGURE), error_by_depth_figure(
+            curves, title=f"{seq.name}: abs rel by GT depth (pixels of all GT frames)")):
+        raise InputError(f"cannot write {out / ERROR_FIGURE}")
     if fig_idx:
         blocks = []
         for i in fig_idx:
@@ -174,5 +188,6 @@ def run_benchmark(
             if not cv2.imwrite(str(out / "figure.png"), np.vstack(blocks)):
                 raise InputError(f"cannot write {out / 'figure.png'}")
     if progress:
-        progress(f"results in {out}/results.json, results.md, per_frame.csv, figure.png")
+        progress(f"results in {out}/results.json, results.md, per_frame.csv, figure.png, "
+                 f"{ERROR_FIGURE}")
     return results

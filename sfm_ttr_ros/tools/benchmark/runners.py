@@ -1,7 +1,9 @@
-"""The benchmark's three modes over the same frames (see :mod:`sfm_ttr_ros.tools.benchmark`):
-``no_ttr`` (the network alone), ``sfm_ttr_online`` (the node's stream, no ROS transport) and
-``sfm_ttr_offline`` (one window over the whole sequence, or chunks), and the per-mode
-bookkeeping (:class:`ModeRun`) that evaluates each published depth."""
+"""The benchmark's modes over the same frames (see :mod:`sfm_ttr_ros.tools.benchmark`):
+``no_ttr`` (the network alone), ``<method>_online`` (the node's stream, no ROS transport) and
+``<method>_offline`` (one window over the whole sequence, or chunks) for the three refinement
+objectives (``refinement.loss``, issue 16): ``sfm_ttr`` (Eq. 5), ``ph_ttr`` (photometric TTR
+with the SfM poses) and ``hybrid``; and the per-mode bookkeeping (:class:`ModeRun`) that
+evaluates each published depth, overall and by depth band."""
 
 from __future__ import annotations
 
@@ -26,10 +28,19 @@ from sfm_ttr_ros.core.stream import (
     reason_key_of,
 )
 from sfm_ttr_ros.data.sequence import ImageSequence
+from sfm_ttr_ros.tools.benchmark.bands import DepthBands
 
 log = logging.getLogger("sfm_ttr_ros.tools.benchmark")
 
-MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
+#: What ``sfm-ttr benchmark`` runs when no --modes are given.
+DEFAULT_MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
+#: Method prefix of a windowed mode → the ``refinement.loss`` it runs with, whatever the
+#: parameter file says (issue 16: the same windows and settings, only the objective differs).
+METHOD_LOSS = {"sfm_ttr": "sfm", "ph_ttr": "photometric", "hybrid": "hybrid"}
+#: The photometric (Ph-TTR) and hybrid twins of the SfM-TTR modes.
+LOSS_MODES = ("ph_ttr_online", "hybrid_online", "ph_ttr_offline", "hybrid_offline")
+#: Every mode (``sfm_ttr_live`` runs in real time at --rate: tools/benchmark/live.py).
+MODES = (*DEFAULT_MODES, "sfm_ttr_live", *LOSS_MODES)
 #: The top-level stages of a window (WindowResult.timings also holds ``sfm_*`` sub-stages).
 STAGES = ("predict_before", "sfm", "align", "refine", "predict_after")
 
@@ -46,6 +57,7 @@ class ModeRun:
         self.expected = set(indices)
         self.figure_indices = set(figure_indices)
         self.evaluator = Evaluator(eval_config)
+        self.bands = DepthBands(eval_config)
         self.per_frame: dict[int, dict[str, Any]] = {}
         self.figure_depths: dict[int, np.ndarray] = {}
         self.refined = 0
@@ -76,6 +88,8 @@ class ModeRun:
         gt = self.seq.gt(name)
         if gt is not None:
             r = self.evaluator.add(name, depth, gt)
+            if r is not None:
+                self.bands.add(depth, gt)
             row.update({m: (r.metrics[m] if r is not None else None) for m in METRICS})
         self.per_frame[index] = row
 
@@ -95,6 +109,8 @@ class ModeRun:
         out["ratio_median"] = s["ratio_median"]
         out["ratio_std"] = s["ratio_std"]
         out["timings"] = dict(self.timings)
+        out["bands"] = self.bands.bands()
+        out["error_by_depth"] = self.bands.by_depth()
         out.update(self.extra)
         return out
 
@@ -142,7 +158,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             span = f"{seq_index(ws.names[0])}-{seq_index(ws.names[-1])}" if ws.names else "-"
             what = "refined" if ws.refined else f"not refined ({ws.reason})"
             secs = sum(ws.timings.get(k, 0.0) for k in STAGES)
-            progress(f"sfm_ttr_online: window {ws.index} (frames {span}, {ws.new_frames} new) "
+            progress(f"{run.mode}: window {ws.index} (frames {span}, {ws.new_frames} new) "
                      f"{what}; {ws.registered}/{len(ws.names)} registered, {ws.points} points, "
                      f"{secs:.1f} s")
 
@@ -170,8 +186,8 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         # the latest weights' prediction, under their drop reason.
         for frame, key in dropped:
             if frame is not None and frame.index not in run.seen:
-                log.warning("sfm_ttr_online: frame %d dropped by the stream (%s): evaluated "
-                            "with an unrefined prediction", frame.index, key)
+                log.warning("%s: frame %d dropped by the stream (%s): evaluated with an "
+                            "unrefined prediction", run.mode, frame.index, key)
                 run.add(frame.index, ttr.predict([frame.image])[0], False, f"dropped:{key}")
     finally:
         ttr.close()
@@ -183,7 +199,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                  cfg: TTRConfig, max_frames: int, progress) -> None:
     cfg = copy.deepcopy(cfg)
-    cfg.reset_each_window = False  # chunks reset explicitly below
+    cfg.weight_policy = "continue"  # chunks reset explicitly below
     ttr = SfmTTR(model, cfg)
     n = len(indices)
     size = n if max_frames <= 0 else max(1, max_frames)
@@ -195,7 +211,7 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                 ttr.reset_model()  # every chunk is a sequence of its own: original weights
             frames = [seq.frame(i) for i in chunk]
             if progress:
-                progress(f"sfm_ttr_offline: window {c + 1}/{len(chunks)} over {len(frames)} "
+                progress(f"{run.mode}: window {c + 1}/{len(chunks)} over {len(frames)} "
                          f"frames ({chunk[0]}-{chunk[-1]})")
             t0 = time.perf_counter()
             try:
@@ -204,7 +220,7 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                 raise
             except Exception as exc:  # as the stream does: the frames go out unrefined
                 msg = f"window failed: {type(exc).__name__}: {exc}"
-                log.error("sfm_ttr_offline: %s", msg)
+                log.error("%s: %s", run.mode, msg)
                 ttr.reset_model()
                 depths = ttr.predict([f.image for f in frames])
                 run.seconds += time.perf_counter() - t0
@@ -221,7 +237,7 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             info.append(res.summary())
             if progress:
                 what = "refined" if res.refined else f"not refined ({res.reason})"
-                progress(f"sfm_ttr_offline: {what}; {info[-1]['registered']}/{len(frames)} "
+                progress(f"{run.mode}: {what}; {info[-1]['registered']}/{len(frames)} "
                          f"registered, {info[-1]['points']} points, "
                          f"{time.perf_counter() - t0:.1f} s")
             del frames, res
@@ -231,3 +247,15 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra["windows_refined"] = sum(int(w["refined"]) for w in info)
     run.extra["registered_frames"] = sum(int(w.get("registered", 0)) for w in info)
     run.extra["offline_windows"] = info
+
+
+def mode_config(mode: str, cfg: TTRConfig) -> TTRConfig:
+    """``cfg`` with the ``refinement.loss`` of ``mode``'s method (:data:`METHOD_LOSS`: the
+    ``sfm_ttr_*`` modes run Eq. (5) even when the parameter file names another loss);
+    ``no_ttr`` gets ``cfg`` itself."""
+    for prefix, loss in METHOD_LOSS.items():
+        if mode.startswith(prefix + "_"):
+            out = copy.deepcopy(cfg)
+            out.refinement.loss = loss
+            return out
+    return cfg

@@ -1,0 +1,315 @@
+#!/usr/bin/env python3
+"""Soak the INSTALLED refiner (issue 17): a looped generated KITTI-size drive at 10 Hz for
+``--minutes`` (30 for the figures in BENCHMARKS.md "Soak") through the node started with
+``params/kitti.yaml``, as an outside rclpy client through DDS.
+
+Sampled: the node process's RSS (every ``--rss-period`` s, /proc) and, per frame, the latency
+from publishing the image to receiving its ``~/depth`` (live) and its ``~/depth_refined``
+(window) message. Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
+"first / last 5 minutes" are the first / last sixth of the run):
+
+* every frame accounted: /diagnostics ``frames_received`` = frames sent, ``received = refined +
+  unrefined + dropped`` and nothing pending after the drain, every frame published on
+  ``~/depth_refined`` or counted dropped;
+* memory: the peak RSS after the first 5 minutes <= 1.10 x the RSS at 5 minutes;
+* latency: the p95 of ``~/depth_refined`` latency over the last 5 minutes within 20 % of the
+  first 5 minutes' (and the same reported for the live ``~/depth``).
+
+Writes ``soak.json`` (samples, figures, checks) and ``soak.png`` (RSS and latency over time,
+drawn with OpenCV) into ``--out``. Exit 0 when every check passes.
+
+    .venv/bin/python scripts/soak_node.py --minutes 30 --out soak_30min   # the full soak
+    .venv/bin/python scripts/soak_node.py --minutes 2 --out /tmp/soak     # a short proof run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "scripts"))
+from fuzz_node import rss_mib  # noqa: E402
+
+KITTI_W, KITTI_H = 1242, 375
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float, float]],
+              refined: list[tuple[float, float]], title: str) -> None:
+    """Two panels (RSS MiB; latency s of ~/depth and ~/depth_refined) over minutes, OpenCV."""
+    import cv2
+
+    w, h, m = 1200, 800, 70
+    img = np.full((h, w, 3), 255, np.uint8)
+    cv2.putText(img, title, (m, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 2)
+    t_max = max([t for t, _ in rss + live + refined] + [1.0]) / 60.0
+    panels = [("RSS (MiB)", [(rss, (200, 0, 0))], 60, 380),
+              ("latency (s): live ~/depth blue, ~/depth_refined red",
+               [(live, (255, 120, 0)), (refined, (0, 0, 220))], 440, 760)]
+    for name, series, top, bottom in panels:
+        values = [v for s, _ in series for _, v in s if np.isfinite(v)]
+        lo, hi = (min(values), max(values)) if values else (0.0, 1.0)
+        lo = 0.0 if name.startswith("latency") else lo * 0.95
+        hi = hi * 1.05 if hi > lo else lo + 1.0
+        cv2.rectangle(img, (m, top), (w - 20, bottom), (0, 0, 0), 1)
+        cv2.putText(img, name, (m + 5, top + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1)
+        for frac in (0.0, 0.5, 1.0):
+            y = int(bottom - frac * (bottom - top))
+            cv2.putText(img, f"{lo + frac * (hi - lo):.1f}", (5, y + 5),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+        for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
+            x = int(m + frac * (w - 20 - m))
+            cv2.putText(img, f"{frac * t_max:.1f} min", (x - 20, bottom + 18),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+        for samples, colour in series:
+            kept = [(t, v) for t, v in samples if np.isfinite(v)]
+            pts = [(int(m + (t / 60.0) / t_max * (w - 20 - m)),
+                    int(bottom - (v - lo) / (hi - lo) * (bottom - top))) for t, v in kept]
+            for i in range(1, len(pts)):  # no line across a gap (frames dropped in between)
+                if kept[i][0] - kept[i - 1][0] <= 5.0:
+                    cv2.line(img, pts[i - 1], pts[i], colour, 1)
+            for p in pts if len(pts) < 400 else []:
+                cv2.circle(img, p, 2, colour, -1)
+    cv2.imwrite(str(path), img)
+
+
+class Client:
+    """Publishes the drive, records output latencies and the last diagnostics."""
+
+    def __init__(self):
+        import rclpy  # noqa: F401
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, Image
+
+        from msg_adapters import diagnostic_values
+        from sfm_ttr_ros.ros import names
+
+        self.names, self.diagnostic_values = names, diagnostic_values
+        self.node = Node("soak_player")
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_image = self.node.create_publisher(Image, names.IMAGE_TOPIC, qos)
+        self.pub_info = self.node.create_publisher(CameraInfo, names.CAMERA_INFO_TOPIC, qos)
+        self.sent_at: dict[int, float] = {}
+        self.live: list[tuple[float, float]] = []
+        self.refined: list[tuple[float, float]] = []
+        self.diag: dict[str, str] = {}
+        self.t0 = time.monotonic()
+        self._lock = threading.Lock()
+        self.node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED,
+                                      lambda m: self._on_depth(m, self.live), qos)
+        self.node.create_subscription(Image, names.DEPTH_REFINED_TOPIC_RESOLVED,
+                                      lambda m: self._on_depth(m, self.refined), qos)
+        self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC, self._on_diag,
+                                      10)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def _on_depth(self, msg, sink: list) -> None:
+        now = time.monotonic()
+        ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        with self._lock:
+            sent = self.sent_at.get(ns)
+            if sent is not None:
+                sink.append((sent - self.t0, now - sent))
+
+    def _on_diag(self, msg) -> None:
+        if any(s.name == self.names.DIAG_NAME for s in msg.status):
+            v = self.diagnostic_values(msg)
+            with self._lock:
+                self.diag = v
+
+    def publish(self, rgb: np.ndarray, intr, stamp_ns: int) -> None:
+        from msg_adapters import intrinsics_to_camera_info, make_header, numpy_to_image
+
+        header = make_header(stamp_ns, "camera_color_left")
+        self.pub_info.publish(intrinsics_to_camera_info(intr, header))
+        msg = numpy_to_image(rgb, "rgb8", header)
+        with self._lock:
+            self.sent_at[stamp_ns] = time.monotonic()
+        self.pub_image.publish(msg)
+
+
+def run(args: argparse.Namespace) -> dict:
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ["ROS_DOMAIN_ID"] = str(args.domain_id or random.SystemRandom().randint(101, 230))
+    import rclpy
+
+    from sfm_ttr_ros.data.synthetic import make_sequence
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"soak: rendering a {args.drive_frames}-frame {KITTI_W}x{KITTI_H} drive", flush=True)
+    seq = make_sequence(seed=args.seed, domain="A", num_frames=args.drive_frames, width=KITTI_W,
+                        height=KITTI_H)
+    cmd = [args.exe, "--ros-args", "--params-file", args.params_file]
+    for o in args.param or []:
+        cmd += ["-p", o]
+    log_path = out / "refiner.log"
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=out,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    rclpy.init()
+    c = None
+    rss: list[tuple[float, float]] = []
+    sent = 0
+    try:
+        c = Client()
+        deadline = time.monotonic() + 120
+        while c.pub_image.get_subscription_count() < 1:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"the node did not come up; see {log_path}")
+            time.sleep(0.2)
+        c.t0 = t0 = time.monotonic()
+        duration = args.minutes * 60.0
+        period = 1.0 / args.rate
+        next_rss = 0.0
+        stamp0 = 1_700_000_000 * 10**9
+        print(f"soak: {args.minutes:g} min at {args.rate:g} Hz into {' '.join(cmd)}", flush=True)
+        while True:
+            now = time.monotonic() - t0
+            if now >= duration or proc.poll() is not None:
+                break
+            if now >= next_rss:
+                rss.append((now, rss_mib(proc.pid)))
+                next_rss += args.rss_period
+            loop, i = divmod(sent, len(seq.images))
+            rgb = seq.images[i]
+            if loop:  # a new pixel digest per loop: no prediction is reused across loops
+                rgb = rgb.copy()
+                rgb[0, 0, 0] = loop % 256
+            c.publish(rgb, seq.intrinsics, stamp0 + sent * int(period * 1e9))
+            sent += 1
+            if sent % int(60 * args.rate) == 0:
+                d = c.diag
+                print(f"  {now / 60:.1f} min: {sent} sent, RSS {rss[-1][1]:.0f} MiB, "
+                      f"{d.get('frames_refined')} refined, {d.get('frames_unrefined')} unrefined, "
+                      f"{d.get('frames_dropped')} dropped, {d.get('frames_pending')} pending",
+                      flush=True)
+            time.sleep(max(0.0, t0 + sent * period - time.monotonic()))
+        # drain
+        drain_end = time.monotonic() + args.drain_timeout
+        while time.monotonic() < drain_end and proc.poll() is None:
+            d = c.diag
+            if d.get("frames_pending") == "0" and int(d.get("frames_received", -1)) == sent:
+                break
+            time.sleep(0.5)
+            rss.append((time.monotonic() - t0, rss_mib(proc.pid)))
+        time.sleep(2.0)
+        alive = proc.poll() is None
+        d = dict(c.diag)
+        live, refined = list(c.live), list(c.refined)
+    finally:
+        if c is not None:
+            c.executor.shutdown(timeout_sec=2)
+            c.node.destroy_node()
+        rclpy.try_shutdown()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    return _report(args, out, cmd, sent, alive, proc.returncode, d, rss, live, refined,
+                   log_path)
+
+
+def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path) -> dict:
+    duration = args.minutes * 60.0
+    warm = min(300.0, duration / 6.0)  # "the first 5 minutes" (a sixth of a shorter run)
+
+    def num(key):
+        return int(d.get(key, 0))
+
+    rss_at_warm = next((v for t, v in rss if t >= warm), float("nan"))
+    peak_after = max((v for t, v in rss if t >= warm), default=float("nan"))
+    first = [lat for t, lat in refined if t < warm]
+    last = [lat for t, lat in refined if t >= duration - warm]
+    live_first = [lat for t, lat in live if t < warm]
+    live_last = [lat for t, lat in live if t >= duration - warm]
+    p95 = {"refined_first": percentile(first, 95), "refined_last": percentile(last, 95),
+           "live_first": percentile(live_first, 95), "live_last": percentile(live_last, 95)}
+    dropped = num("frames_dropped")
+    checks = {
+        "alive": alive,
+        "every_frame_received": num("frames_received") == sent,
+        "accounting_adds_up": num("frames_received") == num("frames_refined")
+        + num("frames_unrefined") + dropped + num("frames_pending"),
+        "nothing_pending": num("frames_pending") == 0,
+        "every_frame_back_or_counted": len(refined) + dropped == sent,
+        "rss_growth_le_10pct": peak_after <= 1.10 * rss_at_warm,
+        "latency_p95_within_20pct": abs(p95["refined_last"] - p95["refined_first"])
+        <= 0.20 * p95["refined_first"],
+        "no_traceback": "Traceback" not in log_path.read_text(errors="replace"),
+        "clean_exit": code == 0,
+    }
+    report = {
+        "command": " ".join(cmd), "minutes": args.minutes, "rate_hz": args.rate,
+        "frames_sent": sent, "depth_refined_back": len(refined), "depth_live_back": len(live),
+        "warm_up_s": warm, "rss_mib": {"at_warm_up": rss_at_warm, "peak_after_warm_up":
+                                       peak_after, "final": rss[-1][1] if rss else None},
+        "latency_p95_s": p95,
+        "latency_median_s": {"refined": percentile([lat for _, lat in refined], 50),
+                             "live": percentile([lat for _, lat in live], 50)},
+        "diagnostics": d, "checks": checks, "ok": all(checks.values()), "exit_code": code,
+        "samples": {"rss": rss, "live": live, "refined": refined}, "log": str(log_path),
+    }
+    (out / "soak.json").write_text(json.dumps(report, indent=1, default=str))
+    draw_plot(out / "soak.png", rss, live, refined,
+              f"refiner soak: {args.minutes:g} min at {args.rate:g} Hz, params/kitti.yaml, "
+              f"{KITTI_W}x{KITTI_H}")
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--minutes", type=float, default=30.0)
+    ap.add_argument("--rate", type=float, default=10.0, help="frames per second")
+    ap.add_argument("--out", default="soak_out", help="folder for soak.json, soak.png, the log")
+    ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"))
+    ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
+    ap.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE")
+    ap.add_argument("--drive-frames", type=int, default=30, help="length of the looped drive")
+    ap.add_argument("--rss-period", type=float, default=2.0)
+    ap.add_argument("--drain-timeout", type=float, default=600.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--domain-id", type=int, default=0)
+    args = ap.parse_args(argv)
+    r = run(args)
+    print(f"soak: {r['frames_sent']} frames in {r['minutes']:g} min; back on ~/depth_refined "
+          f"{r['depth_refined_back']}, live {r['depth_live_back']}; RSS MiB {r['rss_mib']}; "
+          f"latency p95 s {r['latency_p95_s']}; median {r['latency_median_s']}")
+    d = r["diagnostics"]
+    print("  " + ", ".join(f"{k} {d.get(k)}" for k in (
+        "frames_received", "frames_refined", "frames_unrefined", "frames_dropped",
+        "frames_pending", "windows_ok", "windows_failed", "windows_skipped_overload")))
+    for name, ok in r["checks"].items():
+        print(f"  [{'ok' if ok else 'FAIL'}] {name}")
+    print(f"  {Path(args.out) / 'soak.json'}, {Path(args.out) / 'soak.png'}")
+    print("PASS" if r["ok"] else "FAIL")
+    return 0 if r["ok"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

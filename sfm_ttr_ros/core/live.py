@@ -1,0 +1,197 @@
+"""Live depth at camera rate: every frame predicted on arrival by the serving network.
+
+The paper leaves "online and real-time refinement" open; here the two jobs are split. The
+windowed SfM-TTR (:class:`~sfm_ttr_ros.core.stream.StreamProcessor`) reconstructs and refines in
+the background and publishes each keyframe again once its window is done; :class:`LiveServer`
+answers every frame at once from a :class:`~sfm_ttr_ros.core.serving.ServingModel` that holds
+the newest accepted weights.
+
+Threads: :meth:`LiveServer.submit` (any thread, cheap) queues a frame; one serving thread takes
+frames oldest first, predicts, and hands ``(frame, depth, version)`` to ``on_depth``. The queue
+is bounded (``max_queue``): when it is full the OLDEST waiting frame is skipped and counted
+(``skipped["overflow"]``), so a slow machine serves the newest images. A prediction that raises
+skips that frame (``skipped["prediction_error"]``, logged, throttled) and the server goes on.
+
+Accounting, as for the windowed stream: ``received == published + sum(skipped) + pending``.
+
+Scheduling on few cores: torch's intra-op thread count is one number per process, so the two
+roles cannot be given different torch thread counts. What can be separated is the OS priority:
+:func:`lower_thread_priority` raises the calling thread's nice value (Linux: per thread; threads
+it starts later, e.g. its OpenMP team and pycolmap's workers, inherit it), so a background
+refinement worker yields the cores to the serving thread whenever a frame arrives.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from sfm_ttr_ros.core.frames import Frame
+from sfm_ttr_ros.core.serving import ServingModel
+
+#: Reason keys of live frames that were not published.
+LIVE_SKIP_REASONS = {
+    "overflow": "live queue full: oldest frame skipped",
+    "prediction_error": "live prediction failed",
+    "publish_error": "publishing the live depth failed",
+    "stopped": "server stopped before the frame was served",
+}
+
+
+def lower_thread_priority(nice: int) -> bool:
+    """Raise the calling thread's nice value by ``nice`` (0 = leave it). True when applied.
+    Linux keeps nice per thread; elsewhere (or when refused) nothing changes."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return False
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + int(nice))
+    except OSError:
+        return False
+    return True
+
+
+@dataclass
+class LiveOutput:
+    """One served frame: depth at the image's size, the weights' version and their age."""
+
+    frame: Frame
+    depth: np.ndarray
+    version: int
+    weights_age_s: float
+    arrival: float  # time.monotonic() when submitted
+    served: float  # time.monotonic() when the depth was ready
+
+    @property
+    def latency_s(self) -> float:
+        return self.served - self.arrival
+
+
+class LiveServer:
+    """Serve each submitted frame from ``serving`` on a thread of its own."""
+
+    def __init__(self, serving: ServingModel, on_depth: Callable[[LiveOutput], None],
+                 max_queue: int = 4, logger: logging.Logger | None = None) -> None:
+        if max_queue < 1:
+            raise ValueError(f"max_queue must be >= 1, got {max_queue}")
+        self.serving = serving
+        self.on_depth = on_depth
+        self.max_queue = int(max_queue)
+        self.log = logger or logging.getLogger(__name__)
+        self._queue: deque[tuple[Frame, float]] = deque()
+        self._cv = threading.Condition()
+        self._stop = False
+        self._busy = 0
+        self.received = 0
+        self.published = 0
+        self.skipped: Counter[str] = Counter()
+        self._last_warn: dict[str, float] = {}
+        self._thread: threading.Thread | None = None
+
+    # -- input ----------------------------------------------------------------------------
+    def submit(self, frame: Frame, arrival: float | None = None) -> None:
+        """Queue a frame (thread-safe). ``arrival``: its monotonic arrival time (now)."""
+        t = time.monotonic() if arrival is None else arrival
+        with self._cv:
+            self.received += 1
+            if self._stop:
+                self.skipped["stopped"] += 1
+                return
+            if len(self._queue) >= self.max_queue:
+                self._queue.popleft()
+                self.skipped["overflow"] += 1
+                self._warn("overflow", f"live queue full ({self.max_queue}): oldest frame "
+                                       f"skipped ({self.skipped['overflow']} so far)")
+            self._queue.append((frame, t))
+            self._cv.notify()
+
+    # -- serving --------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="live-server", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 3.0) -> None:
+        """Stop serving; frames still queued are counted as skipped (``stopped``)."""
+        with self._cv:
+            self._stop = True
+            if self._queue:
+                self.skipped["stopped"] += len(self._queue)
+            self._queue.clear()
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def drain(self, timeout: float = 10.0) -> bool:
+        """Wait until every queued frame is served (True) or ``timeout`` passes (False)."""
+        end = time.monotonic() + timeout
+        with self._cv:
+            while self._queue or self._busy:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cv.wait(left)
+        return True
+
+    def serve_one(self, frame: Frame, arrival: float) -> LiveOutput | None:
+        """Predict one frame now (the serving thread's body; also for synchronous callers)."""
+        try:
+            depth, version = self.serving.predict(frame.image)
+        except Exception as exc:  # noqa: BLE001 - one bad frame must not stop serving
+            with self._cv:
+                self.skipped["prediction_error"] += 1
+            self._warn("prediction_error", f"live prediction failed for frame {frame.name}: "
+                                           f"{type(exc).__name__}: {exc}")
+            return None
+        out = LiveOutput(frame, depth, version, self.serving.age_s, arrival, time.monotonic())
+        try:
+            self.on_depth(out)
+        except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving
+            with self._cv:
+                self.skipped["publish_error"] += 1
+            self._warn("publish_error", f"publishing the live depth of frame {frame.name} "
+                                        f"failed: {type(exc).__name__}: {exc}")
+            return None
+        with self._cv:
+            self.published += 1
+        return out
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                frame, arrival = self._queue.popleft()
+                self._busy += 1
+            try:
+                self.serve_one(frame, arrival)
+            finally:
+                with self._cv:
+                    self._busy -= 1
+                    self._cv.notify_all()
+
+    # -- accounting -----------------------------------------------------------------------
+    @property
+    def pending(self) -> int:
+        with self._cv:
+            return len(self._queue) + self._busy
+
+    def counters(self) -> dict[str, object]:
+        with self._cv:
+            return {"received": self.received, "published": self.published,
+                    "skipped": dict(self.skipped), "pending": len(self._queue) + self._busy,
+                    "version": self.serving.version, "weights_age_s": self.serving.age_s}
+
+    def _warn(self, key: str, message: str, period: float = 5.0) -> None:
+        now = time.monotonic()
+        if now - self._last_warn.get(key, -1e9) >= period:
+            self._last_warn[key] = now
+            self.log.warning(message)

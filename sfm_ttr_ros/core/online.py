@@ -1,0 +1,135 @@
+"""The online refiner without ROS: live depth in front, windowed SfM-TTR behind.
+
+One object the ROS node and the benchmark's live mode both drive, so they run the same code:
+
+* :meth:`OnlineRefiner.submit_live` — every frame, at once, to the
+  :class:`~sfm_ttr_ros.core.live.LiveServer` (its own thread): depth from the serving copy of
+  the network (:class:`~sfm_ttr_ros.core.serving.ServingModel`), no intrinsics needed.
+* :meth:`OnlineRefiner.submit` — frames with intrinsics to the
+  :class:`~sfm_ttr_ros.core.stream.StreamProcessor`, stepped by a background worker thread at a
+  lower OS priority (``StreamSettings.worker_nice``): keyframes, windows, SfM, alignment,
+  refinement; each window's frames come out again on ``on_refined`` (today's windowed output).
+* When a window is refined (and not rolled back) its encoder is swapped into the serving copy:
+  version = window index + 1 (0 = the start-up weights). A window that fails, is skipped or
+  is rolled back leaves the served weights unchanged.
+
+Weights across windows follow ``TTRConfig.weight_policy`` (reset, continue, continual: see
+:mod:`sfm_ttr_ros.core.pipeline`); whatever the policy, the serving copy only ever receives
+weights of a window that finished refined.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.live import LiveOutput, LiveServer, lower_thread_priority
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.serving import ServingModel
+from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats
+
+
+class OnlineRefiner:
+    """Live serving plus background windows over one network (see the module docstring).
+
+    ``on_live(LiveOutput)``, ``on_refined(FrameOutput)``, ``on_window(WindowStats)`` and
+    ``on_drop(frame, key, message)`` are the sinks; ``config_provider`` /
+    ``settings_provider`` give the live parameters (read at each window / frame); ``on_fault
+    (place, exc)`` hears of an exception the worker survived (default: logged)."""
+
+    def __init__(self, ttr: SfmTTR, settings: StreamSettings | None = None, *,
+                 on_live: Callable[[LiveOutput], None] | None = None,
+                 on_refined: Callable[[FrameOutput], None] | None = None,
+                 on_window: Callable[[WindowStats], None] | None = None,
+                 on_drop: Callable[[Frame | None, str, str], None] | None = None,
+                 config_provider: Callable[[], TTRConfig] | None = None,
+                 settings_provider: Callable[[], StreamSettings] | None = None,
+                 on_fault: Callable[[str, Exception], None] | None = None,
+                 logger=None) -> None:
+        settings = settings or StreamSettings()
+        self.log = logger or logging.getLogger(__name__)
+        self.ttr = ttr
+        self.on_window = on_window
+        self.on_fault = on_fault
+        self.stream = StreamProcessor(ttr, settings, config_provider=config_provider,
+                                      settings_provider=settings_provider,
+                                      on_output=on_refined, on_window=self._window_done,
+                                      on_drop=on_drop, logger=self.log)
+        self.serving = ServingModel(ttr.model)
+        self.live = LiveServer(self.serving, on_live or (lambda out: None),
+                               max_queue=settings.live_max_queue, logger=self.log)
+        self._nice = settings.worker_nice
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self.serving_updates = 0
+        self.serving_update_errors = 0
+
+    # -- input (any thread) ---------------------------------------------------------------------
+    def submit_live(self, frame: Frame, arrival: float | None = None) -> None:
+        """Serve this frame's depth as soon as possible (no intrinsics needed)."""
+        self.live.submit(frame, arrival)
+
+    def submit(self, frame: Frame, intrinsics: Intrinsics) -> None:
+        """Queue a frame for the windowed refinement."""
+        self.stream.submit(frame, intrinsics)
+
+    # -- threads --------------------------------------------------------------------------------
+    def start(self) -> None:
+        self.live.start()
+        self._worker = threading.Thread(target=self._work, name="refiner-worker", daemon=True)
+        self._worker.start()
+
+    def _work(self) -> None:
+        lower_thread_priority(self._nice)  # before torch / pycolmap start threads from here
+        while not self._stop.is_set():
+            try:
+                self.stream.step(timeout=0.1)
+            except Exception as exc:  # noqa: BLE001 - never let the worker die
+                if self._stop.is_set():
+                    break
+                if self.on_fault is not None:
+                    self.on_fault("worker", exc)
+                else:
+                    self.log.error(f"worker: {type(exc).__name__}: {exc}")
+                time.sleep(0.1)
+
+    def stop(self, timeout: float | None = 3.0) -> bool:
+        """Cancel the running window, stop serving; True when the worker has ended
+        (``timeout`` None: wait for it; the SfM workspace must not be closed under a worker
+        still inside pycolmap)."""
+        self._stop.set()
+        self.stream.cancel()
+        self.live.stop(timeout)
+        if self._worker is not None:
+            self._worker.join(timeout)
+            return not self._worker.is_alive()
+        return True
+
+    @property
+    def worker_alive(self) -> bool:
+        return self._worker is not None and self._worker.is_alive()
+
+    # -- windows --------------------------------------------------------------------------------
+    def _window_done(self, stats: WindowStats) -> None:
+        if stats.refined:
+            try:
+                self.serving.update(self.ttr.model.encoder.state_dict(), stats.index + 1)
+                self.serving_updates += 1
+            except Exception as exc:  # noqa: BLE001 - keep serving the previous weights
+                self.serving_update_errors += 1
+                self.log.error(f"window {stats.index}: weights not served: "
+                               f"{type(exc).__name__}: {exc}")
+        if self.on_window is not None:
+            self.on_window(stats)
+
+    def counters_live(self) -> dict[str, object]:
+        """The live server's counters, the served weights' version and age, the swaps."""
+        return {**self.live.counters(), "serving_updates": self.serving_updates,
+                "serving_update_errors": self.serving_update_errors}
+
+    def counters(self) -> dict[str, object]:
+        """The stream's counters plus the live server's under ``live``."""
+        return {**self.stream.counters(), "live": self.counters_live()}

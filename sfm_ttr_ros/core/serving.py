@@ -1,0 +1,73 @@
+"""The serving copy of the network: every frame's live depth, with the newest accepted weights.
+
+SfM-TTR refines the encoder of one network over a window of frames (Sec. 3.3); while that
+runs (seconds to tens of seconds on a CPU) the robot still needs depth for every frame. A
+:class:`ServingModel` holds a second copy of the network that answers at once. When a window's
+refinement is accepted its encoder weights are swapped in with :meth:`ServingModel.update`:
+the swap holds the same lock as :meth:`ServingModel.predict`, so a prediction runs entirely on
+the old or entirely on the new weights, never on half a state dict. ``version`` names the
+window that produced the weights being served (0 = the start-up weights) and ``age_s`` says how
+long ago they were swapped in.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+import time
+
+import numpy as np
+import torch
+
+from sfm_ttr_ros.core.models.base import DepthModel
+
+
+def finite_state(state: dict[str, torch.Tensor]) -> bool:
+    """True when every floating-point tensor of a state dict is finite."""
+    return all(bool(torch.isfinite(t).all()) for t in state.values()
+               if torch.is_tensor(t) and t.is_floating_point())
+
+
+class ServingModel:
+    """A thread-safe copy of ``model`` for live prediction, updated atomically."""
+
+    def __init__(self, model: DepthModel) -> None:
+        self._model = copy.deepcopy(model).eval()
+        for p in self._model.parameters():
+            p.requires_grad_(False)
+        self._lock = threading.Lock()
+        self._version = 0
+        self._updated = time.monotonic()
+        self.predictions = 0
+
+    @property
+    def model(self) -> DepthModel:
+        return self._model
+
+    @property
+    def version(self) -> int:
+        """The window whose refined weights are served (0: the start-up weights)."""
+        return self._version
+
+    @property
+    def age_s(self) -> float:
+        """Seconds since the served weights were swapped in (or since start-up)."""
+        return time.monotonic() - self._updated
+
+    def update(self, encoder_state: dict[str, torch.Tensor], version: int) -> None:
+        """Serve these encoder weights from the next prediction on. The state is copied
+        first (outside the lock), so the caller may go on changing its own tensors."""
+        if not finite_state(encoder_state):
+            raise ValueError("refusing to serve non-finite encoder weights")
+        state = {k: v.detach().clone() for k, v in encoder_state.items()}
+        with self._lock:
+            self._model.encoder.load_state_dict(state)
+            self._version = int(version)
+            self._updated = time.monotonic()
+
+    def predict(self, image: np.ndarray) -> tuple[np.ndarray, int]:
+        """(depth H x W float32 at the image's size, version of the weights that made it)."""
+        with self._lock, torch.inference_mode():
+            depth = self._model.predict([image])[0]
+            self.predictions += 1
+            return depth, self._version

@@ -1,0 +1,232 @@
+"""Live serving (issue 15): the serving copy's atomic weight swap, the live server's accounting,
+continual refinement (replay, L2 pull to the start-up weights) and the rollback of a window."""
+
+from __future__ import annotations
+
+import threading
+import time
+from functools import partial
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from conftest import tiny_model
+
+from sfm_ttr_ros.core.frames import Frame, InputError
+from sfm_ttr_ros.core.live import LiveServer
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.refinement import RefinementConfig, refine_encoder, snapshot_encoder
+from sfm_ttr_ros.core.serving import ServingModel
+from sfm_ttr_ros.core.stream import reason_key_of
+from sfm_ttr_ros.core.supervision import FrameSupervision
+
+small_model = partial(tiny_model, (32, 48), downsample=False)
+IMAGE = np.random.default_rng(0).integers(0, 255, (32, 48, 3), dtype=np.uint8)
+
+
+def two_states():
+    a = small_model(seed=0)
+    b = small_model(seed=1)
+    return a, snapshot_encoder(a), snapshot_encoder(b)
+
+
+def test_serving_swaps_weights_atomically(one_thread):
+    model, state_a, state_b = two_states()
+    serving = ServingModel(model)
+    ref = {}
+    for version, state in ((1, state_a), (2, state_b)):
+        serving.update(state, version)
+        ref[version] = serving.predict(IMAGE)[0]
+    assert not np.array_equal(ref[1], ref[2])  # the two weight sets really differ
+    seen: list[tuple[int, bool]] = []
+    stop = threading.Event()
+
+    def swap():
+        i = 0
+        while not stop.is_set():
+            serving.update(state_a if i % 2 else state_b, 1 if i % 2 else 2)
+            i += 1
+
+    t = threading.Thread(target=swap)
+    t.start()
+    try:
+        for _ in range(150):
+            depth, version = serving.predict(IMAGE)
+            seen.append((version, np.array_equal(depth, ref[version])))
+    finally:
+        stop.set()
+        t.join()
+    # every prediction ran entirely on one state, and says which
+    assert all(same for _, same in seen)
+    assert {v for v, _ in seen} == {1, 2}
+
+
+def test_serving_copy_is_independent_and_refuses_non_finite_weights(one_thread):
+    model, state_a, _ = two_states()
+    serving = ServingModel(model)
+    before = serving.predict(IMAGE)[0]
+    with torch.no_grad():  # the refining model changes: the served one must not
+        for p in model.encoder.parameters():
+            p.add_(1.0)
+    assert np.array_equal(serving.predict(IMAGE)[0], before)
+    bad = {k: v.clone() for k, v in state_a.items()}
+    next(iter(bad.values())).view(-1)[0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        serving.update(bad, 7)
+    assert serving.version == 0 and np.array_equal(serving.predict(IMAGE)[0], before)
+
+
+def frame(i: int, image=IMAGE) -> Frame:
+    return Frame(i, image, stamp=0.1 * i, name=f"{i:04d}")
+
+
+def test_live_server_serves_every_frame_and_accounts_exactly(one_thread):
+    model, _, _ = two_states()
+    got = []
+    server = LiveServer(ServingModel(model), got.append, max_queue=100)
+    server.start()
+    try:
+        for i in range(20):
+            server.submit(frame(i))
+        assert server.drain(30)
+    finally:
+        server.stop()
+    c = server.counters()
+    assert c["received"] == 20 and c["published"] == 20 and c["pending"] == 0
+    assert [o.frame.index for o in got] == list(range(20))  # oldest first
+    assert all(o.depth.shape == (32, 48) and o.version == 0 and o.latency_s >= 0 for o in got)
+
+
+def test_live_server_skips_oldest_on_overflow_and_survives_bad_frames(one_thread):
+    model, _, _ = two_states()
+    got = []
+
+    def publish(out):
+        if out.frame.index == 5:
+            raise RuntimeError("publisher gone")
+        got.append(out.frame.index)
+
+    server = LiveServer(ServingModel(model), publish, max_queue=3)
+    for i in range(6):  # not started: the queue fills, the oldest are skipped
+        server.submit(frame(i))
+    assert server.skipped["overflow"] == 3
+    server.submit(frame(6, image=np.zeros((0, 0, 3), np.uint8)))  # the network cannot run it
+    assert server.skipped["overflow"] == 4
+    server.start()
+    try:
+        assert server.drain(30)
+    finally:
+        server.stop()
+    c = server.counters()
+    # frames 0-3 skipped (overflow), 4 served, 5's publication failed, 6 failed to predict
+    assert got == [4]
+    assert c["skipped"] == {"overflow": 4, "publish_error": 1, "prediction_error": 1}
+    assert c["received"] == c["published"] + sum(c["skipped"].values()) + c["pending"] == 7
+
+
+def supervision(target: float, seed: int, n: int = 2, points: int = 200):
+    rng = np.random.default_rng(seed)
+    return [FrameSupervision(f"{seed}-{j}", rng.integers(0, 255, (32, 48, 3), dtype=np.uint8),
+                             np.c_[rng.uniform(0, 47, points), rng.uniform(0, 31, points)],
+                             np.full(points, target), np.ones(points)) for j in range(n)]
+
+
+def mean_depth(model, sup) -> float:
+    return float(np.mean(model.predict([s.image for s in sup])))
+
+
+def drift(model, start) -> float:
+    return float(sum(((p - start[k]) ** 2).sum()
+                     for k, p in model.encoder.state_dict().items()))
+
+
+def test_replay_trains_on_earlier_windows_and_the_anchor_holds_the_weights(one_thread):
+    cfg = RefinementConfig(steps=60, lr=1e-2, seed=0)
+    old, new = supervision(3.0, 1), supervision(12.0, 2)
+    plain = small_model()
+    start = snapshot_encoder(plain)
+    refine_encoder(plain, new, cfg)
+    replayed = small_model()
+    refine_encoder(replayed, new, cfg, replay=old, replay_ratio=0.5)
+    # the replayed window (3 m) keeps pulling the prediction on its frames down
+    assert mean_depth(replayed, old) < mean_depth(plain, old) - 1.0
+    anchored = small_model()
+    res = refine_encoder(anchored, new, cfg, anchor=start, anchor_weight=10.0)
+    assert drift(anchored, start) < 0.25 * drift(plain, start)
+    assert res.steps_done == 60 and all(np.isfinite(res.loss_history))
+    # without replay frames the step order is the paper's: same result as before the feature
+    same = small_model()
+    refine_encoder(same, new, cfg, replay=(), anchor=None)
+    for k, v in same.encoder.state_dict().items():
+        assert torch.equal(v, plain.encoder.state_dict()[k])
+
+
+def test_weight_policy_is_validated():
+    for bad in ({"weight_policy": "sometimes"}, {"replay_ratio": 1.5},
+                {"anchor_weight": -1.0}, {"replay_windows": -1}):
+        with pytest.raises(InputError):
+            TTRConfig(**bad)
+
+
+class _FakeSfm:
+    """A stand-in for one window's SfM: every frame registered with 300 observations."""
+
+    def __init__(self, names, rng):
+        from sfm_ttr_ros.core.sfm import FrameObservations
+
+        self.ok, self.reason, self.timings = True, "", {}
+        self.frames = {}
+        for n in names:
+            px = np.c_[rng.uniform(0, 47, 300), rng.uniform(0, 31, 300)].astype(np.float32)
+            self.frames[n] = FrameObservations(n, px, rng.uniform(5, 6, 300), np.zeros(300),
+                                               np.zeros(300), np.arange(300), np.eye(4))
+        self.num_registered, self.num_points = len(names), 300
+        self.points_error = np.zeros(300, np.float32)
+
+    def points_in_frame(self, name):
+        return np.zeros((300, 3))
+
+
+def window_run(lr: float, policy: str = "continue"):
+    cfg = TTRConfig(weight_policy=policy, min_supervision_points=10)
+    cfg.refinement.steps, cfg.refinement.lr = 10, lr
+    ttr = SfmTTR(small_model(), cfg)
+    rng = np.random.default_rng(3)
+    frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
+                    name=f"{i:04d}") for i in range(3)]
+    ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    from sfm_ttr_ros.core.frames import Intrinsics
+
+    before = snapshot_encoder(ttr.model)
+    try:
+        res = ttr.process_window(frames, Intrinsics(40.0, 40.0, 24.0, 16.0, 48, 32))
+    finally:
+        ttr.close()
+    return SimpleNamespace(res=res, before=before, after=snapshot_encoder(ttr.model))
+
+
+def test_an_exploding_window_is_rolled_back(one_thread):
+    ok = window_run(lr=1e-3)
+    assert ok.res.refined and ok.res.loss_after < ok.res.loss_before
+    boom = window_run(lr=50.0)  # Adam at lr 50: the loss explodes (or goes non-finite)
+    assert not boom.res.refined and boom.res.reason.startswith("rolled back"), boom.res.reason
+    assert reason_key_of(boom.res) == "rolled_back"
+    for k, v in boom.after.items():  # the weights before the window, exactly
+        assert torch.equal(v, boom.before[k]), k
+    assert all(np.array_equal(boom.res.depths[n], boom.res.depths_before[n])
+               for n in boom.res.names)
+
+
+def test_live_latency_is_measured_from_arrival(one_thread):
+    model, _, _ = two_states()
+    got = []
+    server = LiveServer(ServingModel(model), got.append)
+    server.start()
+    try:
+        t0 = time.monotonic() - 0.5  # arrived half a second ago
+        server.submit(frame(0), arrival=t0)
+        assert server.drain(10)
+    finally:
+        server.stop()
+    assert got[0].latency_s >= 0.5
