@@ -40,7 +40,6 @@ import json
 import math
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -404,6 +403,8 @@ def run(args: argparse.Namespace) -> dict:
     os.environ["ROS_DOMAIN_ID"] = str(args.domain_id or random.SystemRandom().randint(101, 230))
     import rclpy
 
+    from sfm_ttr_ros.tools.process import interrupt
+
     log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="fuzz_node_"))
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / "refiner.log"
@@ -491,13 +492,7 @@ def run(args: argparse.Namespace) -> dict:
             f.executor.shutdown(timeout_sec=2)
             f.node.destroy_node()
         rclpy.try_shutdown()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        interrupt(proc, timeout=30)
         report["exit_code"] = proc.returncode
         report["seconds"] = time.monotonic() - t0
     text = log_path.read_text(errors="replace")

@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import random
-import signal
 import subprocess
 import sys
 import threading
@@ -156,6 +155,7 @@ def run(args: argparse.Namespace) -> dict:
     import rclpy
 
     from sfm_ttr_ros.data.synthetic import make_sequence
+    from sfm_ttr_ros.tools.process import interrupt
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -224,13 +224,7 @@ def run(args: argparse.Namespace) -> dict:
             c.executor.shutdown(timeout_sec=2)
             c.node.destroy_node()
         rclpy.try_shutdown()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        interrupt(proc, timeout=30)
     return _report(args, out, cmd, sent, alive, proc.returncode, d, rss, live, refined,
                    log_path)
 

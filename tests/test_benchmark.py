@@ -13,7 +13,6 @@ import math
 import re
 import shlex
 import sys
-import textwrap
 from dataclasses import asdict
 from pathlib import Path
 
@@ -353,37 +352,6 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     assert "sfm_ttr_online" not in res and set(res["relative_gain"]) == {"sfm_ttr_offline"}
     assert any("sfm_ttr_offline: window 2/2" in x for x in lines)
     assert (tmp_path / "b" / "figure.png").is_file()
-
-
-def test_params_file_is_checked_like_the_node(tmp_path):
-    from sfm_ttr_ros.tools.benchmark import read_params_file
-
-    def write(body: str) -> Path:
-        p = tmp_path / "p.yaml"
-        p.write_text(textwrap.dedent(body))
-        return p
-
-    nested = write("""
-        /**:
-          ros__parameters:
-            window_size: 6
-        refiner:
-          ros__parameters:
-            window_stride: 3
-            refinement: {steps: 7}
-    """)
-    assert read_params_file(nested) == {"window_size": 6, "window_stride": 3,
-                                        "refinement.steps": 7}
-    for body, msg in (
-        ("refiner:\n  ros__parameters:\n    refinement.lr: 1\n", "doubles"),
-        ("refiner:\n  ros__parameters:\n    no_such_param: 1\n", "not a parameter"),
-        ("refiner:\n  ros__parameters:\n    window_size: 1\n", "window_size must be >= 2"),
-        ("other_node:\n  ros__parameters:\n    window_size: 4\n", "no ros__parameters"),
-    ):
-        with pytest.raises(InputError, match=msg):
-            read_params_file(write(body))
-    with pytest.raises(InputError, match="not found"):
-        read_params_file(tmp_path / "missing.yaml")
 
 
 @pytest.mark.slow

@@ -274,3 +274,13 @@ def test_node_settings_validate_themselves():
     # every node setting is a parameter
     assert {f.name for f in dataclasses.fields(NodeSettings)} == {
         t.partition(".")[2] for p in schema.PARAMS for t in p.targets if t.startswith("node.")}
+
+
+def test_a_replaced_parameter_names_its_successor(tmp_path):
+    # issue 15: reset_each_window became weight_policy; an old file says so instead of "unknown"
+    old = tmp_path / "old.yaml"
+    old.write_text("refiner:\n  ros__parameters:\n    reset_each_window: false\n")
+    with pytest.raises(InputError, match="replaced by weight_policy"):
+        schema.read_params_file(old, "refiner")
+    with pytest.raises(InputError, match="replaced by weight_policy"):
+        schema.parse_overrides(["reset_each_window=true"])

@@ -144,23 +144,22 @@ class LiveServer:
         try:
             depth, version = self.serving.predict(frame.image)
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop serving
-            with self._cv:
-                self.skipped["prediction_error"] += 1
-            self._warn("prediction_error", f"live prediction failed for frame {frame.name}: "
-                                           f"{type(exc).__name__}: {exc}")
-            return None
+            return self._skip("prediction_error", frame, exc)
         out = LiveOutput(frame, depth, version, self.serving.age_s, arrival, time.monotonic())
         try:
             self.on_depth(out)
         except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving
-            with self._cv:
-                self.skipped["publish_error"] += 1
-            self._warn("publish_error", f"publishing the live depth of frame {frame.name} "
-                                        f"failed: {type(exc).__name__}: {exc}")
-            return None
+            return self._skip("publish_error", frame, exc)
         with self._cv:
             self.published += 1
         return out
+
+    def _skip(self, key: str, frame: Frame, exc: Exception) -> None:
+        """Count ``frame`` as skipped for ``key`` and log why (throttled)."""
+        with self._cv:
+            self.skipped[key] += 1
+        self._warn(key, f"frame {frame.name}: {LIVE_SKIP_REASONS[key]}: "
+                        f"{type(exc).__name__}: {exc}")
 
     def _run(self) -> None:
         while True:

@@ -30,7 +30,6 @@ import json
 import os
 import random
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -41,6 +40,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.tools.process import interrupt
 
 DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live ~/depth: /refiner/depth
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
@@ -203,13 +203,7 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
                 received = rec.counts.get(REFINED_TOPIC, 0)
                 live_received = rec.counts.get(DEPTH_TOPIC, 0)
         finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+            interrupt(proc, timeout=20)
     seconds = time.perf_counter() - t0
     if received < expected:
         raise InputError(f"only {received} of {expected} depth images came back from refiner "
