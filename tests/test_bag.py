@@ -301,7 +301,7 @@ def test_play_ctrl_c_exits_130_without_traceback(bags):
         first = proc.stderr.readline()  # the progress bar's first line: playback has begun
         assert first.startswith("play drive_mcap 1/"), first
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        out, err = proc.communicate(timeout=60)  # 30 s was once too short under load
     finally:
         if proc.poll() is None:
             proc.kill()
