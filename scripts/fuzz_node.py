@@ -403,7 +403,7 @@ def run(args: argparse.Namespace) -> dict:
     os.environ["ROS_DOMAIN_ID"] = str(args.domain_id or random.SystemRandom().randint(101, 230))
     import rclpy
 
-    from sfm_ttr_ros.tools.process import interrupt
+    from sfm_ttr_ros.tools.process import close_client_and_node
 
     log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="fuzz_node_"))
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -488,11 +488,7 @@ def run(args: argparse.Namespace) -> dict:
         d = f.last_diag()
         report.update(_checks(f, d, alive, rss, rss_first, log_path))
     finally:
-        if f is not None:
-            f.executor.shutdown(timeout_sec=2)
-            f.node.destroy_node()
-        rclpy.try_shutdown()
-        interrupt(proc, timeout=30)
+        close_client_and_node(f, proc, timeout=30)
         report["exit_code"] = proc.returncode
         report["seconds"] = time.monotonic() - t0
     text = log_path.read_text(errors="replace")

@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> dict:
     import rclpy
 
     from sfm_ttr_ros.data.synthetic import make_sequence
-    from sfm_ttr_ros.tools.process import interrupt
+    from sfm_ttr_ros.tools.process import close_client_and_node
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -220,11 +220,7 @@ def run(args: argparse.Namespace) -> dict:
         d = dict(c.diag)
         live, refined = list(c.live), list(c.refined)
     finally:
-        if c is not None:
-            c.executor.shutdown(timeout_sec=2)
-            c.node.destroy_node()
-        rclpy.try_shutdown()
-        interrupt(proc, timeout=30)
+        close_client_and_node(c, proc, timeout=30)
     return _report(args, out, cmd, sent, alive, proc.returncode, d, rss, live, refined,
                    log_path)
 

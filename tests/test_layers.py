@@ -8,8 +8,8 @@
   import and run with rclpy and every ROS message package blocked;
 * (b) no module imports from a layer above its own (read from the source, every import,
   top-level and inside functions);
-* (c) no import cycle between the package's modules (imports under ``if TYPE_CHECKING:`` are
-  never run and do not count here; they do count for the layers).
+* (c) no import cycle between the package's modules (every import counts, ``if
+  TYPE_CHECKING:`` ones too: a module that names another only for typing still couples them).
 """
 
 from __future__ import annotations
@@ -118,10 +118,11 @@ def imports_of(module: str, runtime_only: bool = False) -> Iterator[tuple[str, i
 
 
 def package_graph() -> dict[str, set[str]]:
-    """Module -> the package modules it imports when it runs (itself left out)."""
+    """Module -> the package modules it imports, typing-only imports included (itself left
+    out)."""
     graph: dict[str, set[str]] = {m: set() for m in MODULES}
     for module in MODULES:
-        for target, _ in imports_of(module, runtime_only=True):
+        for target, _ in imports_of(module):
             while target and target not in MODULES:  # a name inside a module: its module
                 target = target.rpartition(".")[0]
             if target and target != module:

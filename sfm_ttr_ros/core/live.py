@@ -35,6 +35,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.serving import ServingModel
+from sfm_ttr_ros.core.throttle import Throttle
 
 #: Reason keys of live frames that were not published.
 LIVE_SKIP_REASONS = {
@@ -92,7 +93,7 @@ class LiveServer:
         self.received = 0
         self.published = 0
         self.skipped: Counter[str] = Counter()
-        self._last_warn: dict[str, float] = {}
+        self._throttle = Throttle()
         self._thread: threading.Thread | None = None
 
     # -- input ----------------------------------------------------------------------------
@@ -189,8 +190,6 @@ class LiveServer:
                     "skipped": dict(self.skipped), "pending": len(self._queue) + self._busy,
                     "version": self.serving.version, "weights_age_s": self.serving.age_s}
 
-    def _warn(self, key: str, message: str, period: float = 5.0) -> None:
-        now = time.monotonic()
-        if now - self._last_warn.get(key, -1e9) >= period:
-            self._last_warn[key] = now
+    def _warn(self, key: str, message: str) -> None:
+        if self._throttle.due(key):
             self.log.warning(message)

@@ -305,7 +305,8 @@ class SfmTTR:
         continual = cfg.weight_policy == "continual"
         replay = [s for window in self._replay for s in window] if continual else []
         anchor = self._original if continual and cfg.anchor_weight > 0 else None
-        start = snapshot_encoder(self.model)  # the weights before the window (rollback)
+        # the weights before the window (rollback); under "reset" they are the start-up weights
+        start = self._original if cfg.weight_policy == "reset" else snapshot_encoder(self.model)
         t0 = time.perf_counter()
         res.refinement = refine_encoder(
             self.model, sup, cfg.refinement, should_stop=stop, replay=replay,

@@ -55,13 +55,12 @@ class ServingModel:
         return time.monotonic() - self._updated
 
     def update(self, encoder_state: dict[str, torch.Tensor], version: int) -> None:
-        """Serve these encoder weights from the next prediction on. The state is copied
-        first (outside the lock), so the caller may go on changing its own tensors."""
+        """Serve these encoder weights from the next prediction on. ``load_state_dict`` copies
+        them into the serving copy's own tensors, so the caller may go on changing its own."""
         if not finite_state(encoder_state):
             raise ValueError("refusing to serve non-finite encoder weights")
-        state = {k: v.detach().clone() for k, v in encoder_state.items()}
         with self._lock:
-            self._model.encoder.load_state_dict(state)
+            self._model.encoder.load_state_dict(encoder_state)
             self._version = int(version)
             self._updated = time.monotonic()
 

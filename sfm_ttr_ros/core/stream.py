@@ -64,6 +64,7 @@ import numpy as np
 from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm import SfmCancelled
+from sfm_ttr_ros.core.throttle import Throttle
 
 #: Reason keys of frames published without refinement.
 UNREFINED_REASONS = {
@@ -251,7 +252,7 @@ class StreamProcessor:
         self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
         self._cancelled = False
         self._last_input = time.monotonic()
-        self._warned: dict[str, float] = {}
+        self._throttle = Throttle()
 
         # worker-side state (only touched by the thread that calls step / push / flush)
         self._buffer: list[_Entry] = []
@@ -602,10 +603,8 @@ class StreamProcessor:
         if self.on_drop is not None:
             self.on_drop(frame, key, message)
 
-    def _warn(self, key: str, message: str, period: float = 5.0) -> None:
-        """Log a warning at most once per ``period`` s per key."""
-        now = time.monotonic()
-        if now - self._warned.get(key, -1e9) >= period:
-            self._warned[key] = now
+    def _warn(self, key: str, message: str) -> None:
+        """Log a warning at most once per :data:`~sfm_ttr_ros.core.throttle.WARN_PERIOD_S` per
+        key."""
+        if self._throttle.due(key):
             self.log.warning(message)
-

@@ -54,7 +54,6 @@ import os
 import signal
 import sys
 import threading
-import time
 import traceback
 from functools import partial
 from pathlib import Path
@@ -84,10 +83,10 @@ from sfm_ttr_ros.core.models.registry import build_model
 from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream import FrameOutput, WindowStats
+from sfm_ttr_ros.core.throttle import WARN_PERIOD_S, Throttle
 from sfm_ttr_ros.ros import names, outputs
 from sfm_ttr_ros.ros import params as node_params
 
-WARN_PERIOD_S = 5.0
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
 EXIT_START_UP = 1  # the node could not start (parameters, model, weights)
 EXIT_RUN_TIME = 2  # a fault escaped the containment while running
@@ -167,7 +166,7 @@ class RefinerNode(Node):
         self._diag_lock = threading.Lock()  # one status published at a time, in order
         self._closed = False
         self._stop = threading.Event()
-        self._logged_at: dict[str, float] = {}  # throttle of warn_every, per key
+        self._throttle = Throttle()  # of warn_every, per key
 
         reliability = (ReliabilityPolicy.BEST_EFFORT if nv["qos_reliability"] == "best_effort"
                        else ReliabilityPolicy.RELIABLE)
@@ -260,10 +259,8 @@ class RefinerNode(Node):
 
     def warn_every(self, key: str, message: str, *, error: bool = False) -> None:
         """Log ``message`` at most once per ``WARN_PERIOD_S`` per ``key``."""
-        now = time.monotonic()
-        if now - self._logged_at.get(key, -1e9) < WARN_PERIOD_S:
+        if not self._throttle.due(key):
             return
-        self._logged_at[key] = now
         # two call sites: rclpy refuses one call site logging at two severities
         try:
             if error:

@@ -16,8 +16,8 @@ import sys
 from pathlib import Path
 
 from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
 from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
-from sfm_ttr_ros.ros.names import DEPTH_TOPIC_RESOLVED
 from sfm_ttr_ros.tools.cli_args import (
     add_parameter_args,
     add_sequence_args,
@@ -26,9 +26,6 @@ from sfm_ttr_ros.tools.cli_args import (
     open_sequence,
     parameter_values,
 )
-
-DEFAULT_PRED_TOPIC = DEPTH_TOPIC_RESOLVED
-DEFAULT_GT_TOPIC = DEPTH_GT_TOPIC
 
 
 def _add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -162,7 +159,7 @@ def add_evaluate_parser(sub) -> argparse.ArgumentParser:
         bag.add_argument("--bag", help="rosbag2 holding the node's depth (and the GT topic)")
         bag.add_argument("--gt-bag", help="another bag holding the GT topic (default: --bag)")
         bag.add_argument("--pred-topic", default=DEFAULT_PRED_TOPIC)
-        bag.add_argument("--gt-topic", default=DEFAULT_GT_TOPIC)
+        bag.add_argument("--gt-topic", default=DEPTH_GT_TOPIC)
     else:
         add_evaluate_bag_arguments(e)
     _add_eval_args(e)

@@ -16,3 +16,15 @@ def interrupt(proc: subprocess.Popen, timeout: float = 20.0) -> int:
             proc.kill()
             proc.wait()
     return proc.returncode
+
+
+def close_client_and_node(client, proc: subprocess.Popen, timeout: float = 30.0) -> int:
+    """End an outside test client (anything with ``executor`` and ``node``, or None) and rclpy,
+    then :func:`interrupt` the node process; its exit code (the fuzz and soak scripts)."""
+    import rclpy
+
+    if client is not None:
+        client.executor.shutdown(timeout_sec=2)
+        client.node.destroy_node()
+    rclpy.try_shutdown()
+    return interrupt(proc, timeout)

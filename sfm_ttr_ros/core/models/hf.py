@@ -30,7 +30,6 @@ import logging
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -39,9 +38,6 @@ from torch import nn
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.models.base import DepthModel, ModelLoadError
-
-if TYPE_CHECKING:
-    from sfm_ttr_ros.core.models.registry import ModelConfig
 
 log = logging.getLogger(__name__)
 
@@ -358,7 +354,9 @@ def load_hf_model(model_path: str, output_kind: str = "",
     return HFDepthModel(net.float().eval(), prep, kind, encoder_module)
 
 
-def from_config(config: ModelConfig) -> HFDepthModel:
+def from_config(config) -> HFDepthModel:
     """Factory for ``build_model`` (``type: hf``) and for the plug-in form
-    ``python:sfm_ttr_ros.core.models.hf:from_config``."""
+    ``python:sfm_ttr_ros.core.models.hf:from_config``: ``config`` is a
+    :class:`~sfm_ttr_ros.core.models.registry.ModelConfig` (not imported here: registry imports
+    this module, and the import graph stays acyclic)."""
     return load_hf_model(config.model_path, getattr(config, "output_kind", ""))
