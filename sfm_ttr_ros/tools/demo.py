@@ -274,9 +274,10 @@ def run_demo(opts: DemoOptions) -> dict:
     if stamp is not None:
         image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic])
                      if s == stamp)
-        preds = {k: next(image_to_depth(m) for _, _, s, m in read_bag(p, [topic])
-                         if s == stamp)
+        # a live frame skipped under load (counted by the node) has no depth: left out
+        found = {k: next((m for _, _, s, m in read_bag(p, [topic]) if s == stamp), None)
                  for k, (p, topic) in sources.items()}
+        preds = {k: image_to_depth(m) for k, m in found.items() if m is not None}
         gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
         fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
         fig_path = out / "figure.png"
