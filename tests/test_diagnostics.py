@@ -15,7 +15,8 @@ FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_d
               "frames_pending", "frames_held_no_intrinsics"]
 INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_monotonic_stamps",
                          "qos_incompatible", "windows_ok", "windows_failed",
-                         "windows_skipped_overload", "windows_disabled", "faults"]
+                         "windows_skipped_overload", "windows_disabled",
+                         "windows_rejected_by_check", "faults"]
 
 
 def frame(i: int) -> Frame:

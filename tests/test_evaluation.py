@@ -295,3 +295,24 @@ def test_nan_in_low_resolution_prediction_stays_invalid_after_resize():
     assert r.invalid_pred > 0 and r.num_pixels == 16 - r.invalid_pred
     assert all(math.isfinite(v) for v in r.metrics.values())
     assert r.metrics["abs_rel"] == pytest.approx(0.0)  # NaN did not leak into its neighbours
+
+
+def test_relative_inverse_depth_is_fitted_in_disparity_per_frame():
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(2.0, 60.0, (24, 40))
+    pred = 0.37 / gt + 0.05  # affine-invariant inverse depth: right up to scale and shift
+    cfg = EvalConfig(prediction="relative_inverse_depth")
+    exact = evaluate_frame(pred, gt, cfg)
+    assert exact.metrics["abs_rel"] == pytest.approx(0.0, abs=1e-9) and exact.ratio is None
+    # read as depth (median scaling), the same map is badly wrong: the shift bends it
+    assert evaluate_frame(pred, gt).metrics["abs_rel"] > 0.5
+    # a sky-like region pushed past infinity by the fit is clamped to max_depth, not lost
+    noisy = pred.copy()
+    noisy[:2] = 0.0
+    r = evaluate_frame(noisy, gt, cfg)
+    assert r is not None and r.num_pixels == gt.size and r.metrics["abs_rel"] > 0
+    flat = Evaluator(cfg)
+    assert flat.add("flat", np.full_like(gt, 0.3), gt) is None
+    assert flat.summary()["skipped_frames"] == {"flat": "no_affine_fit"}
+    with pytest.raises(InputError, match="prediction must be one of"):
+        EvalConfig(prediction="disparity")

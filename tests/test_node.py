@@ -80,11 +80,13 @@ def sequence():
 
 
 class Graph:
-    """A refiner node and a player/recorder node spun by one executor in a thread."""
+    """A refiner node and a player/recorder node spun by one executor in a thread. The node runs
+    the tiny test network, or with ``own_model`` the model its parameters describe (model_type,
+    model_path, ...)."""
 
-    def __init__(self, context, **params):
+    def __init__(self, context, *, own_model: bool = False, **params):
         overrides = [Parameter(k, value=v) for k, v in {**FAST, **params}.items()]
-        self.refiner = RefinerNode(model=tiny_model(), context=context,
+        self.refiner = RefinerNode(model=None if own_model else tiny_model(), context=context,
                                    parameter_overrides=overrides)
         self.node = Node("player", context=context)
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)

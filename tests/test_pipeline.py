@@ -10,6 +10,7 @@ sparse depths carry the right shape, so the refined encoder must come out closer
 from __future__ import annotations
 
 import json
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -243,6 +244,64 @@ def test_window_summary_is_plain_numbers(run):
     assert s == {"frames": len(res.names), "refined": True, "reason": "",
                  "registered": res.sfm.num_registered, "points": res.sfm.num_points,
                  "scale": res.scale, "loss_before": res.loss_before,
-                 "loss_after": res.loss_after}
+                 "loss_after": res.loss_after, "check": res.check.summary()}
     assert s["loss_after"] < s["loss_before"]
+    # the held-out check ran (on by default) and saw the check error fall
+    c = s["check"]
+    assert c["check_points"] > 0 and c["error_after"] < c["error_before"] and c["reason_key"] == ""
     json.dumps(s)
+
+
+def _encoder_equals(model, state) -> bool:
+    return all(torch.equal(v, state[k]) for k, v in model.encoder.state_dict().items())
+
+
+@pytest.mark.slow
+def test_held_out_tracks_never_reach_the_refinement(run, monkeypatch):
+    ttr = pinned(run, monkeypatch)
+    seen: list[np.ndarray] = []
+    real = pipeline_module.refine_encoder
+
+    def spy(model, supervision, *args, **kwargs):
+        seen.extend(s.point_ids for s in supervision)
+        return real(model, supervision, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline_module, "refine_encoder", spy)
+    res = ttr.process_window(run.window, run.intr)
+    trained = np.unique(np.concatenate(seen))
+    selected = int(res.alignment.selected.sum())
+    assert res.refined and res.check.check_points > 0
+    assert sum(len(i) for i in seen) + res.check.check_points == selected
+    held = np.unique(np.concatenate([o.point_ids for o in res.sfm.frames.values()]))
+    assert trained.size < held.size  # some tracks were held out of every step
+    assert res.check.error_after < res.check.error_before
+
+
+@pytest.mark.slow
+def test_a_window_that_misses_the_margin_is_rejected_and_changes_nothing(run, monkeypatch):
+    ttr = pinned(run, monkeypatch)
+    original = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
+    monkeypatch.setattr(ttr.config.check, "holdout_margin", 0.9)  # demand a 90 % fall
+    res = ttr.process_window(run.window, run.intr)
+    c = res.check
+    assert not res.refined and res.reason_key == c.reason_key == "rejected_by_check"
+    assert c.error_after < c.error_before and c.error_after > 0.1 * c.error_before
+    assert res.reason.startswith("rejected by check: held-out check error")
+    assert all(np.array_equal(res.depths[n], res.depths_before[n]) for n in res.names)
+    assert res.depths_candidate and any(
+        not np.array_equal(res.depths_candidate[n], res.depths_before[n]) for n in res.names)
+    assert _encoder_equals(ttr.model, original)  # the weights before the window
+    assert res.timings["check"] < 0.1 * res.timings["refine"]
+
+
+@pytest.mark.slow
+def test_a_failed_sanity_check_refuses_the_window_before_refining(run, monkeypatch):
+    ttr = pinned(run, monkeypatch)
+    original = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
+    monkeypatch.setattr(ttr.config.check, "max_reprojection_error", 1e-6)
+    res = ttr.process_window(run.window, run.intr)
+    assert res.reason_key == "check_reprojection" and res.refinement is None
+    assert res.reason.startswith("check: mean reprojection error")
+    assert res.check.reprojection_error > 1e-6 and _encoder_equals(ttr.model, original)
+    assert 1.0 <= res.check.scale_spread < 2.0 and res.check.track_length >= 2.0
+    assert math.isnan(res.check.error_before)  # refused before the split

@@ -15,6 +15,7 @@ from conftest import tiny_model
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm import SfmResult
+from sfm_ttr_ros.core.verification import WindowCheck
 from sfm_ttr_ros.core.stream import (
     DROP_REASONS,
     UNREFINED_REASONS,
@@ -29,7 +30,8 @@ INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)
 
 class ScriptedTTR:
     """Stand-in for SfmTTR: ``outcomes`` says what each window does (``"ok"``, ``"sfm"`` =
-    SfM failed, ``"few"`` = too few points, ``"raise"``); depth 2 = refined, 1 = not."""
+    SfM failed, ``"few"`` = too few points, ``"raise"``, ``"rejected"`` = refused by the
+    held-out check); depth 2 = refined, 1 = not."""
 
     def __init__(self, outcomes=("ok",), delay: float = 0.0):
         self.outcomes = list(outcomes)
@@ -64,6 +66,10 @@ class ScriptedTTR:
             res.sfm = SfmResult(True, "", len(names))
         elif outcome == "sfm":
             res.reason = "SfM failed: too little motion"
+        elif outcome == "rejected":
+            res.reason_key, res.reason = "rejected_by_check", "rejected by check: 0.1 -> 0.2"
+            res.check = WindowCheck(check_points=40, error_before=0.1, error_after=0.2,
+                                    reason_key="rejected_by_check")
         else:
             res.reason = "too few supervision points: 3 selected of 10 (< 50)"
         return res
@@ -139,6 +145,23 @@ def test_failed_windows_publish_unrefined_with_reason():
     assert c["unrefined_by_reason"] == {"sfm_failed": 2, "too_few_points": 2, "window_error": 2}
     assert (c["windows_ok"], c["windows_failed"]) == (1, 3)
     assert [w.refined for w in seen_windows] == [False, False, False, True]
+
+
+def test_a_window_refused_by_its_check_is_counted_with_its_check_errors():
+    ttr = ScriptedTTR(outcomes=("ok", "rejected", "ok"))
+    seen_windows = []
+    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2),
+                             on_window=seen_windows.append)
+    outs = run(stream, frames(6))
+    assert [o.reason_key for o in outs] == ["", "", "rejected_by_check", "rejected_by_check",
+                                            "", ""]
+    assert all(float(o.depth.mean()) == 1.0 for o in outs[2:4])  # the weights before it
+    c = check_accounting(stream, outs, 6)
+    assert c["unrefined_by_reason"] == {"rejected_by_check": 2}
+    assert (c["windows_ok"], c["windows_failed"], c["windows_rejected"]) == (2, 1, 1)
+    w = seen_windows[1]
+    assert (w.check_error_before, w.check_error_after) == (0.1, 0.2)
+    assert np.isnan(seen_windows[0].check_error_before)
 
 
 def test_overflow_drops_the_oldest_pending_frame():

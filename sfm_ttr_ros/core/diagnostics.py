@@ -104,6 +104,7 @@ class StreamDiagnostics:
             "windows_failed": c["windows_failed"],
             "windows_skipped_overload": c["windows_skipped"],
             "windows_disabled": c["windows_disabled"],
+            "windows_rejected_by_check": c["windows_rejected"],
             "faults": sum(self.faults.values()),
         })
         v.update({f"faults.{k}": n for k, n in sorted(self.faults.items())})
@@ -129,6 +130,8 @@ class StreamDiagnostics:
                 "last_window.loss_after": w.loss_after,
                 "last_window.steps": w.steps,
                 "last_window.steps_done": w.steps_done,
+                "last_window.check_error_before": w.check_error_before,
+                "last_window.check_error_after": w.check_error_after,
             })
             v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
         return v

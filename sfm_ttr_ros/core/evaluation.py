@@ -46,18 +46,33 @@ ACCURACY_METRICS = ("a1", "a2", "a3")  # higher is better
 SKIP_NO_VALID_GT = "no_valid_gt"
 SKIP_NO_FINITE_PRED = "no_finite_pred"
 SKIP_NONPOSITIVE_MEDIAN = "nonpositive_median_pred"
+SKIP_NO_AFFINE_FIT = "no_affine_fit"
+
+
+PREDICTION_KINDS = ("depth", "relative_inverse_depth")
 
 
 @dataclass
 class EvalConfig:
-    """Evaluation options. Defaults: depth range (1e-3, 80) m, no crop, median scaling."""
+    """Evaluation options. Defaults: depth range (1e-3, 80) m, no crop, median scaling.
+
+    ``prediction``: what a predicted map holds. ``"depth"`` (depth, up to scale with
+    ``median_scaling``); ``"relative_inverse_depth"`` (affine-invariant inverse depth, the
+    MiDaS / DPT / Depth Anything relative heads): per frame the least-squares (a, b) with
+    a·p + b ≈ 1/GT over the valid pixels (the MiDaS protocol, Ranftl et al. 2020), then
+    depth = 1 / max(a·p + b, 1/max_depth); median scaling does not apply (the fit has the scale).
+    """
 
     min_depth: float = MIN_DEPTH
     max_depth: float = MAX_DEPTH
     eigen_crop: bool = False
     median_scaling: bool = True
+    prediction: str = "depth"
 
     def __post_init__(self) -> None:
+        if self.prediction not in PREDICTION_KINDS:
+            raise InputError(f"prediction must be one of {PREDICTION_KINDS}, got "
+                             f"{self.prediction!r}")
         lo, hi = float(self.min_depth), float(self.max_depth)
         if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi <= lo:
             raise InputError(
@@ -161,7 +176,11 @@ def _evaluate(
         return None, SKIP_NO_FINITE_PRED, invalid
     gt_v, pred_v = gt_v[finite], pred_v[finite]
     ratio = None
-    if config.median_scaling:
+    if config.prediction == "relative_inverse_depth":
+        pred_v = inverse_affine_to_depth(pred_v, gt_v, config.max_depth)
+        if pred_v is None:
+            return None, SKIP_NO_AFFINE_FIT, invalid
+    elif config.median_scaling:
         med_pred = float(np.median(pred_v))
         if med_pred <= 0:
             return None, SKIP_NONPOSITIVE_MEDIAN, invalid
@@ -170,6 +189,21 @@ def _evaluate(
     pred_v = np.clip(pred_v, config.min_depth, config.max_depth)
     metrics = compute_errors(gt_v, pred_v)
     return FrameResult(metrics, ratio, int(gt_v.size), invalid), None, invalid
+
+
+def inverse_affine_to_depth(pred: np.ndarray, gt: np.ndarray, max_depth: float
+                            ) -> np.ndarray | None:
+    """Depth from affine-invariant inverse depth ``pred`` (1-D, at the valid GT pixels ``gt``):
+    argmin_(a,b) Σ (a·p + b − 1/GT)², then 1 / max(a·p + b, 1/max_depth). None when the fit is
+    degenerate (constant prediction) or not finite."""
+    A = np.stack([pred, np.ones_like(pred)], 1)
+    try:
+        (a, b), *_ = np.linalg.lstsq(A, 1.0 / gt, rcond=None)
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.isfinite(a) and np.isfinite(b)) or float(np.ptp(pred)) == 0.0:
+        return None
+    return 1.0 / np.maximum(a * pred + b, 1.0 / max_depth)
 
 
 def evaluate_frame(

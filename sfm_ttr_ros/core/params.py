@@ -10,6 +10,7 @@ are read from the target dataclass field, so they are written once, in the confi
 ``alignment`` :class:`~sfm_ttr_ros.core.alignment.AlignmentConfig`
 ``refinement``:class:`~sfm_ttr_ros.core.refinement.RefinementConfig`
 ``ttr``       :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` (its own fields)
+``check``     :class:`~sfm_ttr_ros.core.verification.CheckConfig` (the window checks)
 ``stream``    :class:`~sfm_ttr_ros.core.stream.StreamSettings`
 ``model``     :class:`~sfm_ttr_ros.core.models.registry.ModelConfig`
 ``node``      :class:`~sfm_ttr_ros.core.node_settings.NodeSettings`
@@ -48,11 +49,13 @@ from sfm_ttr_ros.core.refinement import BN_MODES, LOSSES, WEIGHTINGS, Refinement
 from sfm_ttr_ros.core.sfm import SfmConfig
 from sfm_ttr_ros.core.stream import StreamSettings
 from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
+from sfm_ttr_ros.core.verification import CheckConfig
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in
 SECTIONS: dict[str, type] = {"sfm": SfmConfig, "alignment": AlignmentConfig,
                              "refinement": RefinementConfig, "ttr": TTRConfig,
+                             "check": CheckConfig,
                              "stream": StreamSettings, "model": ModelConfig, "node": NodeSettings}
 BUILTIN_MODELS = ("default", "monodepth2", "mobilenet", "hf")
 _TYPE_NAMES = {bool: "bool", int: "integer", float: "double", str: "string"}
@@ -221,8 +224,31 @@ PARAMS: tuple[Param, ...] = (
     _p("max_loss_ratio", "ttr.max_loss_ratio", "Roll a window back to the weights before it "
        "when its loss after refinement exceeds this many times the loss before (non-finite "
        "losses or weights always roll back); 0 = only the non-finite check.", 0.0, 1e6),
-    _p("seed", "sfm.seed,alignment.seed,refinement.seed", "Random seed of SfM, RANSAC and "
-       "refinement.", 0, INT_MAX),
+    # -- window checks (issue 19, core/verification.py; live) -----------------------------------
+    _p("check.holdout_fraction", "check.holdout_fraction", "Share of a window's supervision "
+       "tracks held out of refinement to check it: the refined weights are served and kept only "
+       "if the held-out error fell (check.holdout_margin); else the window is published "
+       "unrefined ('rejected_by_check'); 0 = no held-out check.", 0.0, 0.9),
+    _p("check.holdout_margin", "check.holdout_margin", "Relative fall of the held-out check "
+       "error a window must show: accepted when after <= (1 - margin) * before.", 0.0, 0.9),
+    _p("check.max_reprojection_error", "check.max_reprojection_error", "Refuse a window "
+       "whose mean SfM reprojection error exceeds this (px) before refining "
+       "('check_reprojection'); 0 = off.", 0.0, 1e3),
+    _p("check.min_track_length", "check.min_track_length", "Refuse a window whose 3D points "
+       "are seen by fewer registered frames than this on average ('check_track_length'); 0 = "
+       "off.", 0.0, 1e3),
+    _p("check.min_inlier_ratio", "check.min_inlier_ratio", "Refuse a window whose scale "
+       "RANSAC keeps fewer inliers than this share of its points ('check_inlier_ratio'); 0 = "
+       "off.", 0.0, 1.0),
+    _p("check.max_scale_spread", "check.max_scale_spread", "Refuse a window in which a "
+       "frame's own scale differs from the window's by more than this factor "
+       "('check_scale_spread'); 0 = off.", 0.0, 1e3, constraints="0 or >= 1"),
+    _p("check.max_scale_jump", "check.max_scale_jump", "Refuse a window whose camera path on "
+       "the frames it shares with the previous accepted window differs by more than this "
+       "factor in network units ('check_scale_jump'; windows that share no frame are not "
+       "compared); 0 = off.", 0.0, 1e3, constraints="0 or >= 1"),
+    _p("seed", "sfm.seed,alignment.seed,refinement.seed,check.seed", "Random seed of SfM, "
+       "RANSAC, refinement and the held-out split.", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------
     _p("model_type", "model.type", "Depth network: 'default' (embedded weights), 'monodepth2', "
        "'mobilenet', 'hf' (a transformers depth-estimation model, model_path) or a plug-in "
@@ -388,6 +414,7 @@ def build(values: Mapping[str, Any]) -> Settings:
             stream=StreamSettings(**sections["stream"]),
             ttr=TTRConfig(sfm=SfmConfig(**sections["sfm"]),
                           alignment=AlignmentConfig(**sections["alignment"]),
+                          check=CheckConfig(**sections["check"]),
                           refinement=RefinementConfig(**sections["refinement"]), **ttr_top),
             model=ModelConfig(**sections["model"]),
             node=NodeSettings(**sections["node"]))

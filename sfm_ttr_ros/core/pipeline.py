@@ -42,6 +42,20 @@ from sfm_ttr_ros.core.supervision import (
     sample_at,
 )
 from sfm_ttr_ros.core.trainable import check_trainable
+from sfm_ttr_ros.core.verification import (
+    CheckConfig,
+    PathReference,
+    WindowCheck,
+    accept,
+    check_error,
+    frame_scale_spread,
+    path_reference,
+    reprojection_error,
+    sanity_check,
+    scale_jump,
+    split_supervision,
+    track_length,
+)
 
 WEIGHT_POLICIES = ("reset", "continue", "continual")
 
@@ -54,6 +68,7 @@ class TTRConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
+    check: CheckConfig = field(default_factory=CheckConfig)  # issue 19: core/verification.py
     # Weights across windows (WEIGHT_POLICIES): "reset" every window starts from the start-up
     # weights (measured better than "continue": BENCHMARKS.md); "continue" from the previous
     # window's result; "continual" continues with a replay of earlier windows' supervision and
@@ -97,6 +112,10 @@ class WindowResult:
     depths_before: dict[str, np.ndarray]
     refined: bool
     reason: str = ""  # why the window was not refined ("" when it was)
+    reason_key: str = ""  # a verification.CHECK_REASONS key when a check refused the window
+    check: WindowCheck | None = None  # what the window checks measured (issue 19)
+    # the refined weights' depths of a window the held-out check refused (for evaluation only)
+    depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
     sfm: SfmResult | None = None
     alignment: AlignmentResult | None = None
     refinement: RefinementResult | None = None
@@ -119,6 +138,7 @@ class WindowResult:
             "scale": self.scale,
             "loss_before": self.loss_before,
             "loss_after": self.loss_after,
+            "check": self.check.summary() if self.check else None,
         }
 
 
@@ -136,6 +156,8 @@ class SfmTTR:
         self._original = snapshot_encoder(model)
         # continual policy: the supervision of the last replay_windows refined windows
         self._replay: deque[list[FrameSupervision]] = deque()
+        # the last accepted window's camera path in network units (the scale-jump check)
+        self._path: PathReference | None = None
         self._stop = False
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
@@ -262,6 +284,8 @@ class SfmTTR:
 
         if cfg.weight_policy == "reset":
             self.reset_model()
+        # the scale-jump check compares with the window just before, when it was accepted
+        previous_path, self._path = self._path, None
         t0 = time.perf_counter()
         before = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
         t["predict_before"] = time.perf_counter() - t0
@@ -300,8 +324,20 @@ class SfmTTR:
                           f"{d_sfm.size} (< {cfg.min_supervision_points})")
             return res
 
+        t0 = time.perf_counter()
+        res.check = self._sanity(sfm, reg, d_sfm, d_nn, align, previous_path)
+        res.check.seconds = time.perf_counter() - t0
+        if res.check.reason_key:
+            res.reason_key, res.reason = res.check.reason_key, f"check: {res.check.reason}"
+            return res
         sup = build_supervision(sfm, reg, images, align, cfg.refinement.weighting)
         res.loss_before = float(np.mean([frame_loss(before[s.name], s) for s in sup]))
+        t0 = time.perf_counter()
+        train, held = (split_supervision(sup, cfg.check.holdout_fraction, cfg.check.seed)
+                       if cfg.check.holdout else (sup, []))
+        res.check.check_points = sum(len(s) for s in held)
+        res.check.error_before = check_error(before, held, cfg.refinement.sampling)
+        res.check.seconds += time.perf_counter() - t0
         continual = cfg.weight_policy == "continual"
         replay = [s for window in self._replay for s in window] if continual else []
         anchor = self._original if continual and cfg.anchor_weight > 0 else None
@@ -309,7 +345,7 @@ class SfmTTR:
         start = self._original if cfg.weight_policy == "reset" else snapshot_encoder(self.model)
         t0 = time.perf_counter()
         res.refinement = refine_encoder(
-            self.model, sup, cfg.refinement, should_stop=stop, replay=replay,
+            self.model, train, cfg.refinement, should_stop=stop, replay=replay,
             replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
             photometric=self._photometric_frames(names, images, sfm, align.scale, intrinsics))
         t["refine"] = time.perf_counter() - t0
@@ -330,12 +366,50 @@ class SfmTTR:
             restore_encoder(self.model, start)
             res.refined, res.reason, res.depths = False, f"rolled back: {why}", dict(before)
             return res
+        t0 = time.perf_counter()
+        res.check.error_after = check_error(res.depths, held, cfg.refinement.sampling)
+        res.check.seconds += time.perf_counter() - t0
+        t["check"] = res.check.seconds
+        if not accept(cfg.check, res.check.error_before, res.check.error_after):
+            restore_encoder(self.model, start)
+            c = res.check
+            c.reason_key = res.reason_key = "rejected_by_check"
+            c.reason = (f"held-out check error {c.error_before:.4g} -> {c.error_after:.4g} "
+                        f"on {c.check_points} points did not fall by "
+                        f"check.holdout_margin {cfg.check.holdout_margin:g}")
+            res.refined, res.reason = False, f"rejected by check: {c.reason}"
+            res.depths_candidate, res.depths = res.depths, dict(before)
+            return res
+        self._path = path_reference(sfm, reg, align.scale) if self._scaled(align) else None
         if continual and cfg.replay_windows > 0:
             self._replay.append(sup)
             while len(self._replay) > cfg.replay_windows:
                 self._replay.popleft()
         self._cloud(res, sfm, reg)
         return res
+
+    def _scaled(self, align: AlignmentResult) -> bool:
+        """Whether ``align`` is the paper's scale fit (depth up to scale): the scale checks'
+        precondition."""
+        return not isinstance(align, AffineAlignmentResult) and not is_affine_output(self.model)
+
+    def _sanity(self, sfm: SfmResult, reg: list[str], d_sfm: np.ndarray, d_nn: np.ndarray,
+                align: AlignmentResult, previous: PathReference | None) -> WindowCheck:
+        """The window's statistics and the verdict of the cheap checks
+        (:func:`~sfm_ttr_ros.core.verification.sanity_check`)."""
+        c = WindowCheck(reprojection_error=reprojection_error(sfm, reg),
+                        track_length=track_length(sfm, reg))
+        if align.ransac_inliers.size:
+            valid = np.isfinite(d_sfm) & np.isfinite(d_nn) & (d_sfm > 0) & (d_nn > 0)
+            c.inlier_ratio = float(align.ransac_inliers.sum() / max(1, int(valid.sum())))
+        if self._scaled(align):
+            bounds = np.cumsum([0] + [len(sfm.frames[n].depths) for n in reg])
+            parts = [slice(a, b) for a, b in itertools.pairwise(bounds)]
+            c.scale_spread = frame_scale_spread([d_sfm[p] for p in parts],
+                                                [d_nn[p] for p in parts],
+                                                [align.selected[p] for p in parts], align.scale)
+            c.scale_jump = scale_jump(path_reference(sfm, reg, align.scale), previous)
+        return sanity_check(self.config.check, c)
 
     def _rollback_reason(self, res: WindowResult) -> str:
         """Why a refined window must not be kept ("" when it may): a non-finite loss or

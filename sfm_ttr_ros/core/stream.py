@@ -65,6 +65,7 @@ from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm import SfmCancelled
 from sfm_ttr_ros.core.throttle import Throttle
+from sfm_ttr_ros.core.verification import CHECK_REASONS
 
 #: Reason keys of frames published without refinement.
 UNREFINED_REASONS = {
@@ -81,6 +82,7 @@ UNREFINED_REASONS = {
     "window_error": "window failed with an error",
     "rolled_back": "refinement rolled back (non-finite or exploding loss)",
     "end_of_stream": "end of stream with a single frame",
+    **CHECK_REASONS,
 }
 #: Reason keys of frames that were never published.
 DROP_REASONS = {
@@ -149,6 +151,8 @@ class WindowStats:
     loss_after: float = float("nan")
     steps: int = 0  # configured refinement steps for this window
     steps_done: int = 0
+    check_error_before: float = float("nan")  # held-out check error (issue 19)
+    check_error_after: float = float("nan")
     timings: dict[str, float] = field(default_factory=dict)
     cloud_frame: Frame | None = field(default=None, repr=False)
     cloud_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32),
@@ -181,6 +185,8 @@ class _Entry:
 
 def reason_key_of(result: WindowResult) -> str:
     """Reason key of an unrefined window from the core's free-text reason."""
+    if result.reason_key:
+        return result.reason_key
     r = result.reason
     if r.startswith("SfM failed"):
         return "sfm_failed"
@@ -248,6 +254,7 @@ class StreamProcessor:
         self._windows_failed = 0
         self._windows_skipped = 0
         self._windows_disabled = 0
+        self._windows_rejected = 0  # refused by a window check (issue 19), among the failed
         self._non_monotonic = 0
         self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
         self._cancelled = False
@@ -372,6 +379,7 @@ class StreamProcessor:
                 "windows_failed": self._windows_failed,
                 "windows_skipped": self._windows_skipped,
                 "windows_disabled": self._windows_disabled,
+                "windows_rejected": self._windows_rejected,
                 "non_monotonic_stamps": self._non_monotonic,
             }
 
@@ -525,6 +533,7 @@ class StreamProcessor:
                 self._windows_disabled += 1
             else:
                 self._windows_failed += 1
+                self._windows_rejected += stats.reason_key in CHECK_REASONS
         if not stats.refined and stats.reason_key != "disabled":
             self._warn(f"window:{stats.reason_key}",
                        f"window {index} not refined ({stats.reason}): {len(new)} frame(s) "
@@ -553,10 +562,14 @@ class StreamProcessor:
         stats.scale, stats.loss_before, stats.loss_after = res.scale, res.loss_before, \
             res.loss_after
         stats.steps_done = res.refinement.steps_done if res.refinement is not None else 0
+        if res.check is not None:
+            stats.check_error_before = res.check.error_before
+            stats.check_error_after = res.check.error_after
         stats.timings = dict(res.timings)
         # The history keeps the SfM/alignment summary but not the per-frame depth maps: a deque of
         # 100 windows x 10 full-size maps each would grow memory for the whole first 100 windows.
-        stats.result = dataclasses.replace(res, depths={}, depths_before={})
+        stats.result = dataclasses.replace(res, depths={}, depths_before={},
+                                           depths_candidate={})
         if res.cloud_frame:
             stats.cloud_xyz, stats.cloud_error = res.cloud_xyz, res.cloud_error
 

@@ -35,6 +35,7 @@ class FrameSupervision:
     pixels: np.ndarray  # N x 2 (x, y)
     target: np.ndarray  # N
     weights: np.ndarray  # N
+    point_ids: np.ndarray | None = None  # N COLMAP 3D point ids (tracks), when known
 
     def __len__(self) -> int:
         return int(self.target.shape[0])
@@ -96,7 +97,8 @@ def build_supervision(sfm: SfmResult, registered: Sequence[str],
         else:
             w = np.ones(int(sel.sum()))
         sup.append(FrameSupervision(n, images[n], obs.pixels[sel],
-                                    supervision_targets(align, obs.depths[sel], k), w))
+                                    supervision_targets(align, obs.depths[sel], k), w,
+                                    obs.point_ids[sel]))
     return sup
 
 

@@ -5,6 +5,8 @@ Raw drive (camera 02 = left colour)::
     <raw_root>/<date>/calib_cam_to_cam.txt
     <raw_root>/<date>/<date>_drive_XXXX_sync/image_02/data/NNNNNNNNNN.png
     <raw_root>/<date>/<date>_drive_XXXX_sync/image_02/timestamps.txt
+    <raw_root>/<date>/<date>_drive_XXXX_sync/image_02/segments.txt   (generated drives with
+        segment labels only, not KITTI's: one line ``index label`` per frame)
 
 Improved depth ground truth (KITTI depth benchmark; uint16 PNG, metres x 256, 0 = none; the
 first and last 5 frames of every drive have none)::
@@ -176,6 +178,41 @@ def read_timestamps(path: str | Path) -> list[float]:
 
 def write_timestamps(path: str | Path, stamps: Sequence[float]) -> None:
     Path(path).write_text("".join(format_kitti_timestamp(float(s)) + "\n" for s in stamps))
+
+
+SEGMENTS_FILE = "segments.txt"  # beside image_02/data: per-frame labels of a scenario drive
+
+
+def _check_labels(labels: Sequence[str]) -> None:
+    for i, label in enumerate(labels):
+        if not isinstance(label, str) or label.split() != [label]:
+            raise InputError(f"segment label of frame {i} must be one word, got {label!r}")
+
+
+def write_segments(path: str | Path, labels: Sequence[str]) -> None:
+    """One line ``index label`` per frame (``index`` from 0, like the image names)."""
+    _check_labels(labels)
+    Path(path).write_text("".join(f"{i} {label}\n" for i, label in enumerate(labels)))
+
+
+def read_segments(path: str | Path) -> list[str]:
+    """The per-frame labels of a ``segments.txt`` (:func:`write_segments`), in frame order;
+    every index 0 .. n-1 exactly once."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"segments file not found: {path}")
+    labels: dict[int, str] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        parts = line.split()
+        if len(parts) != 2 or not parts[0].isdigit() or int(parts[0]) in labels:
+            raise InputError(f"{path}:{lineno}: expected 'index label' with a new index, "
+                             f"got {line!r}")
+        labels[int(parts[0])] = parts[1]
+    if sorted(labels) != list(range(len(labels))):
+        raise InputError(f"{path}: frame indices are not 0 .. {len(labels) - 1}")
+    return [labels[i] for i in range(len(labels))]
 
 
 def read_depth_png(path: str | Path, scale: float = KITTI_DEPTH_SCALE) -> np.ndarray:
@@ -374,7 +411,9 @@ def write_kitti_drive(
     date must have the same camera-02 intrinsics). With ``gt_root``, depth ground truth goes to
     ``<gt_root>/<gt_split>/<drive>/proj_depth/groundtruth/image_02`` for all but the first and
     last ``gt_skip_ends`` frames (like KITTI): dense for ``gt_density`` 1, else sparse LiDAR-like
-    (:func:`lidar_like_mask`, seeded by ``gt_seed`` and the frame index).
+    (:func:`lidar_like_mask`, seeded by ``gt_seed`` and the frame index). A sequence with
+    per-frame ``labels`` (a scenario drive) also gets ``image_02/segments.txt``
+    (:func:`write_segments`).
     """
     if not re.fullmatch(r"\d{4}_\d{2}_\d{2}", date):
         raise InputError(f"date must look like 2011_09_26, got {date!r}")
@@ -388,6 +427,10 @@ def write_kitti_drive(
             f"sequence needs as many stamps / depths as images "
             f"({n} images, {len(seq.stamps)} stamps, {len(seq.depths)} depths)"
         )
+    labels = list(getattr(seq, "labels", None) or [])
+    if labels and len(labels) != n:
+        raise InputError(f"sequence has {len(labels)} segment labels for {n} images")
+    _check_labels(labels)
     intr: Intrinsics = seq.intrinsics
     name = drive_name(date, drive_number)
     date_dir = Path(raw_root) / date
@@ -426,6 +469,11 @@ def write_kitti_drive(
         if not cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
             raise InputError(f"cannot write image {path}")
     write_timestamps(drive_dir / "image_02" / "timestamps.txt", seq.stamps)
+    segments_path = drive_dir / "image_02" / SEGMENTS_FILE
+    if labels:
+        write_segments(segments_path, labels)
+    else:
+        segments_path.unlink(missing_ok=True)  # a stale one of an overwritten drive
 
     if gt_dir is not None:
         gt_dir.mkdir(parents=True, exist_ok=True)

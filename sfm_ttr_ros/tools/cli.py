@@ -93,16 +93,29 @@ def _plain(summary: dict) -> dict:
     return {k: v for k, v in summary.items() if k not in ("per_frame",)}
 
 
+STREET_FRAMES = 30  # `generate --frames` default (street scenario)
+
+
 def cmd_generate(args: argparse.Namespace) -> int:
     """Write a synthetic KITTI-format drive (raw layout + improved-GT PNGs)."""
-    from sfm_ttr_ros.data.kitti import write_kitti_drive
-    from sfm_ttr_ros.data.synthetic import make_sequence
+    from sfm_ttr_ros.data.kitti import SEGMENTS_FILE, write_kitti_drive
+    from sfm_ttr_ros.data.synthetic import make_hard_sequence, make_sequence
 
-    seq = make_sequence(seed=args.seed, domain=args.domain, num_frames=args.frames,
-                        width=args.width, height=args.height)
+    if args.scenario == "hard":
+        if args.frames is not None:
+            raise InputError("--frames does not apply to --scenario hard: its length is its "
+                             "segment list")
+        seq = make_hard_sequence(seed=args.seed, domain=args.domain, width=args.width,
+                                 height=args.height)
+    else:
+        frames = STREET_FRAMES if args.frames is None else args.frames
+        seq = make_sequence(seed=args.seed, domain=args.domain, num_frames=frames,
+                            width=args.width, height=args.height)
     drive = write_kitti_drive(seq, args.kitti_raw, args.kitti_gt, drive_number=args.drive_number)
-    print(f"wrote {drive}: {args.frames} frames {args.width}x{args.height} "
+    print(f"wrote {drive}: {len(seq)} frames {args.width}x{args.height} "
           f"to {args.kitti_raw} (GT: {args.kitti_gt})")
+    if seq.labels:
+        print(f"segment labels in {drive}/image_02/{SEGMENTS_FILE}")
     return 0
 
 
@@ -122,7 +135,15 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser("generate", help="write a synthetic KITTI-format drive")
     g.add_argument("--kitti-raw", required=True)
     g.add_argument("--kitti-gt", default=None)
-    g.add_argument("--frames", type=int, default=30)
+    g.add_argument("--scenario", choices=("street", "hard"), default="street",
+                   help="street: ordinary forward driving (default); hard: ordinary driving "
+                   "between turning on the spot, a standing camera, cars crossing, a vehicle "
+                   "ahead moving with the camera and an exposure change (the frames of "
+                   "synthetic.DEFAULT_HARD_SEGMENTS), per-frame labels in "
+                   "image_02/segments.txt")
+    g.add_argument("--frames", type=int, default=None,
+                   help=f"frames of the street scenario (default {STREET_FRAMES}); an error "
+                   "with --scenario hard")
     g.add_argument("--width", type=int, default=1242)
     g.add_argument("--height", type=int, default=375)
     g.add_argument("--domain", default="B", help="A (training domain) or B (held out)")

@@ -36,13 +36,27 @@ def _add_eval_args(p: argparse.ArgumentParser) -> None:
                    help="no per-image median scaling (metric predictions)")
     g.add_argument("--max-depth", type=float, default=80.0, help="depth cap in metres")
     g.add_argument("--min-depth", type=float, default=1e-3, help="smallest valid GT depth")
+    g.add_argument("--prediction", choices=("auto", "depth", "relative_inverse_depth"),
+                   default="auto",
+                   help="what the predictions hold: depth (median-scaled), or affine-invariant "
+                        "inverse depth (a per-frame least-squares scale and shift to 1/GT, the "
+                        "MiDaS protocol); auto: the network's output kind (benchmark), depth "
+                        "(evaluate)")
 
 
-def _eval_config(args: argparse.Namespace):
+def _eval_config(args: argparse.Namespace, model=None):
+    """The evaluation options of the flags; ``--prediction auto`` follows ``model``'s output
+    (relative inverse depth for affine-invariant networks, else depth)."""
+    from sfm_ttr_ros.core.alignment_affine import is_affine_output
     from sfm_ttr_ros.core.evaluation import EvalConfig
 
+    kind = args.prediction
+    if kind == "auto":
+        affine = model is not None and is_affine_output(model)
+        kind = "relative_inverse_depth" if affine else "depth"
     return EvalConfig(min_depth=args.min_depth, max_depth=args.max_depth,
-                      eigen_crop=args.eigen_crop, median_scaling=args.median_scaling)
+                      eigen_crop=args.eigen_crop, median_scaling=args.median_scaling,
+                      prediction=kind)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -113,7 +127,8 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
                    "decoder_path": model_config.decoder_path, "device": model_config.device,
                    "load_weights_path": settings.node.load_weights_path}
     results = run_benchmark(
-        seq, factory, settings.ttr, settings.stream, args.out, args.modes, _eval_config(args),
+        seq, factory, settings.ttr, settings.stream, args.out, args.modes,
+        _eval_config(args, base),
         start=args.start, max_frames=args.max_frames,
         offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
         save_depth=args.save_depth, model_description=description, rate=args.rate,

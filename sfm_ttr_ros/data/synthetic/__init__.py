@@ -30,10 +30,14 @@ warm plaster/brick facades, trees, KITTI camera); ``"B"`` is an overcast dense d
 street, tall grey concrete/glass facades, darker asphalt, more parked cars, few trees, lower and
 wider-angle camera, more yaw wobble, flatter contrast).
 
+Hard drives (:mod:`.scenario`, issue 19): segments of ordinary driving, turning on the spot,
+a standing camera, cars crossing ahead, a vehicle ahead moving with the camera and a sudden
+exposure change, one label per frame (:func:`make_hard_sequence`, :data:`DEFAULT_HARD_SEGMENTS`).
+
 Modules, one job each: :mod:`.scene` (parameters, domains, camera path),
 :mod:`.textures` (procedural textures), :mod:`.materials` (mip-mapped atlases and their
 lookup), :mod:`.geometry` (the street's objects), :mod:`.raycast` (intersections),
-:mod:`.shading`, :mod:`.render` (frames and drives).
+:mod:`.shading`, :mod:`.render` (frames and drives), :mod:`.scenario` (segment drives).
 """
 
 from __future__ import annotations
@@ -45,7 +49,19 @@ from sfm_ttr_ros.data.synthetic.render import (
     _finish,
     _render,
     make_sequence,
+    render_frames,
     render_sequence,
+)
+from sfm_ttr_ros.data.synthetic.scenario import (
+    DEFAULT_HARD_SEGMENTS,
+    SEGMENT_KINDS,
+    DrivePlan,
+    Segment,
+    Vehicle,
+    as_segments,
+    make_hard_sequence,
+    plan_drive,
+    render_hard_drive,
 )
 from sfm_ttr_ros.data.synthetic.scene import (
     DOMAINS,
@@ -60,17 +76,27 @@ from sfm_ttr_ros.data.synthetic.scene import (
 # the private names are the speed script's chunked renderer (scripts/benchmark_speed.py) and
 # the texture test's (tests/test_synthetic.py)
 __all__ = [
+    "DEFAULT_HARD_SEGMENTS",
     "DOMAINS",
     "FRAME_RATE",
     "KITTI_START_STAMP",
+    "SEGMENT_KINDS",
+    "DrivePlan",
     "SceneParams",
+    "Segment",
     "SyntheticSequence",
+    "Vehicle",
     "_build_scene",
     "_finish",
     "_materials",
     "_render",
+    "as_segments",
     "camera_pose",
+    "make_hard_sequence",
     "make_sequence",
+    "plan_drive",
+    "render_frames",
+    "render_hard_drive",
     "render_sequence",
     "sample_scene_params",
     "scene_intrinsics",

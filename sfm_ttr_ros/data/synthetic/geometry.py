@@ -1,6 +1,7 @@
 """Scene geometry: the procedural objects of a street (buildings, parked cars, poles, signs,
 trees) as rows of one table (:class:`_Scene`: kind, material, tint, AABB, centre, radius),
-built along a stretch of the path by :func:`_build_scene`."""
+built along a stretch of the path by :func:`_build_scene`; :func:`_with_objects` appends one
+frame's extra (moving) objects to a built scene."""
 
 from __future__ import annotations
 
@@ -56,6 +57,9 @@ class _Scene:
     hi: np.ndarray  # (M, 3)
     centre: np.ndarray  # (M, 3) cylinder / sphere centre
     radius: np.ndarray  # (M,)
+    # (M, 3) texture anchor: how far a moving object has moved since its texture was laid out
+    # (shading subtracts it, so the texture moves with the object); None = all static
+    anchor: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.lo32, self.hi32 = self.lo.astype(np.float32), self.hi.astype(np.float32)
@@ -63,15 +67,25 @@ class _Scene:
         self.radius32 = self.radius.astype(np.float32)
 
 
+def _car_shape(rng: np.random.Generator) -> tuple[float, float, float, float]:
+    """A car's random proportions, drawn in this order: body top (y), cabin inset at the front,
+    cabin top (y), cabin inset at the back (metres)."""
+    body_top = -1.0 - rng.uniform(0, 0.1)
+    front = rng.uniform(0.8, 1.4)
+    cabin_top = -1.45 - rng.uniform(0, 0.2)
+    return body_top, front, cabin_top, rng.uniform(0.7, 1.3)
+
+
 class _Builder:
     def __init__(self) -> None:
         self.rows: list[tuple] = []
 
-    def add(self, kind, material, tint, offset, lo, hi, centre=(0, 0, 0), radius=0.0):
-        self.rows.append((kind, material, tint, offset, lo, hi, centre, radius))
+    def add(self, kind, material, tint, offset, lo, hi, centre=(0, 0, 0), radius=0.0,
+            anchor=(0.0, 0.0, 0.0)):
+        self.rows.append((kind, material, tint, offset, lo, hi, centre, radius, anchor))
 
-    def box(self, material, lo, hi, tint=(1, 1, 1), offset=(0, 0)):
-        self.add(BOX, material, tint, offset, lo, hi)
+    def box(self, material, lo, hi, tint=(1, 1, 1), offset=(0, 0), anchor=(0.0, 0.0, 0.0)):
+        self.add(BOX, material, tint, offset, lo, hi, anchor=anchor)
 
     def cylinder(self, material, x, z, r, y_top, y_bottom, tint=(1, 1, 1), offset=(0, 0)):
         self.add(
@@ -88,6 +102,65 @@ class _Builder:
     def sphere(self, material, c, r, tint=(1, 1, 1), offset=(0, 0)):
         c = np.asarray(c, float)
         self.add(SPHERE, material, tint, offset, c - r, c + r, c, r)
+
+    def car(self, x0, x1, z0, z1, colour, offset, shape, along_x=False, height=1.0,
+            anchor=(0.0, 0.0, 0.0)):
+        """A car standing on the road (``y = 0``) over the footprint ``[x0, x1] x [z0, z1]``:
+        dark undercarriage, body (``CAR``, tinted ``colour``) and glass cabin, three boxes.
+        ``shape`` from :func:`_car_shape`; its front / back insets run along the car's length,
+        which is ``z`` (parked cars) or ``x`` (``along_x``: a car crossing the street).
+        ``height`` scales every y (a van: > 1)."""
+        body_top, front, cabin_top, back = shape
+
+        def inset(side, lo_len, hi_len):  # -> (x0, x1, z0, z1)
+            if along_x:
+                return x0 + lo_len, x1 - hi_len, z0 + side, z1 - side
+            return x0 + side, x1 - side, z0 + lo_len, z1 - hi_len
+
+        a0, a1, b0, b1 = inset(0.1, 0.5, 0.5)
+        self.box(DARK, (a0, -0.35 * height, b0), (a1, 0.0, b1), anchor=anchor)
+        self.box(CAR, (x0, body_top * height, z0), (x1, -0.3 * height, z1), colour, offset,
+                 anchor)
+        a0, a1, b0, b1 = inset(0.12, front, back)
+        self.box(GLASS, (a0, cabin_top * height, b0), (a1, -0.98 * height, b1), (1, 1, 1),
+                 offset, anchor)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The rows as :class:`_Scene`'s columns (``anchor`` only if an object has one)."""
+        rows = self.rows
+        cols = {
+            "kind": np.array([x[0] for x in rows], np.int32),
+            "material": np.array([x[1] for x in rows], np.int32),
+            "tint": np.array([x[2] for x in rows], np.float32),
+            "offset": np.array([x[3] for x in rows], np.float32),
+            "lo": np.array([x[4] for x in rows], np.float64),
+            "hi": np.array([x[5] for x in rows], np.float64),
+            "centre": np.array([x[6] for x in rows], np.float64),
+            "radius": np.array([x[7] for x in rows], np.float64),
+        }
+        anchor = np.array([x[8] for x in rows], np.float32).reshape(-1, 3)
+        cols["anchor"] = anchor if anchor.any() else None
+        return cols
+
+
+def _with_objects(scene: _Scene, extra: _Builder) -> _Scene:
+    """``scene`` plus the objects of ``extra`` (one frame's moving objects), appended after the
+    scene's own (whose ids stay the same); ``scene`` itself is left untouched."""
+    if not extra.rows:
+        return scene
+    add = extra.arrays()
+    cols = {}
+    for name, col in add.items():
+        if name == "anchor":
+            if col is None and scene.anchor is None:
+                cols[name] = None
+                continue
+            old = scene.anchor if scene.anchor is not None else np.zeros((len(scene.kind), 3))
+            col = col if col is not None else np.zeros((len(extra.rows), 3))
+            cols[name] = np.concatenate([old, col]).astype(np.float32)
+        else:
+            cols[name] = np.concatenate([getattr(scene, name), col])
+    return _Scene(params=scene.params, materials=scene.materials, **cols)
 
 
 def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
@@ -146,16 +219,7 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
                 x0, x1 = (x_out - width, x_out) if side > 0 else (-x_out, -x_out + width)
                 col = CAR_COLOURS[r.integers(len(CAR_COLOURS))] * r.uniform(0.85, 1.05)
                 off = r.uniform(0, 5, 2)
-                b.box(DARK, (x0 + 0.1, -0.35, z + 0.5), (x1 - 0.1, 0.0, z + length - 0.5))
-                b.box(CAR, (x0, -1.0 - r.uniform(0, 0.1), z), (x1, -0.3, z + length), col, off)
-                cz0 = z + r.uniform(0.8, 1.4)
-                b.box(
-                    GLASS,
-                    (x0 + 0.12, -1.45 - r.uniform(0, 0.2), cz0),
-                    (x1 - 0.12, -0.98, z + length - r.uniform(0.7, 1.3)),
-                    (1, 1, 1),
-                    off,
-                )
+                b.car(x0, x1, z, z + length, col, off, _car_shape(r))
             z += length + max(0.5, r.exponential(mean_gap - 4.3))
         # poles (street lights / sign posts) near the kerb
         r = stream(3, side)
@@ -197,16 +261,4 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
             b.sphere(FOLIAGE, (x, -trunk_h - crown * 0.8, z), crown, tint, r.uniform(0, 8, 2))
             z += r.uniform(0.4, 1.6) * 100.0 / p.num_trees
 
-    rows = b.rows
-    return _Scene(
-        params=p,
-        materials=mats,
-        kind=np.array([x[0] for x in rows], np.int32),
-        material=np.array([x[1] for x in rows], np.int32),
-        tint=np.array([x[2] for x in rows], np.float32),
-        offset=np.array([x[3] for x in rows], np.float32),
-        lo=np.array([x[4] for x in rows], np.float64),
-        hi=np.array([x[5] for x in rows], np.float64),
-        centre=np.array([x[6] for x in rows], np.float64),
-        radius=np.array([x[7] for x in rows], np.float64),
-    )
+    return _Scene(params=p, materials=mats, **b.arrays())

@@ -1,17 +1,20 @@
 """Rendering: one frame (:func:`_render`: ground planes, objects front to back, shading;
-image + exact z-depth), the finishing (exposure, gamma, optional blur and noise), and whole
-drives (:func:`render_sequence`, :func:`make_sequence`)."""
+image + exact z-depth), the finishing (exposure, gamma, optional blur and noise), frames of
+given camera poses with optional per-frame moving objects and exposure (:func:`render_frames`),
+and street drives along the path (:func:`render_sequence`, :func:`make_sequence`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError, Intrinsics
-from sfm_ttr_ros.data.synthetic.geometry import _build_scene, _Scene
+from sfm_ttr_ros.data.synthetic.geometry import _build_scene, _Builder, _Scene, _with_objects
 from sfm_ttr_ros.data.synthetic.raycast import _BATCH_AREA, _cast_batch, _intersect, _screen_rects
 from sfm_ttr_ros.data.synthetic.scene import (
     FRAME_RATE,
@@ -101,7 +104,8 @@ def _render(scene: _Scene, R_wc: np.ndarray, C: np.ndarray, intr: Intrinsics):
 
 @dataclass
 class SyntheticSequence:
-    """A rendered drive: images, exact depths and poses, shared intrinsics, 10 Hz stamps."""
+    """A rendered drive: images, exact depths and poses, shared intrinsics, 10 Hz stamps, and
+    per-frame segment labels (scenario drives, :mod:`.scenario`; empty for a street drive)."""
 
     images: list[np.ndarray]  # H x W x 3 uint8 RGB
     depths: list[np.ndarray]  # H x W float32 metres, 0 = no depth (sky / beyond max_depth)
@@ -109,6 +113,7 @@ class SyntheticSequence:
     intrinsics: Intrinsics
     stamps: list[float]  # seconds, 10 Hz
     params: SceneParams
+    labels: list[str] = field(default_factory=list)  # one per frame, or empty
 
     def __len__(self) -> int:
         return len(self.images)
@@ -124,6 +129,68 @@ def _finish(img: np.ndarray, p: SceneParams, rng, blur_sigma: float, noise_std: 
     if noise_std > 0:
         out = out + rng.normal(0, noise_std, out.shape).astype(np.float32)
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+
+
+def render_frames(
+    params: SceneParams,
+    poses: Sequence[tuple[np.ndarray, np.ndarray]],
+    width: int = 1242,
+    height: int = 375,
+    seed: int = 0,
+    *,
+    objects: Sequence[_Builder | None] | None = None,
+    exposure: Sequence[float] | None = None,
+    labels: Sequence[str] | None = None,
+    blur_sigma: float = 0.0,
+    noise_std: float = 0.0,
+    start_stamp: float = KITTI_START_STAMP,
+) -> SyntheticSequence:
+    """Render one frame per camera pose ``poses[i] = (R_wc, C)`` (world-from-camera rotation,
+    camera centre) in the scene of ``params``, built once over the poses' ``z`` range.
+
+    ``objects[i]`` (optional): extra objects of frame ``i`` only (moving vehicles, see
+    :meth:`geometry._Builder.car`), appended to the scene for that frame; they are rendered, so
+    the depth includes them exactly. ``exposure[i]`` (optional): a factor on ``params.exposure``
+    for frame ``i``. ``labels`` (optional): one per frame, kept in the sequence. A frame with
+    the previous frame's pose and no extra objects reuses its rendering (a standing camera).
+    ``seed`` only drives the augmentation (``blur_sigma``, ``noise_std``), as in
+    :func:`render_sequence`.
+    """
+    n = len(poses)
+    if n < 1:
+        raise InputError("no camera poses to render")
+    if width < 8 or height < 8:
+        raise InputError(f"image size too small: {width}x{height}")
+    for name, per_frame in (("objects", objects), ("exposure", exposure), ("labels", labels)):
+        if per_frame is not None and len(per_frame) != n:
+            raise InputError(f"{name} has {len(per_frame)} entries for {n} camera poses")
+    intr = scene_intrinsics(params, int(width), int(height))
+    zs = [float(C[2]) for _, C in poses]
+    scene = _build_scene(params, min(zs) - 40.0, max(zs) + params.max_depth * 1.5 + 20.0)
+    rng = np.random.default_rng([int(seed), 4242])
+    images, depths, cams, stamps = [], [], [], []
+    prev = None  # (R_wc, C, image, depth) of a frame without extra objects
+    for i, (R_wc, C) in enumerate(poses):
+        extra = objects[i] if objects is not None else None
+        if extra is None and prev is not None and np.array_equal(R_wc, prev[0]) and \
+                np.array_equal(C, prev[1]):
+            img, depth = prev[2], prev[3].copy()
+        else:
+            frame_scene = scene if extra is None else _with_objects(scene, extra)
+            img, depth = _render(frame_scene, R_wc, C, intr)
+        prev = (R_wc, C, img, depth) if extra is None else None
+        p = params
+        if exposure is not None and exposure[i] != 1.0:
+            p = dataclasses.replace(params, exposure=params.exposure * float(exposure[i]))
+        images.append(_finish(img, p, rng, blur_sigma, noise_std))
+        depths.append(depth)
+        T = np.eye(4)
+        T[:3, :3] = R_wc.T
+        T[:3, 3] = -R_wc.T @ C
+        cams.append(T)
+        stamps.append(float(start_stamp + i / FRAME_RATE))
+    return SyntheticSequence(images, depths, cams, intr, stamps, params,
+                             list(labels) if labels is not None else [])
 
 
 def render_sequence(
@@ -145,24 +212,9 @@ def render_sequence(
     """
     if num_frames < 1:
         raise InputError(f"num_frames must be >= 1, got {num_frames}")
-    if width < 8 or height < 8:
-        raise InputError(f"image size too small: {width}x{height}")
-    intr = scene_intrinsics(params, int(width), int(height))
-    z_end = start_offset + (num_frames - 1) * params.speed
-    scene = _build_scene(params, start_offset - 40.0, z_end + params.max_depth * 1.5 + 20.0)
-    rng = np.random.default_rng([int(seed), 4242])
-    images, depths, poses, stamps = [], [], [], []
-    for i in range(num_frames):
-        R_wc, C = camera_pose(params, start_offset + i * params.speed)
-        img, depth = _render(scene, R_wc, C, intr)
-        images.append(_finish(img, params, rng, blur_sigma, noise_std))
-        depths.append(depth)
-        T = np.eye(4)
-        T[:3, :3] = R_wc.T
-        T[:3, 3] = -R_wc.T @ C
-        poses.append(T)
-        stamps.append(float(start_stamp + i / FRAME_RATE))
-    return SyntheticSequence(images, depths, poses, intr, stamps, params)
+    poses = [camera_pose(params, start_offset + i * params.speed) for i in range(num_frames)]
+    return render_frames(params, poses, width, height, seed, blur_sigma=blur_sigma,
+                         noise_std=noise_std, start_stamp=start_stamp)
 
 
 def make_sequence(

@@ -38,8 +38,14 @@ def _shade(scene, intr, T, OID, FACE, hitm, Dx, Dy, Dz, C):
     nx[ax == 0] = sgn[ax == 0]
     ny[ax == 1] = sgn[ax == 1]
     nz[ax == 2] = sgn[ax == 2]
-    u = np.where(ax == 0, pz, px)
-    v = np.where(ax == 1, pz, py)
+    # texture coordinates: metres on the surface, world-anchored; a moving object carries its
+    # texture (its anchor, the distance it moved, is taken off)
+    tx, ty, tz = px, py, pz
+    if scene.anchor is not None:
+        a = scene.anchor[oid]
+        tx, ty, tz = px - a[:, 0], py - a[:, 1], pz - a[:, 2]
+    u = np.where(ax == 0, tz, tx)
+    v = np.where(ax == 1, tz, ty)
     curved = face == _FACE_CURVED
     if curved.any():
         o = oid[curved]
@@ -51,7 +57,7 @@ def _shade(scene, intr, T, OID, FACE, hitm, Dx, Dy, Dz, C):
         n = np.sqrt(qx * qx + qy * qy + qz * qz) + 1e-9
         nx[curved], ny[curved], nz[curved] = qx / n, qy / n, qz / n
         u[curved] = np.arctan2(qx, qz) * rad
-        v[curved] = np.where(is_cyl, py[curved], np.arcsin(np.clip(qy / n, -1, 1)) * rad)
+        v[curved] = np.where(is_cyl, ty[curved], np.arcsin(np.clip(qy / n, -1, 1)) * rad)
     # Lambert + ambient
     sun = np.asarray(p.sun_direction, f32)
     lam = np.maximum(nx * sun[0] + ny * sun[1] + nz * sun[2], 0)

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.evaluation import EvalConfig, valid_mask
+from sfm_ttr_ros.core.evaluation import EvalConfig, inverse_affine_to_depth, valid_mask
 
 #: The error-against-depth figure, written next to figure.png
 ERROR_FIGURE = "error_by_depth.png"
@@ -35,14 +35,21 @@ def band_name(lo: float, hi: float) -> str:
 def scaled_prediction(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray,
                       cfg: EvalConfig) -> np.ndarray:
     """The prediction as the evaluation sees it: resized to the GT, median-scaled over the valid
-    finite pixels (when ``cfg.median_scaling``), clamped to [min_depth, max_depth]."""
+    finite pixels (when ``cfg.median_scaling``) or, for relative inverse depth, turned into
+    depth by the per-frame affine fit to 1/GT (:func:`inverse_affine_to_depth`), clamped to
+    [min_depth, max_depth]."""
     p = np.asarray(pred, np.float64)
     if p.shape != gt.shape:
         p = cv2.resize(p, (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR)
-    if cfg.median_scaling:
-        sel = mask & np.isfinite(p)
-        if sel.any() and np.median(p[sel]) > 0:
-            p = p * (np.median(gt[sel]) / np.median(p[sel]))
+    sel = mask & np.isfinite(p)
+    if cfg.prediction == "relative_inverse_depth":
+        depth = inverse_affine_to_depth(p[sel], gt[sel], cfg.max_depth) if sel.any() else None
+        out = np.full_like(p, np.nan)
+        if depth is not None:
+            out[sel] = depth
+        return np.clip(out, cfg.min_depth, cfg.max_depth)
+    if cfg.median_scaling and sel.any() and np.median(p[sel]) > 0:
+        p = p * (np.median(gt[sel]) / np.median(p[sel]))
     return np.clip(p, cfg.min_depth, cfg.max_depth)
 
 

@@ -22,7 +22,7 @@ from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream import StreamSettings, WindowStats
 from sfm_ttr_ros.data.sequence import ImageSequence
-from sfm_ttr_ros.tools.benchmark.runners import ModeRun, log
+from sfm_ttr_ros.tools.benchmark.runners import ModeRun, log, window_record
 
 #: Frames timed for the network's bare forward pass before the run starts.
 FORWARD_PROBES = 10
@@ -51,7 +51,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     forward = bare_forward_s(ttr.model, first.image)
     latencies: list[float] = []
     versions: list[int] = []
-    windows = {"windows": 0, "windows_refined": 0, "windows_rolled_back": 0}
+    windows = {"windows": 0, "windows_refined": 0, "windows_rolled_back": 0, "window_log": []}
 
     served: deque[LiveOutput] = deque()  # evaluated by the feeder between frames
 
@@ -71,6 +71,8 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         windows["windows"] += 1
         windows["windows_refined"] += int(ws.refined)
         windows["windows_rolled_back"] += int(ws.reason_key == "rolled_back")
+        # the stream numbers frames in arrival order: name k is the k-th frame fed
+        windows["window_log"].append(window_record(ws, lambda n: indices[int(n)]))
         if progress:
             what = "refined: now served" if ws.refined else f"not refined ({ws.reason})"
             progress(f"sfm_ttr_live: window {ws.index} {what}")

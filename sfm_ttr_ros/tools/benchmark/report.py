@@ -118,7 +118,7 @@ def results_markdown(results: Mapping[str, Any]) -> str:
         for m, g in gains.items():
             lines.append(f"| {m} | " + " | ".join(_fmt_gain(g.get(k)) for k in METRICS) + " |")
         lines.append("")
-    stages = ("sfm", "align", "refine", "predict_before", "predict_after", "predict")
+    stages = ("sfm", "align", "refine", "predict_before", "predict_after", "predict", "check")
     lines += ["| method | s/frame | refined frames | windows (refined) | "
               + " | ".join(f"{s} s" for s in stages) + " |",
               "|---|" + "---:|" * (3 + len(stages))]
@@ -133,9 +133,31 @@ def results_markdown(results: Mapping[str, Any]) -> str:
     lines += ["", "Lower is better for " + ", ".join(ERROR_METRICS)
               + "; higher for a1-a3. Frames SfM could not use count with the prediction the "
               "mode published for them.", ""]
+    lines += window_check_lines(results, modes)
     lines += [f"![error by GT depth]({ERROR_FIGURE})", ""]
     if results.get("figure_frames"):
         lines += [f"![qualitative results, frames {', '.join(results['figure_frames'])}]"
                   "(figure.png)", ""]
     lines += ["Command:", "", "```", str(results.get("command", "")), "```", ""]
     return "\n".join(lines)
+
+
+def window_check_lines(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
+    """Markdown: per windowed mode, each window's outcome, reason key and held-out check error
+    before -> after (issue 19); the window timeline figure."""
+    logged = [m for m in modes if results[m].get("window_log")]
+    if not logged:
+        return []
+    lines = ["Windows (issue 19: refused = a window check refused it; check = held-out error "
+             "before -> after):", "", "| method | window | frames | outcome | check |",
+             "|---|---:|---|---|---|"]
+    for m in logged:
+        for w in results[m]["window_log"]:
+            c = w.get("check") or {}
+            err = (f"{c['error_before']:.4f} -> {c['error_after']:.4f}"
+                   if c.get("check_points") else "-")
+            frames = w.get("frames") or [0]
+            what = "refined" if w.get("refined") else w.get("reason_key") or "unrefined"
+            lines.append(f"| {m} | {w['index']} | {min(frames)}-{max(frames)} | {what} | "
+                         f"{err} |")
+    return lines + ["", "![windows](windows.png)", ""]

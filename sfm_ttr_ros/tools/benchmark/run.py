@@ -37,6 +37,7 @@ from sfm_ttr_ros.tools.benchmark.runners import (
     run_offline,
     run_online,
 )
+from sfm_ttr_ros.tools.benchmark.timeline import TIMELINE_FIGURE, window_timeline_figure
 from sfm_ttr_ros.tools.benchmark.settings import (
     default_params_file,
     read_params_file,
@@ -172,6 +173,16 @@ def run_benchmark(
     if not cv2.imwrite(str(out / ERROR_FIGURE), error_by_depth_figure(
             curves, title=f"{seq.name}: abs rel by GT depth (pixels of all GT frames)")):
         raise InputError(f"cannot write {out / ERROR_FIGURE}")
+    logs = {m: results[m]["window_log"] for m in modes if results[m].get("window_log")}
+    if logs:
+        abs_rel = {m: {i: row.get("abs_rel") for i, row in r.per_frame.items()}
+                   for m, r in runs.items()}
+        labels = segment_labels(seq, indices)
+        if not cv2.imwrite(str(out / TIMELINE_FIGURE), window_timeline_figure(
+                abs_rel, logs, indices[0], indices[-1], labels=labels,
+                title=f"{seq.name}: abs rel per frame; windows refined (green), refused by a "
+                      "check (red), else unrefined (grey)")):
+            raise InputError(f"cannot write {out / TIMELINE_FIGURE}")
     if fig_idx:
         blocks = []
         for i in fig_idx:
@@ -191,3 +202,22 @@ def run_benchmark(
         progress(f"results in {out}/results.json, results.md, per_frame.csv, figure.png, "
                  f"{ERROR_FIGURE}")
     return results
+
+
+def segment_labels(seq: ImageSequence, indices: Sequence[int]) -> list[str] | None:
+    """The per-frame segment labels of a generated drive (``segments.txt`` beside the image
+    folder, written by ``sfm-ttr generate --scenario hard``) for ``indices``; None when there
+    is none or it does not cover them."""
+    from sfm_ttr_ros.data.kitti import SEGMENTS_FILE, read_segments
+
+    if not seq.image_paths:
+        return None
+    path = Path(seq.image_paths[0]).parent.parent / SEGMENTS_FILE
+    if not path.is_file():
+        return None
+    try:
+        labels = read_segments(path)
+        return [labels[i] for i in indices]
+    except (InputError, IndexError) as exc:
+        log.warning("ignoring %s: %s", path, exc)
+        return None

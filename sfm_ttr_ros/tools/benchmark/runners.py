@@ -11,7 +11,7 @@ import copy
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -140,11 +140,22 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         ttr.close()
 
 
+def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[str, Any]:
+    """One window of a windowed mode for results.json (issue 19): its frames (sequence
+    indices), outcome and reason key, and what the window checks measured."""
+    res = ws.result
+    check = res.check.summary() if res is not None and res.check is not None else None
+    return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
+            "new_frames": ws.new_frames, "refined": ws.refined, "reason_key": ws.reason_key,
+            "registered": ws.registered, "points": ws.points, "scale": ws.scale,
+            "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES), "check": check}
+
+
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                 cfg: TTRConfig, settings: StreamSettings, progress) -> None:
     ttr = SfmTTR(model, copy.deepcopy(cfg))
     dropped: list[tuple[Any, str]] = []
-    windows = {"windows": 0, "windows_refined": 0}
+    windows: dict[str, Any] = {"windows": 0, "windows_refined": 0, "window_log": []}
 
     def seq_index(stream_name: str) -> int:  # the stream names frames by a running counter
         return indices[int(stream_name)]
@@ -152,6 +163,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     def on_window(ws: WindowStats) -> None:
         windows["windows"] += 1
         windows["windows_refined"] += int(ws.refined)
+        windows["window_log"].append(window_record(ws, seq_index))
         for k, v in ws.timings.items():
             run.timings[k] += float(v)
         if progress:

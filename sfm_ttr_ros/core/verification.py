@@ -1,0 +1,271 @@
+"""Trust, but verify, each window (issue 19): sanity checks before refining, a held-out check after.
+
+The paper names SfM-TTR's weak spots (Sec. 6): dynamic objects, low parallax and drastic
+appearance change make SfM wrong, and SfM-TTR then teaches the network the wrong scene. pycolmap
+may report success on such a window. With live serving and the ``continual`` policy a bad window
+would reach every frame after it, so each window has to show it helped before its weights are
+served or kept. Not in the paper.
+
+1. Sanity checks (cheap, before any refinement step; :func:`sanity_check`), each with a threshold
+   in :class:`CheckConfig` (0 = off) and a reason key of :data:`CHECK_REASONS`:
+
+   * mean reprojection error of the window's observations  r̄ = mean r_lj  ≤ max (px);
+   * mean track length (observations per 3D point inside the window)  ≥ min;
+   * the alignment's RANSAC inlier ratio  ≥ min;
+   * the spread of per-frame scales  max_j max(s_j/ŝ, ŝ/s_j) ≤ max, with s_j the weighted
+     least-squares scale of Sec. 3.2 (ŝ = Σq/Σq², q = D_sfm/D_nn) over frame j's selected
+     points: one rigid scene seen by one network gives one scale; a wrong reconstruction (a
+     flat, rotation-only or moving-object solution) bends it frame by frame;
+   * the scale jump against the previous accepted window on the frames both registered:
+     the camera path between the first and last shared frame in network units, ŝ·‖C_a − C_b‖,
+     must agree within the factor max (a jump means one of the two reconstructions is wrong).
+     Windows side by side (``window_stride == window_size``) share no frame: no jump check.
+
+   Scale-based checks need depth up to scale: for affine-invariant (relative inverse depth)
+   outputs they are skipped.
+
+2. Held-out check (:func:`split_supervision`, :func:`check_error`): the selected supervision
+   points are split BY TRACK (a 3D point and all its observations go to one side; seeded) into a
+   train set and a check set of ``holdout_fraction`` of the tracks. The refinement sees the train
+   set only; the refined weights are accepted when the check error fell by at least
+   ``holdout_margin``:  E_after ≤ (1 − margin)·E_before, with
+
+       E = Σ_l w_l·|D_nn(p_l) − t_l| / t_l  /  Σ_l w_l     over the check points,
+
+   t_l = ŝ·D_sfm (the Eq. (5) target), w_l = exp(−r_l²) (the Eq. (5) weight): Eq. (5) made
+   relative, so near and far points count alike. The check points took part in the scale fit
+   (ŝ is one number for the window: the leak is one degree of freedom), not in any step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sfm_ttr_ros.core.alignment import weighted_ls_scale
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.sfm import SfmResult
+from sfm_ttr_ros.core.supervision import FrameSupervision, sample_at
+
+#: Reason keys of windows the checks refuse (frames published unrefined with that key).
+CHECK_REASONS = {
+    "rejected_by_check": "refined weights rejected: the held-out check error did not fall",
+    "check_reprojection": "sanity check: mean reprojection error too high",
+    "check_track_length": "sanity check: tracks too short",
+    "check_inlier_ratio": "sanity check: alignment inlier ratio too low",
+    "check_scale_spread": "sanity check: per-frame scales disagree",
+    "check_scale_jump": "sanity check: scale jumped against the previous window",
+}
+
+
+@dataclass
+class CheckConfig:
+    """Thresholds of the window checks (the node's ``check.*`` parameters); 0 turns one off."""
+
+    holdout_fraction: float = 0.2  # share of the window's tracks held out of refinement
+    holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
+    max_reprojection_error: float = 2.0  # px, mean over the window's observations
+    min_track_length: float = 0.0  # mean observations per 3D point
+    min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
+    max_scale_spread: float = 0.0  # per-frame scale within [ŝ/x, ŝ·x]
+    max_scale_jump: float = 0.0  # shared-frame path within [1/x, x] of the previous window's
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("holdout_fraction", "holdout_margin", "max_reprojection_error",
+                     "min_track_length", "min_inlier_ratio", "max_scale_spread",
+                     "max_scale_jump"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"check.{name} must be a finite number >= 0, got {v}")
+        if self.holdout_fraction >= 1:
+            raise InputError(f"check.holdout_fraction must lie in [0, 1), got "
+                             f"{self.holdout_fraction}")
+        if self.holdout_margin >= 1:
+            raise InputError(f"check.holdout_margin must lie in [0, 1), got "
+                             f"{self.holdout_margin}")
+        if self.min_inlier_ratio > 1:
+            raise InputError(f"check.min_inlier_ratio must lie in [0, 1], got "
+                             f"{self.min_inlier_ratio}")
+        for name in ("max_scale_spread", "max_scale_jump"):
+            v = float(getattr(self, name))
+            if 0 < v < 1:
+                raise InputError(f"check.{name} is a factor >= 1 (or 0 = off), got {v}")
+
+    @property
+    def holdout(self) -> bool:
+        return self.holdout_fraction > 0
+
+
+@dataclass
+class WindowCheck:
+    """What the checks measured on one window (NaN: not measured) and their verdict."""
+
+    reprojection_error: float = float("nan")
+    track_length: float = float("nan")
+    inlier_ratio: float = float("nan")
+    scale_spread: float = float("nan")
+    scale_jump: float = float("nan")
+    check_points: int = 0
+    error_before: float = float("nan")
+    error_after: float = float("nan")
+    reason_key: str = ""  # a CHECK_REASONS key when the window is refused
+    reason: str = ""
+    seconds: float = 0.0
+
+    def summary(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class PathReference:
+    """A window's camera centres in network units (ŝ·C_j) by frame name, for the jump check."""
+
+    centres: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+# -- 1. sanity checks ------------------------------------------------------------------------
+def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
+    """C = −Rᵀt of a 4 x 4 (or 3 x 4) cam_from_world."""
+    T = np.asarray(cam_from_world, np.float64)
+    return -T[:3, :3].T @ T[:3, 3]
+
+
+def path_reference(sfm: SfmResult, registered: Sequence[str], scale: float) -> PathReference:
+    """The registered frames' camera centres times ŝ (network units)."""
+    return PathReference({n: camera_centre(sfm.frames[n].cam_from_world) * scale
+                          for n in registered})
+
+
+def scale_jump(current: PathReference, previous: PathReference | None) -> float:
+    """max(ρ, 1/ρ) with ρ the ratio of the paths between the first and last frame both windows
+    registered (current over previous, network units); NaN when they share fewer than two frames
+    or either path is too short to measure (under 1e-6 units: a static camera)."""
+    if previous is None:
+        return float("nan")
+    shared = [n for n in current.centres if n in previous.centres]
+    if len(shared) < 2:
+        return float("nan")
+    a, b = shared[0], shared[-1]
+    now = float(np.linalg.norm(current.centres[a] - current.centres[b]))
+    before = float(np.linalg.norm(previous.centres[a] - previous.centres[b]))
+    if now < 1e-6 or before < 1e-6:
+        return float("nan")
+    rho = now / before
+    return max(rho, 1.0 / rho)
+
+
+def frame_scale_spread(d_sfm: Sequence[np.ndarray], d_nn: Sequence[np.ndarray],
+                       selected: Sequence[np.ndarray], scale: float,
+                       min_points: int = 10) -> float:
+    """max_j max(s_j/ŝ, ŝ/s_j) over frames with ≥ ``min_points`` selected points; s_j is Sec.
+    3.2's weighted least-squares scale of frame j alone. NaN with no such frame."""
+    worst = float("nan")
+    for ds, dn, sel in zip(d_sfm, d_nn, selected, strict=True):
+        if int(sel.sum()) < min_points:
+            continue
+        s = weighted_ls_scale(np.asarray(ds, np.float64)[sel], np.asarray(dn, np.float64)[sel])
+        if not (math.isfinite(s) and s > 0):
+            continue
+        r = max(s / scale, scale / s)
+        worst = r if not math.isfinite(worst) else max(worst, r)
+    return worst
+
+
+def track_length(sfm: SfmResult, registered: Sequence[str]) -> float:
+    """Mean number of the window's registered frames that observe each 3D point."""
+    ids = [sfm.frames[n].point_ids for n in registered]
+    if not ids or not sum(len(i) for i in ids):
+        return float("nan")
+    _, counts = np.unique(np.concatenate(ids), return_counts=True)
+    return float(counts.mean())
+
+
+def reprojection_error(sfm: SfmResult, registered: Sequence[str]) -> float:
+    """Mean reprojection error (px) over the window's observations."""
+    errs = [sfm.frames[n].reproj_errors for n in registered]
+    n = sum(len(e) for e in errs)
+    return float(np.concatenate(errs).mean()) if n else float("nan")
+
+
+def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:
+    """Fill ``check.reason_key`` / ``reason`` from the measured statistics (first failing check
+    in the order of :data:`CHECK_REASONS`); a NaN statistic passes (nothing to judge)."""
+    tests = (
+        ("check_reprojection", check.reprojection_error, config.max_reprojection_error, ">",
+         "mean reprojection error {v:.3g} px > check.max_reprojection_error {t:g}"),
+        ("check_track_length", check.track_length, config.min_track_length, "<",
+         "mean track length {v:.3g} < check.min_track_length {t:g}"),
+        ("check_inlier_ratio", check.inlier_ratio, config.min_inlier_ratio, "<",
+         "alignment inlier ratio {v:.3g} < check.min_inlier_ratio {t:g}"),
+        ("check_scale_spread", check.scale_spread, config.max_scale_spread, ">",
+         "per-frame scales spread {v:.3g}x > check.max_scale_spread {t:g}"),
+        ("check_scale_jump", check.scale_jump, config.max_scale_jump, ">",
+         "scale jumped {v:.3g}x against the previous window > check.max_scale_jump {t:g}"),
+    )
+    for key, value, threshold, op, text in tests:
+        if threshold <= 0 or not math.isfinite(value):
+            continue
+        if (value > threshold) if op == ">" else (value < threshold):
+            check.reason_key, check.reason = key, text.format(v=value, t=threshold)
+            break
+    return check
+
+
+# -- 2. held-out check -----------------------------------------------------------------------
+def held_out_tracks(point_ids: np.ndarray, fraction: float, seed: int) -> np.ndarray:
+    """The 3D point ids held out: ``round(fraction·n)`` of the n distinct ids, drawn with
+    ``seed`` (at least one when fraction > 0 and n ≥ 2, never all)."""
+    ids = np.unique(np.asarray(point_ids, np.int64))
+    if fraction <= 0 or ids.size < 2:
+        return np.zeros(0, np.int64)
+    k = min(ids.size - 1, max(1, int(round(fraction * ids.size))))
+    rng = np.random.default_rng([int(seed), 19])
+    return np.sort(rng.choice(ids, size=k, replace=False))
+
+
+def split_supervision(supervision: Sequence[FrameSupervision], fraction: float, seed: int
+                      ) -> tuple[list[FrameSupervision], list[FrameSupervision]]:
+    """(train, check): each frame's points split by track (:func:`held_out_tracks` over the
+    window's selected points). Frames keep their order; a frame with no point on a side is left
+    out of that side."""
+    if not supervision:
+        return [], []
+    if any(s.point_ids is None for s in supervision):
+        raise InputError("split_supervision needs the point ids of every supervision point")
+    held = held_out_tracks(np.concatenate([s.point_ids for s in supervision]), fraction, seed)
+    train, check = [], []
+    for s in supervision:
+        mask = np.isin(s.point_ids, held)
+        for side, m in ((train, ~mask), (check, mask)):
+            if m.any():
+                side.append(dataclasses.replace(s, pixels=s.pixels[m], target=s.target[m],
+                                                weights=s.weights[m], point_ids=s.point_ids[m]))
+    return train, check
+
+
+def check_error(depths: Mapping[str, np.ndarray], check: Sequence[FrameSupervision],
+                mode: str = "bilinear") -> float:
+    """E = Σ w·|D_nn − t|/|t| / Σ w over the check points of ``depths`` (module docstring);
+    NaN with no check point."""
+    num = den = 0.0
+    for s in check:
+        if not len(s):
+            continue
+        pred = sample_at(depths[s.name], s.pixels, mode)
+        t = np.maximum(np.abs(s.target), 1e-9)
+        num += float(np.sum(s.weights * np.abs(pred - s.target) / t))
+        den += float(np.sum(s.weights))
+    return num / den if den > 0 else float("nan")
+
+
+def accept(config: CheckConfig, error_before: float, error_after: float) -> bool:
+    """The held-out verdict: E_after ≤ (1 − margin)·E_before (a NaN error: nothing held out or
+    nothing to measure, accepted)."""
+    if not (math.isfinite(error_before) and math.isfinite(error_after)):
+        return True
+    return error_after <= (1.0 - config.holdout_margin) * error_before

@@ -1,0 +1,150 @@
+"""The window checks of issue 19 (sfm_ttr_ros.core.verification), unit by unit: the held-out
+split by track, the check error, the verdict, and each sanity statistic on constructed data
+whose right answer is known."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.params import build, validate
+from sfm_ttr_ros.core.supervision import FrameSupervision
+from sfm_ttr_ros.core.verification import (
+    CHECK_REASONS,
+    CheckConfig,
+    PathReference,
+    WindowCheck,
+    accept,
+    check_error,
+    frame_scale_spread,
+    held_out_tracks,
+    sanity_check,
+    scale_jump,
+    split_supervision,
+)
+
+H, W = 24, 32
+
+
+def supervision(frames: int = 4, points: int = 50, seed: int = 0) -> list[FrameSupervision]:
+    """Frames observing overlapping tracks: frame j sees point ids j*10 .. j*10 + points - 1."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for j in range(frames):
+        ids = np.arange(j * 10, j * 10 + points)
+        px = np.c_[rng.uniform(0, W - 1, points), rng.uniform(0, H - 1, points)]
+        out.append(FrameSupervision(f"f{j}", np.zeros((H, W, 3), np.uint8), px,
+                                    rng.uniform(2, 20, points), np.exp(-rng.uniform(0, 1, points)
+                                                                        ** 2), ids))
+    return out
+
+
+def test_held_out_tracks_are_a_seeded_share_never_all():
+    ids = np.repeat(np.arange(100), 3)  # 100 tracks of 3 observations
+    held = held_out_tracks(ids, 0.2, seed=1)
+    assert held.size == 20 and np.all(np.isin(held, ids))
+    assert np.array_equal(held, held_out_tracks(ids, 0.2, seed=1))
+    assert not np.array_equal(held, held_out_tracks(ids, 0.2, seed=2))
+    assert held_out_tracks(ids, 0.0, 1).size == 0
+    assert held_out_tracks(np.array([5, 5]), 0.5, 1).size == 0  # one track: nothing to hold out
+    assert held_out_tracks(np.arange(3), 0.99, 1).size == 2  # never every track
+
+
+def test_split_keeps_every_point_once_and_a_track_on_one_side():
+    sup = supervision()
+    train, check = split_supervision(sup, 0.25, seed=0)
+    ids_train = np.concatenate([s.point_ids for s in train])
+    ids_check = np.concatenate([s.point_ids for s in check])
+    assert not set(ids_train) & set(ids_check)  # a track never on both sides
+    assert len(ids_train) + len(ids_check) == sum(len(s) for s in sup)
+    distinct = np.unique(np.concatenate([s.point_ids for s in sup])).size
+    assert np.unique(ids_check).size == round(0.25 * distinct)
+    # every split point keeps its own pixel, target and weight
+    by_name = {s.name: s for s in sup}
+    for side in (train, check):
+        for s in side:
+            full = by_name[s.name]
+            rows = [int(np.flatnonzero(full.point_ids == i)[0]) for i in s.point_ids]
+            assert np.array_equal(full.pixels[rows], s.pixels)
+            assert np.array_equal(full.target[rows], s.target)
+            assert np.array_equal(full.weights[rows], s.weights)
+    with pytest.raises(InputError, match="point ids"):
+        split_supervision([FrameSupervision("x", sup[0].image, sup[0].pixels, sup[0].target,
+                                            sup[0].weights)], 0.2, 0)
+
+
+def test_check_error_is_zero_for_the_targets_and_the_relative_error_otherwise():
+    s = FrameSupervision("f", np.zeros((H, W, 3), np.uint8), np.array([[3.0, 4.0], [10.0, 7.0]]),
+                         np.array([5.0, 5.0]), np.array([1.0, 3.0]), np.array([1, 2]))
+    assert check_error({"f": np.full((H, W), 5.0, np.float32)}, [s]) == pytest.approx(0.0)
+    # depth 6 everywhere: |6 - 5| / 5 = 0.2 at both points whatever the weights
+    assert check_error({"f": np.full((H, W), 6.0, np.float32)}, [s]) == pytest.approx(0.2)
+    d = np.full((H, W), 5.0, np.float32)
+    d[7, 10] = 10.0  # the second point (weight 3) 100 % off: (0 + 3 * 1) / 4
+    assert check_error({"f": d}, [s], mode="nearest") == pytest.approx(0.75)
+    assert math.isnan(check_error({}, []))
+
+
+def test_accept_needs_the_margin():
+    cfg = CheckConfig(holdout_margin=0.1)
+    assert accept(cfg, 0.20, 0.17)
+    assert not accept(cfg, 0.20, 0.19)  # fell, but by 5 % < 10 %
+    assert not accept(CheckConfig(), 0.20, 0.21)  # margin 0: it must not rise
+    assert accept(CheckConfig(), 0.20, 0.20)
+    assert accept(cfg, float("nan"), 0.3)  # nothing held out: nothing to judge
+
+
+def test_frame_scale_spread_finds_the_frame_with_another_scale():
+    rng = np.random.default_rng(0)
+    d_sfm = [rng.uniform(1, 10, 80) for _ in range(4)]
+    sel = [np.ones(80, bool)] * 4
+    same = [2.0 * d for d in d_sfm]
+    assert frame_scale_spread(d_sfm, same, sel, 2.0) == pytest.approx(1.0)
+    bent = same[:3] + [3.0 * d_sfm[3]]  # the last frame disagrees by 1.5x
+    assert frame_scale_spread(d_sfm, bent, sel, 2.0) == pytest.approx(1.5)
+    few = [np.zeros(80, bool)] * 3 + [np.ones(80, bool)]
+    assert math.isnan(frame_scale_spread(d_sfm, bent, [np.zeros(80, bool)] * 4, 2.0))
+    assert frame_scale_spread(d_sfm, bent, few, 2.0) == pytest.approx(1.5)
+
+
+def test_scale_jump_compares_the_shared_path():
+    prev = PathReference({n: np.array([0.0, 0.0, z]) for n, z in
+                          (("a", 0.0), ("b", 1.0), ("c", 2.0))})
+    same = PathReference({n: c + 5.0 for n, c in prev.centres.items()})  # shifted: same path
+    assert scale_jump(same, prev) == pytest.approx(1.0)
+    doubled = PathReference({n: 2.0 * c for n, c in prev.centres.items()})
+    assert scale_jump(doubled, prev) == pytest.approx(2.0)
+    halved = PathReference({n: 0.5 * c for n, c in prev.centres.items()})
+    assert scale_jump(halved, prev) == pytest.approx(2.0)
+    assert math.isnan(scale_jump(PathReference({"c": np.zeros(3), "d": np.ones(3)}), prev))
+    assert math.isnan(scale_jump(doubled, None))
+    still = PathReference({n: np.zeros(3) for n in "abc"})
+    assert math.isnan(scale_jump(still, prev))  # a static camera: nothing to compare
+
+
+def test_sanity_check_names_the_first_failing_check_and_skips_what_is_off():
+    stats = dict(reprojection_error=0.8, track_length=2.1, inlier_ratio=0.3, scale_spread=1.9,
+                 scale_jump=float("nan"))
+    off = sanity_check(CheckConfig(max_reprojection_error=0.0), WindowCheck(**stats))
+    assert off.reason_key == ""
+    cfg = CheckConfig(max_reprojection_error=2.0, min_track_length=2.5, min_inlier_ratio=0.5,
+                      max_scale_spread=1.5, max_scale_jump=1.2)
+    c = sanity_check(cfg, WindowCheck(**stats))
+    assert c.reason_key == "check_track_length" and "2.1 < check.min_track_length 2.5" in c.reason
+    c = sanity_check(CheckConfig(max_scale_spread=1.5), WindowCheck(**stats))
+    assert c.reason_key == "check_scale_spread"
+    c = sanity_check(CheckConfig(max_scale_jump=1.2), WindowCheck(**stats))
+    assert c.reason_key == ""  # NaN: no shared frames, nothing to judge
+    assert set(CHECK_REASONS) >= {"rejected_by_check", c.reason_key or "check_scale_jump"}
+
+
+def test_check_parameters_reach_the_config_and_bad_ones_are_refused():
+    cfg = build({"check.holdout_fraction": 0.3, "check.max_scale_spread": 1.8,
+                 "seed": 7}).ttr.check
+    assert (cfg.holdout_fraction, cfg.max_scale_spread, cfg.seed) == (0.3, 1.8, 7)
+    assert "factor >= 1" in validate({"check.max_scale_jump": 0.5})
+    assert validate({"check.holdout_fraction": 1.0})
+    assert validate({"check.min_inlier_ratio": -0.1})
