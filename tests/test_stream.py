@@ -15,7 +15,6 @@ from conftest import tiny_model
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm import SfmResult
-from sfm_ttr_ros.core.verification import WindowCheck
 from sfm_ttr_ros.core.stream import (
     DROP_REASONS,
     UNREFINED_REASONS,
@@ -23,6 +22,7 @@ from sfm_ttr_ros.core.stream import (
     StreamProcessor,
     StreamSettings,
 )
+from sfm_ttr_ros.core.verification import WindowCheck
 
 W, H = 64, 32
 INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)

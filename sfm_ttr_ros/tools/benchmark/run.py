@@ -37,12 +37,12 @@ from sfm_ttr_ros.tools.benchmark.runners import (
     run_offline,
     run_online,
 )
-from sfm_ttr_ros.tools.benchmark.timeline import TIMELINE_FIGURE, window_timeline_figure
 from sfm_ttr_ros.tools.benchmark.settings import (
     default_params_file,
     read_params_file,
     settings_from_params,
 )
+from sfm_ttr_ros.tools.benchmark.timeline import TIMELINE_FIGURE, window_timeline_figure
 
 
 def _stderr(line: str) -> None:
