@@ -305,3 +305,24 @@ def test_a_failed_sanity_check_refuses_the_window_before_refining(run, monkeypat
     assert res.check.reprojection_error > 1e-6 and _encoder_equals(ttr.model, original)
     assert 1.0 <= res.check.scale_spread < 2.0 and res.check.track_length >= 2.0
     assert math.isnan(res.check.error_before)  # refused before the split
+
+
+@pytest.mark.slow
+def test_a_reconstruction_whose_frames_disagree_in_scale_is_refused(run, monkeypatch):
+    """A wrong reconstruction, made by hand: half the registered frames' SfM depths doubled (as
+    if the window were two reconstructions glued at different scales). The scale-spread check
+    refuses it before any step; the intact reconstruction passes the same threshold."""
+    import copy
+
+    ttr = pinned(run, monkeypatch)
+    monkeypatch.setattr(ttr.config.check, "max_scale_spread", 1.5)
+    intact = ttr.process_window(run.window, run.intr)
+    assert intact.refined and intact.check.scale_spread < 1.5
+    ttr.reset_model()
+    bent = copy.deepcopy(run.res.sfm)
+    for name in sorted(bent.frames)[::2]:
+        bent.frames[name].depths = bent.frames[name].depths * 2.0
+    monkeypatch.setattr(ttr.reconstructor, "reconstruct", lambda *a, **k: bent)
+    res = ttr.process_window(run.window, run.intr)
+    assert res.reason_key == "check_scale_spread" and res.refinement is None
+    assert res.check.scale_spread > 1.5

@@ -99,15 +99,17 @@ def test_accept_needs_the_margin():
 
 def test_frame_scale_spread_finds_the_frame_with_another_scale():
     rng = np.random.default_rng(0)
-    d_sfm = [rng.uniform(1, 10, 80) for _ in range(4)]
-    sel = [np.ones(80, bool)] * 4
-    same = [2.0 * d for d in d_sfm]
-    assert frame_scale_spread(d_sfm, same, sel, 2.0) == pytest.approx(1.0)
-    bent = same[:3] + [3.0 * d_sfm[3]]  # the last frame disagrees by 1.5x
-    assert frame_scale_spread(d_sfm, bent, sel, 2.0) == pytest.approx(1.5)
-    few = [np.zeros(80, bool)] * 3 + [np.ones(80, bool)]
-    assert math.isnan(frame_scale_spread(d_sfm, bent, [np.zeros(80, bool)] * 4, 2.0))
-    assert frame_scale_spread(d_sfm, bent, few, 2.0) == pytest.approx(1.5)
+    d_sfm = [rng.uniform(1, 10, 80) for _ in range(5)]
+    same = [2.0 * d * rng.uniform(0.9, 1.1, 80) for d in d_sfm]  # one scale, noisy network
+    assert frame_scale_spread(d_sfm, same) == pytest.approx(1.0, abs=0.03)
+    bent = same[:4] + [3.0 * d_sfm[4]]  # the last frame disagrees by 1.5x
+    assert frame_scale_spread(d_sfm, bent) == pytest.approx(1.5, rel=0.03)
+    # invalid pairs are ignored; frames with too few valid points do not count
+    holes = [np.where(np.arange(80) % 2 == 0, d, np.nan) for d in bent]
+    assert frame_scale_spread(d_sfm, holes) == pytest.approx(1.5, rel=0.05)
+    few = same[:4] + [np.r_[3.0 * d_sfm[4][:5], np.zeros(75)]]
+    assert frame_scale_spread(d_sfm, few) == pytest.approx(1.0, abs=0.03)
+    assert math.isnan(frame_scale_spread(d_sfm[:1], same[:1]))
 
 
 def test_scale_jump_compares_the_shared_path():

@@ -406,8 +406,7 @@ class SfmTTR:
             bounds = np.cumsum([0] + [len(sfm.frames[n].depths) for n in reg])
             parts = [slice(a, b) for a, b in itertools.pairwise(bounds)]
             c.scale_spread = frame_scale_spread([d_sfm[p] for p in parts],
-                                                [d_nn[p] for p in parts],
-                                                [align.selected[p] for p in parts], align.scale)
+                                                [d_nn[p] for p in parts])
             c.scale_jump = scale_jump(path_reference(sfm, reg, align.scale), previous)
         return sanity_check(self.config.check, c)
 

@@ -12,10 +12,12 @@ served or kept. Not in the paper.
    * mean reprojection error of the window's observations  r̄ = mean r_lj  ≤ max (px);
    * mean track length (observations per 3D point inside the window)  ≥ min;
    * the alignment's RANSAC inlier ratio  ≥ min;
-   * the spread of per-frame scales  max_j max(s_j/ŝ, ŝ/s_j) ≤ max, with s_j the weighted
-     least-squares scale of Sec. 3.2 (ŝ = Σq/Σq², q = D_sfm/D_nn) over frame j's selected
-     points: one rigid scene seen by one network gives one scale; a wrong reconstruction (a
-     flat, rotation-only or moving-object solution) bends it frame by frame;
+   * the spread of per-frame scales  max_j max(s_j/s̃, s̃/s_j) ≤ max, with s_j = median over
+     frame j's points of D_nn/D_sfm and s̃ the median of the s_j: one rigid scene seen by one
+     network gives one scale up to the network's own bias; a wrong reconstruction (two partial
+     models glued at different scales, scale drift, a moving-object solution) bends it frame
+     by frame. Over ALL valid points, not the selected ones: the relaxed selection of Sec. 3.2
+     would drop exactly the points of a frame whose scale is off;
    * the scale jump against the previous accepted window on the frames both registered:
      the camera path between the first and last shared frame in network units, ŝ·‖C_a − C_b‖,
      must agree within the factor max (a jump means one of the two reconstructions is wrong).
@@ -46,7 +48,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.alignment import weighted_ls_scale
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.sfm import SfmResult
 from sfm_ttr_ros.core.supervision import FrameSupervision, sample_at
@@ -160,20 +161,20 @@ def scale_jump(current: PathReference, previous: PathReference | None) -> float:
 
 
 def frame_scale_spread(d_sfm: Sequence[np.ndarray], d_nn: Sequence[np.ndarray],
-                       selected: Sequence[np.ndarray], scale: float,
                        min_points: int = 10) -> float:
-    """max_j max(s_j/ŝ, ŝ/s_j) over frames with ≥ ``min_points`` selected points; s_j is Sec.
-    3.2's weighted least-squares scale of frame j alone. NaN with no such frame."""
-    worst = float("nan")
-    for ds, dn, sel in zip(d_sfm, d_nn, selected, strict=True):
-        if int(sel.sum()) < min_points:
-            continue
-        s = weighted_ls_scale(np.asarray(ds, np.float64)[sel], np.asarray(dn, np.float64)[sel])
-        if not (math.isfinite(s) and s > 0):
-            continue
-        r = max(s / scale, scale / s)
-        worst = r if not math.isfinite(worst) else max(worst, r)
-    return worst
+    """max_j max(s_j/s̃, s̃/s_j), s_j = median(D_nn/D_sfm) over frame j's valid points (frames
+    with ≥ ``min_points`` of them), s̃ = median_j s_j. NaN with fewer than two such frames."""
+    scales = []
+    for ds, dn in zip(d_sfm, d_nn, strict=True):
+        ds, dn = np.asarray(ds, np.float64), np.asarray(dn, np.float64)
+        ok = np.isfinite(ds) & np.isfinite(dn) & (ds > 0) & (dn > 0)
+        if int(ok.sum()) >= min_points:
+            scales.append(float(np.median(dn[ok] / ds[ok])))
+    if len(scales) < 2:
+        return float("nan")
+    s = np.asarray(scales)
+    ref = float(np.median(s))
+    return float(np.max(np.maximum(s / ref, ref / s)))
 
 
 def track_length(sfm: SfmResult, registered: Sequence[str]) -> float:

@@ -48,6 +48,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.data.synthetic.geometry import CAR_COLOURS, _Builder, _car_shape
+from sfm_ttr_ros.data.synthetic.materials import CAR, DARK
 from sfm_ttr_ros.data.synthetic.render import SyntheticSequence, render_frames
 from sfm_ttr_ros.data.synthetic.scene import (
     FRAME_RATE,
@@ -58,15 +59,23 @@ from sfm_ttr_ros.data.synthetic.scene import (
     sample_scene_params,
 )
 
-SEGMENT_KINDS = ("drive", "rotate", "static", "crossing", "lead", "exposure")
+SEGMENT_KINDS = ("drive", "rotate", "static", "crossing", "lead", "exposure", "turn", "creep",
+                 "truck")
+TURN_STEP = 0.15  # a turn segment's path advance per frame, in units of params.speed
+CREEP_STEP = 0.05  # a creep segment's
 # path advance per frame, in units of params.speed
 _STEP = {"drive": 1.0, "rotate": 0.0, "static": 0.0, "crossing": 0.5, "lead": 1.0,
-         "exposure": 1.0}
+         "exposure": 1.0, "turn": TURN_STEP, "creep": CREEP_STEP, "truck": 1.0}
 ROTATE_AMPLITUDE_DEG = 20.0  # the yaw sweep of a rotate segment: 0 -> +A -> -A -> 0
+TURN_AMPLITUDE_DEG = 30.0  # a turn segment's
 EXPOSURE_FACTORS = (2.2, 0.45)  # an exposure segment's factor, when it gives none
 CROSSING_SPEED = (3.0, 6.0)  # m/s, lateral
 CROSSING_DISTANCES = ((15.0, 18.0), (21.0, 25.0))  # one car per range: near side, middle frame
 LEAD_DISTANCE = (9.0, 13.0)  # camera centre to the lead vehicle's back, along the street
+TRUCK_DISTANCE = (5.0, 8.0)  # camera centre to the truck's back, along the street
+TRUCK_SIZE = ((2.4, 2.55), (3.0, 3.5), (7.0, 10.0))  # width, height, length (m)
+TRUCK_SPEED = 1.0  # the truck's advance per frame, in units of the camera's
+TRUCK_FLOOR = 1.1  # height of the cargo box's floor over the road (m)
 
 
 @dataclass(frozen=True)
@@ -123,8 +132,9 @@ class Vehicle:
     colour: tuple[float, float, float]
     offset: tuple[float, float]  # texture offset (metres)
     shape: tuple[float, float, float, float]  # geometry._car_shape
-    height: float  # y scale: 1 = a car, more = a van
+    height: float  # y scale: 1 = a car, more = a van; a truck's: its height (m)
     anchor: tuple[float, float, float]
+    body: str = "car"  # or "truck": a cargo box over a dark chassis (see _objects)
 
     @property
     def centre(self) -> tuple[float, float]:
@@ -206,6 +216,26 @@ def _lead(params: SceneParams, rng, zs: list[float]) -> list[list[Vehicle]]:
     return frames
 
 
+def _truck(params: SceneParams, rng, zs: list[float]) -> list[list[Vehicle]]:
+    """A truck in the camera's lane, its back :data:`TRUCK_DISTANCE` ahead at the segment's
+    first frame, advancing :data:`TRUCK_SPEED` times the camera's step per frame."""
+    dist = rng.uniform(*TRUCK_DISTANCE)
+    (w_lo, w_hi), (h_lo, h_hi), (l_lo, l_hi) = TRUCK_SIZE
+    width, height, length = rng.uniform(w_lo, w_hi), rng.uniform(h_lo, h_hi), rng.uniform(l_lo,
+                                                                                        l_hi)
+    colour, offset, shape = _colour(rng), tuple(rng.uniform(0, 5, 2)), _car_shape(rng)
+    frames, first = [], None
+    for k, z in enumerate(zs):
+        z0 = zs[0] + dist + TRUCK_SPEED * (z - zs[0])
+        xc = float(camera_pose(params, z0 + length / 2)[1][0])  # on the camera's path
+        if first is None:
+            first = (xc, z0)
+        anchor = (xc - first[0], 0.0, float(z0 - first[1]))
+        frames.append([Vehicle(xc - width / 2, xc + width / 2, float(z0), float(z0 + length),
+                               False, colour, offset, shape, float(height), anchor, "truck")])
+    return frames
+
+
 def plan_drive(
     params: SceneParams,
     segments: Sequence[Segment | tuple] = DEFAULT_HARD_SEGMENTS,
@@ -228,8 +258,9 @@ def plan_drive(
         n = seg.frames
         for k, zk in enumerate(zs):
             R_wc, C = camera_pose(params, zk)
-            if seg.kind == "rotate":
-                yaw = math.radians(ROTATE_AMPLITUDE_DEG) * _sweep((k + 1) / (n + 1))
+            if seg.kind in ("rotate", "turn"):
+                amplitude = ROTATE_AMPLITUDE_DEG if seg.kind == "rotate" else TURN_AMPLITUDE_DEG
+                yaw = math.radians(amplitude) * _sweep((k + 1) / (n + 1))
                 R_wc = _rot_y(yaw) @ R_wc  # about the world vertical, centre unchanged
             plan.poses.append((R_wc, C))
         plan.labels += [seg.kind] * n
@@ -237,6 +268,8 @@ def plan_drive(
             plan.vehicles += _crossing(params, rng, zs)
         elif seg.kind == "lead":
             plan.vehicles += _lead(params, rng, zs)
+        elif seg.kind == "truck":
+            plan.vehicles += _truck(params, rng, zs)
         else:
             plan.vehicles += [[] for _ in range(n)]
         if seg.kind == "exposure":
@@ -252,7 +285,14 @@ def _objects(vehicles: list[Vehicle]) -> _Builder | None:
         return None
     b = _Builder()
     for v in vehicles:
-        b.car(v.x0, v.x1, v.z0, v.z1, v.colour, v.offset, v.shape, v.along_x, v.height, v.anchor)
+        if v.body == "truck":  # dark chassis under a cargo box from TRUCK_FLOOR to v.height
+            b.box(DARK, (v.x0 + 0.15, -TRUCK_FLOOR, v.z0 + 0.3), (v.x1 - 0.15, 0.0, v.z1 - 0.3),
+                  anchor=v.anchor)
+            b.box(CAR, (v.x0, -v.height, v.z0), (v.x1, -TRUCK_FLOOR, v.z1), v.colour, v.offset,
+                  v.anchor)
+        else:
+            b.car(v.x0, v.x1, v.z0, v.z1, v.colour, v.offset, v.shape, v.along_x, v.height,
+                  v.anchor)
     return b
 
 
