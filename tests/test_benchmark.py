@@ -160,6 +160,46 @@ def test_markdown_csv_and_figure(bench):
 
 
 @pytest.mark.slow
+def test_every_window_is_listed_with_its_checks_and_drawn(bench):
+    """Issue 19: each windowed mode lists its windows (frames, outcome, reason key, the
+    checks' statistics and held-out errors); results.md tabulates them; windows.png draws them."""
+    out, res = bench
+    online = res["sfm_ttr_online"]
+    log = online["window_log"]
+    assert len(log) == online["windows"] == 3
+    assert [w["frames"] for w in log] == [[0, 1, 2, 3], [2, 3, 4, 5], [4, 5, 6, 7]]
+    for w in log:
+        assert w["refined"] == (w["reason_key"] == "")
+        if w["check"] is not None:
+            assert w["check"]["reprojection_error"] > 0 and w["check"]["track_length"] >= 2
+        if w["refined"]:
+            assert w["check"]["check_points"] > 0
+            assert math.isfinite(w["check"]["error_before"])
+    assert online["refined_frames"] > 0
+    md = (out / "results.md").read_text()
+    assert "Windows (issue 19" in md and "| sfm_ttr_online | 0 | 0-3 |" in md
+    fig = cv2.imread(str(out / "windows.png"))
+    assert fig is not None and fig.shape[1] == 1200 and fig.std() > 10
+
+
+def test_timeline_marks_refused_windows_in_red():
+    from sfm_ttr_ros.tools.benchmark.timeline import _REJECTED, window_timeline_figure
+
+    abs_rel = {"no_ttr": {i: 0.2 for i in range(10)}, "m": {i: 0.1 for i in range(10)}}
+    logs = {"m": [{"frames": list(range(0, 5)), "refined": True, "reason_key": ""},
+                  {"frames": list(range(5, 10)), "refined": False,
+                   "reason_key": "rejected_by_check"}]}
+    img = window_timeline_figure(abs_rel, logs, 0, 9, labels=["drive"] * 5 + ["lead"] * 5)
+    red = np.all(img == np.array(_REJECTED, np.uint8), axis=2)
+    cols = np.flatnonzero(red.any(axis=0))
+    plot_left, plot_width = 60, img.shape[1] - 60 - 170  # the frame axis spans these pixels
+    assert cols.size and cols.min() > plot_left + 0.4 * plot_width  # frames 5-9 only
+    logs["m"][1]["refined"] = True
+    img = window_timeline_figure(abs_rel, logs, 0, 9)
+    assert not np.all(img == np.array(_REJECTED, np.uint8), axis=2).any()
+
+
+@pytest.mark.slow
 def test_saved_depth_evaluates_to_the_same_numbers(bench, data):
     """The saved depths through ``sfm-ttr evaluate`` give results.json's metrics, and the
     refined depths differ from the unrefined ones."""

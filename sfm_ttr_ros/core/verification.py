@@ -72,8 +72,8 @@ class CheckConfig:
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
     min_track_length: float = 0.0  # mean observations per 3D point
     min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
-    max_scale_spread: float = 0.0  # per-frame scale within [ŝ/x, ŝ·x]
-    max_scale_jump: float = 0.0  # shared-frame path within [1/x, x] of the previous window's
+    max_scale_spread: float = 2.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
+    max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
     seed: int = 0
 
     def __post_init__(self) -> None:
