@@ -326,3 +326,16 @@ def test_a_reconstruction_whose_frames_disagree_in_scale_is_refused(run, monkeyp
     res = ttr.process_window(run.window, run.intr)
     assert res.reason_key == "check_scale_spread" and res.refinement is None
     assert res.check.scale_spread > 1.5
+
+
+@pytest.mark.slow
+def test_a_rejected_window_leaves_continual_weights_and_replay_untouched(run, monkeypatch):
+    ttr = pinned(run, monkeypatch)
+    monkeypatch.setattr(ttr.config, "weight_policy", "continual")
+    first = ttr.process_window(run.window, run.intr)  # accepted: weights and replay move on
+    assert first.refined and len(ttr._replay) == 1
+    kept = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
+    monkeypatch.setattr(ttr.config.check, "holdout_margin", 0.9)
+    second = ttr.process_window(run.window, run.intr)
+    assert second.reason_key == "rejected_by_check"
+    assert _encoder_equals(ttr.model, kept) and len(ttr._replay) == 1
