@@ -48,8 +48,8 @@ from sfm_ttr_ros.tools.cli_args import (
     parameter_values,
 )
 
-SANITY = ("max_reprojection_error", "min_track_length", "min_inlier_ratio", "max_scale_spread",
-          "max_scale_jump")
+SANITY = ("max_reprojection_error", "min_track_length", "min_parallax", "min_inlier_ratio",
+          "max_scale_spread", "max_scale_jump")
 
 
 def window_abs_rel(depths: dict, names: list[str], seq, frame_names: dict) -> float:
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
             records.append(rec)
             print(f"window {rec['window']:2d} {rec['frames'][0]:4d}-{rec['frames'][1]:4d} "
                   f"{seg:9s} abs rel {before_e:.4f} -> {after_e:.4f}  reproj "
-                  f"{c.reprojection_error:.2f} track {c.track_length:.2f} inl "
+                  f"{c.reprojection_error:.2f} track {c.track_length:.2f} par {c.parallax:.3f} inl "
                   f"{c.inlier_ratio:.2f} spread {c.scale_spread:.2f} jump {c.scale_jump:.2f} "
                   f"check {c.error_before:.4f} -> {c.error_after:.4f}  {verdict}",
                   file=sys.stderr, flush=True)

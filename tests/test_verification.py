@@ -127,6 +127,27 @@ def test_scale_jump_compares_the_shared_path():
     assert math.isnan(scale_jump(still, prev))  # a static camera: nothing to compare
 
 
+def test_parallax_is_the_camera_span_over_the_median_depth():
+    from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
+    from sfm_ttr_ros.core.verification import parallax
+
+    def frame(z: float, depths: np.ndarray) -> FrameObservations:
+        T = np.eye(4)
+        T[2, 3] = -z  # camera centre at (0, 0, z)
+        n = depths.size
+        return FrameObservations(f"{z}", np.zeros((n, 2), np.float32), depths, np.zeros(n),
+                                 np.zeros(n), np.arange(n), T)
+
+    depths = np.array([10.0, 20.0, 30.0])
+    sfm = SfmResult(True, "", 3, frames={"a": frame(0.0, depths), "b": frame(1.0, depths),
+                                         "c": frame(4.0, depths)})
+    assert parallax(sfm, ["a", "b", "c"]) == pytest.approx(4.0 / 20.0)
+    assert parallax(sfm, ["a", "b"]) == pytest.approx(1.0 / 20.0)
+    assert math.isnan(parallax(sfm, ["a"]))
+    c = sanity_check(CheckConfig(min_parallax=0.1), WindowCheck(parallax=0.05))
+    assert c.reason_key == "check_parallax" and "0.05" in c.reason
+
+
 def test_sanity_check_names_the_first_failing_check_and_skips_what_is_off():
     stats = dict(reprojection_error=0.8, track_length=2.1, inlier_ratio=0.3, scale_spread=1.9,
                  scale_jump=float("nan"))

@@ -237,6 +237,9 @@ PARAMS: tuple[Param, ...] = (
     _p("check.min_track_length", "check.min_track_length", "Refuse a window whose 3D points "
        "are seen by fewer registered frames than this on average ('check_track_length'); 0 = "
        "off.", 0.0, 1e3),
+    _p("check.min_parallax", "check.min_parallax", "Refuse a window whose camera centres span "
+       "less than this fraction of the median SfM depth (low parallax: creeping or turning "
+       "on the spot; 'check_parallax'); 0 = off.", 0.0, 1e3),
     _p("check.min_inlier_ratio", "check.min_inlier_ratio", "Refuse a window whose scale "
        "RANSAC keeps fewer inliers than this share of its points ('check_inlier_ratio'); 0 = "
        "off.", 0.0, 1.0),

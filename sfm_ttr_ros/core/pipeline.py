@@ -49,6 +49,7 @@ from sfm_ttr_ros.core.verification import (
     accept,
     check_error,
     frame_scale_spread,
+    parallax,
     path_reference,
     reprojection_error,
     sanity_check,
@@ -398,7 +399,7 @@ class SfmTTR:
         """The window's statistics and the verdict of the cheap checks
         (:func:`~sfm_ttr_ros.core.verification.sanity_check`)."""
         c = WindowCheck(reprojection_error=reprojection_error(sfm, reg),
-                        track_length=track_length(sfm, reg))
+                        track_length=track_length(sfm, reg), parallax=parallax(sfm, reg))
         if align.ransac_inliers.size:
             valid = np.isfinite(d_sfm) & np.isfinite(d_nn) & (d_sfm > 0) & (d_nn > 0)
             c.inlier_ratio = float(align.ransac_inliers.sum() / max(1, int(valid.sum())))

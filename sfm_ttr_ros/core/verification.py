@@ -11,6 +11,11 @@ served or kept. Not in the paper.
 
    * mean reprojection error of the window's observations  r̄ = mean r_lj  ≤ max (px);
    * mean track length (observations per 3D point inside the window)  ≥ min;
+   * parallax: the diameter of the registered camera centres over the median SfM depth,
+     max_jk ‖C_j − C_k‖ / median D_sfm  ≥ min (scale-free; the paper's low-parallax weak spot:
+     a creeping or turning camera triangulates depth from a baseline far shorter than the scene,
+     and SfM may still "succeed" with consistent but wrong depth that no held-out point can
+     expose);
    * the alignment's RANSAC inlier ratio  ≥ min;
    * the spread of per-frame scales  max_j max(s_j/s̃, s̃/s_j) ≤ max, with s_j = median over
      frame j's points of D_nn/D_sfm and s̃ the median of the s_j: one rigid scene seen by one
@@ -57,6 +62,7 @@ CHECK_REASONS = {
     "rejected_by_check": "refined weights rejected: the held-out check error did not fall",
     "check_reprojection": "sanity check: mean reprojection error too high",
     "check_track_length": "sanity check: tracks too short",
+    "check_parallax": "sanity check: too little parallax (camera path short against the depth)",
     "check_inlier_ratio": "sanity check: alignment inlier ratio too low",
     "check_scale_spread": "sanity check: per-frame scales disagree",
     "check_scale_jump": "sanity check: scale jumped against the previous window",
@@ -71,6 +77,7 @@ class CheckConfig:
     holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
     min_track_length: float = 0.0  # mean observations per 3D point
+    min_parallax: float = 0.0  # camera-centre diameter / median SfM depth
     min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
     max_scale_spread: float = 2.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
     max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
@@ -78,7 +85,7 @@ class CheckConfig:
 
     def __post_init__(self) -> None:
         for name in ("holdout_fraction", "holdout_margin", "max_reprojection_error",
-                     "min_track_length", "min_inlier_ratio", "max_scale_spread",
+                     "min_track_length", "min_parallax", "min_inlier_ratio", "max_scale_spread",
                      "max_scale_jump"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
@@ -108,6 +115,7 @@ class WindowCheck:
 
     reprojection_error: float = float("nan")
     track_length: float = float("nan")
+    parallax: float = float("nan")
     inlier_ratio: float = float("nan")
     scale_spread: float = float("nan")
     scale_jump: float = float("nan")
@@ -186,6 +194,18 @@ def track_length(sfm: SfmResult, registered: Sequence[str]) -> float:
     return float(counts.mean())
 
 
+def parallax(sfm: SfmResult, registered: Sequence[str]) -> float:
+    """max_jk ‖C_j − C_k‖ / median D_sfm over the registered frames (scale-free); NaN with
+    fewer than two frames or no depth."""
+    if len(registered) < 2:
+        return float("nan")
+    c = np.stack([camera_centre(sfm.frames[n].cam_from_world) for n in registered])
+    diameter = float(np.max(np.linalg.norm(c[:, None] - c[None], axis=-1)))
+    depths = np.concatenate([sfm.frames[n].depths for n in registered])
+    depths = depths[np.isfinite(depths) & (depths > 0)]
+    return diameter / float(np.median(depths)) if depths.size else float("nan")
+
+
 def reprojection_error(sfm: SfmResult, registered: Sequence[str]) -> float:
     """Mean reprojection error (px) over the window's observations."""
     errs = [sfm.frames[n].reproj_errors for n in registered]
@@ -201,6 +221,8 @@ def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:
          "mean reprojection error {v:.3g} px > check.max_reprojection_error {t:g}"),
         ("check_track_length", check.track_length, config.min_track_length, "<",
          "mean track length {v:.3g} < check.min_track_length {t:g}"),
+        ("check_parallax", check.parallax, config.min_parallax, "<",
+         "parallax {v:.3g} (camera path / median depth) < check.min_parallax {t:g}"),
         ("check_inlier_ratio", check.inlier_ratio, config.min_inlier_ratio, "<",
          "alignment inlier ratio {v:.3g} < check.min_inlier_ratio {t:g}"),
         ("check_scale_spread", check.scale_spread, config.max_scale_spread, ">",
