@@ -76,15 +76,20 @@ def test_split_keeps_every_point_once_and_a_track_on_one_side():
                                             sup[0].weights)], 0.2, 0)
 
 
-def test_check_error_is_zero_for_the_targets_and_the_relative_error_otherwise():
-    s = FrameSupervision("f", np.zeros((H, W, 3), np.uint8), np.array([[3.0, 4.0], [10.0, 7.0]]),
-                         np.array([5.0, 5.0]), np.array([1.0, 3.0]), np.array([1, 2]))
-    assert check_error({"f": np.full((H, W), 5.0, np.float32)}, [s]) == pytest.approx(0.0)
-    # depth 6 everywhere: |6 - 5| / 5 = 0.2 at both points whatever the weights
-    assert check_error({"f": np.full((H, W), 6.0, np.float32)}, [s]) == pytest.approx(0.2)
+def test_check_error_is_scale_invariant_and_relative():
+    s = FrameSupervision("f", np.zeros((H, W, 3), np.uint8),
+                         np.array([[3.0, 4.0], [10.0, 7.0], [20.0, 15.0]]),
+                         np.array([5.0, 5.0, 10.0]), np.array([1.0, 3.0, 1.0]),
+                         np.array([1, 2, 3]))
     d = np.full((H, W), 5.0, np.float32)
-    d[7, 10] = 10.0  # the second point (weight 3) 100 % off: (0 + 3 * 1) / 4
-    assert check_error({"f": d}, [s], mode="nearest") == pytest.approx(0.75)
+    d[15, 20] = 10.0
+    assert check_error({"f": d}, [s], mode="nearest") == pytest.approx(0.0)
+    # a global scale is no error (median scaling), in the output space it is
+    assert check_error({"f": 3.0 * d}, [s], mode="nearest") == pytest.approx(0.0, abs=1e-12)
+    assert check_error({"f": 3.0 * d}, [s], mode="nearest", rescale=False) == pytest.approx(2.0)
+    # the second point (weight 3) 100 % off; the median ratio stays 1: (0 + 3 * 1 + 0) / 5
+    d[7, 10] = 10.0
+    assert check_error({"f": d}, [s], mode="nearest") == pytest.approx(0.6)
     assert math.isnan(check_error({}, []))
 
 

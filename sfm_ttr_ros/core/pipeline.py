@@ -337,7 +337,8 @@ class SfmTTR:
         train, held = (split_supervision(sup, cfg.check.holdout_fraction, cfg.check.seed)
                        if cfg.check.holdout else (sup, []))
         res.check.check_points = sum(len(s) for s in held)
-        res.check.error_before = check_error(before, held, cfg.refinement.sampling)
+        rescale = self._scaled(align)
+        res.check.error_before = check_error(before, held, cfg.refinement.sampling, rescale)
         res.check.seconds += time.perf_counter() - t0
         continual = cfg.weight_policy == "continual"
         replay = [s for window in self._replay for s in window] if continual else []
@@ -368,7 +369,7 @@ class SfmTTR:
             res.refined, res.reason, res.depths = False, f"rolled back: {why}", dict(before)
             return res
         t0 = time.perf_counter()
-        res.check.error_after = check_error(res.depths, held, cfg.refinement.sampling)
+        res.check.error_after = check_error(res.depths, held, cfg.refinement.sampling, rescale)
         res.check.seconds += time.perf_counter() - t0
         t["check"] = res.check.seconds
         if not accept(cfg.check, res.check.error_before, res.check.error_after):

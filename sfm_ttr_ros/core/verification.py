@@ -37,10 +37,13 @@ served or kept. Not in the paper.
    set only; the refined weights are accepted when the check error fell by at least
    ``holdout_margin``:  E_after ≤ (1 − margin)·E_before, with
 
-       E = Σ_l w_l·|D_nn(p_l) − t_l| / t_l  /  Σ_l w_l     over the check points,
+       E = Σ_l w_l·|σ·D_nn(p_l) − t_l| / t_l  /  Σ_l w_l     over the check points,
 
    t_l = ŝ·D_sfm (the Eq. (5) target), w_l = exp(−r_l²) (the Eq. (5) weight): Eq. (5) made
-   relative, so near and far points count alike. The check points took part in the scale fit
+   relative, so near and far points count alike, and scale-invariant, σ = median(t/D_nn) over
+   the check points (the depth is up to scale: a global scale change is no error, as under the
+   evaluation's median scaling; measured: one Adam step moves the global scale enough to
+   "raise" an un-rescaled error while GT abs rel falls). The check points took part in the scale fit
    (ŝ is one number for the window: the leak is one degree of freedom), not in any step.
 """
 
@@ -77,9 +80,9 @@ class CheckConfig:
     holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
     min_track_length: float = 0.0  # mean observations per 3D point
-    min_parallax: float = 0.0  # camera-centre diameter / median SfM depth
+    min_parallax: float = 0.1  # camera-centre diameter / median SfM depth
     min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
-    max_scale_spread: float = 2.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
+    max_scale_spread: float = 0.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
     max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
     seed: int = 0
 
@@ -272,18 +275,23 @@ def split_supervision(supervision: Sequence[FrameSupervision], fraction: float, 
 
 
 def check_error(depths: Mapping[str, np.ndarray], check: Sequence[FrameSupervision],
-                mode: str = "bilinear") -> float:
-    """E = Σ w·|D_nn − t|/|t| / Σ w over the check points of ``depths`` (module docstring);
-    NaN with no check point."""
-    num = den = 0.0
-    for s in check:
-        if not len(s):
-            continue
-        pred = sample_at(depths[s.name], s.pixels, mode)
-        t = np.maximum(np.abs(s.target), 1e-9)
-        num += float(np.sum(s.weights * np.abs(pred - s.target) / t))
-        den += float(np.sum(s.weights))
-    return num / den if den > 0 else float("nan")
+                mode: str = "bilinear", rescale: bool = True) -> float:
+    """E = Σ w·|σ·D_nn − t|/|t| / Σ w over the check points of ``depths`` (module docstring),
+    σ = median(t / D_nn) over them with ``rescale`` (depth up to scale: a change of the
+    network's global scale is no error, as under the evaluation's median scaling), else 1 (the
+    network's own output space, e.g. affine inverse depth). NaN with no check point."""
+    pred = [sample_at(depths[s.name], s.pixels, mode) for s in check if len(s)]
+    sup = [s for s in check if len(s)]
+    if not sup:
+        return float("nan")
+    p, t = np.concatenate(pred).astype(np.float64), np.concatenate([s.target for s in sup])
+    w = np.concatenate([s.weights for s in sup]).astype(np.float64)
+    sigma = 1.0
+    if rescale:
+        ok = np.isfinite(p) & (p > 0) & (t > 0)
+        sigma = float(np.median(t[ok] / p[ok])) if ok.any() else 1.0
+    err = w * np.abs(sigma * p - t) / np.maximum(np.abs(t), 1e-9)
+    return float(err.sum() / w.sum()) if w.sum() > 0 else float("nan")
 
 
 def accept(config: CheckConfig, error_before: float, error_after: float) -> bool:
