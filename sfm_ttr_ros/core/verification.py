@@ -76,7 +76,7 @@ CHECK_REASONS = {
 class CheckConfig:
     """Thresholds of the window checks (the node's ``check.*`` parameters); 0 turns one off."""
 
-    holdout_fraction: float = 0.2  # share of the window's tracks held out of refinement
+    holdout_fraction: float = 0.0  # share of the window's tracks held out of refinement
     holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
     min_track_length: float = 0.0  # mean observations per 3D point
