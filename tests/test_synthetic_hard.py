@@ -1,6 +1,7 @@
 """Synthetic hard drives (issue 19): segments of turning on the spot, a standing camera, cars
-crossing, a vehicle ahead moving with the camera and an exposure change, between ordinary
-driving; exact depth of the moving objects; labels; ``sfm-ttr generate --scenario hard``."""
+crossing, a vehicle ahead moving with the camera, an exposure change, turning while creeping,
+creeping straight and a truck ahead, between ordinary driving; exact depth of the moving
+objects; labels; ``sfm-ttr generate --scenario hard``."""
 
 from __future__ import annotations
 
@@ -31,12 +32,21 @@ from sfm_ttr_ros.data.synthetic import (
     sample_scene_params,
 )
 from sfm_ttr_ros.data.synthetic.geometry import _Builder, _car_shape
-from sfm_ttr_ros.data.synthetic.scenario import EXPOSURE_FACTORS
+from sfm_ttr_ros.data.synthetic.scenario import (
+    CREEP_STEP,
+    EXPOSURE_FACTORS,
+    TRUCK_DISTANCE,
+    TRUCK_SIZE,
+    TURN_AMPLITUDE_DEG,
+    TURN_STEP,
+)
 from sfm_ttr_ros.tools.cli import main as cli_main
 
 W, H = 240, 72
 SEGS = [("drive", 3), ("rotate", 7), ("static", 4), ("drive", 2), ("crossing", 8), ("lead", 6),
         ("exposure", 6, 0.45), ("drive", 2)]
+# the low-parallax and large-vehicle kinds, in their own drive (SEGS keeps its frames)
+NEW_SEGS = [("drive", 3), ("turn", 11), ("drive", 1), ("creep", 4), ("truck", 5), ("drive", 2)]
 DRIVE = "2011_09_26_drive_0001_sync"
 
 
@@ -44,6 +54,12 @@ DRIVE = "2011_09_26_drive_0001_sync"
 def drive():
     params = sample_scene_params(0, "A")
     return render_hard_drive(params, SEGS, W, H), plan_drive(params, SEGS)
+
+
+@pytest.fixture(scope="module")
+def new_drive():
+    params = sample_scene_params(0, "A")
+    return render_hard_drive(params, NEW_SEGS, W, H), plan_drive(params, NEW_SEGS)
 
 
 def frames_of(labels: list[str], kind: str, nth: int = 0) -> list[int]:
@@ -211,6 +227,75 @@ def test_lead_vehicle_keeps_its_depth_while_the_scene_flows(drive):
     assert np.median(rel[on_car]) > 0.6 * seq.params.speed / np.mean(depths)
 
 
+def path_heading_deg(params, z: float) -> float:
+    """The camera path's heading at path position z (no turn applied)."""
+    R_wc, _ = camera_pose(params, z)
+    return math.degrees(math.atan2(R_wc[0, 2], R_wc[2, 2]))
+
+
+def test_turn_sweeps_the_yaw_while_creeping_forward(new_drive):
+    seq, _ = new_drive
+    speed = seq.params.speed
+    idx = frames_of(seq.labels, "turn")
+    C = np.array([centre(seq.cam_from_world[i]) for i in [idx[0] - 1, *idx]])
+    # a small, nonzero forward step every frame (the path's z), the camera on the path
+    np.testing.assert_allclose(np.diff(C[:, 2]), speed * TURN_STEP, rtol=1e-9)
+    assert 0 < speed * TURN_STEP < 0.25 * speed
+    for c in C[1:]:
+        np.testing.assert_allclose(c, camera_pose(seq.params, c[2])[1], atol=1e-9)
+    # the yaw sweeps 0 -> +A -> -A -> 0 about the path's heading, every frame turning
+    yaw = np.array([heading_deg(seq.cam_from_world[i]) - path_heading_deg(seq.params, c[2])
+                    for i, c in zip(idx, C[1:], strict=True)])
+    amp = TURN_AMPLITUDE_DEG
+    assert 0.8 * amp < yaw.max() <= amp + 0.01 and -amp - 0.01 <= yaw.min() < -0.8 * amp
+    assert np.abs(np.diff(np.r_[0.0, yaw, 0.0])).min() > 0.5 * 4 * amp / (len(idx) + 1)
+    assert yaw.argmax() < yaw.argmin()  # +A first, then -A
+    after = idx[-1] + 1  # the drive goes on with the path's heading
+    assert abs(heading_deg(seq.cam_from_world[after])
+               - path_heading_deg(seq.params, centre(seq.cam_from_world[after])[2])) < 1e-6
+
+
+def test_creep_moves_a_few_centimetres_a_frame(new_drive):
+    seq, _ = new_drive
+    speed = seq.params.speed
+    idx = frames_of(seq.labels, "creep")
+    C = np.array([centre(seq.cam_from_world[i]) for i in [idx[0] - 1, *idx]])
+    np.testing.assert_allclose(np.diff(C[:, 2]), speed * CREEP_STEP, rtol=1e-9)
+    steps = np.linalg.norm(np.diff(C, axis=0), axis=1)
+    assert np.all(steps > 0.005) and np.all(steps < 0.1)  # a few cm, never standing
+    for i, c in zip(idx, C[1:], strict=True):  # straight on the path, with its heading
+        np.testing.assert_allclose(seq.cam_from_world[i][:3, :3],
+                                   camera_pose(seq.params, c[2])[0].T, atol=1e-12)
+    for i in idx:  # and the view changes, a little
+        assert not np.array_equal(seq.images[i], seq.images[i - 1])
+
+
+def test_truck_covers_a_large_share_at_constant_depth(new_drive):
+    seq, plan = new_drive
+    idx = frames_of(seq.labels, "truck")
+    (w_lo, w_hi), (h_lo, h_hi), _ = TRUCK_SIZE
+    bare = render_frames(seq.params, [plan.poses[i] for i in idx], W, H)  # without the truck
+    depths, shares = [], []
+    for k, i in enumerate(idx):
+        (truck,) = plan.vehicles[i]
+        assert truck.body == "truck" and w_lo <= truck.x1 - truck.x0 <= w_hi
+        assert h_lo <= truck.height <= h_hi and max(truck.colour) > 0.3  # tall, not black
+        x, _ = truck.centre
+        u, v, z = project(seq, i, (x, -truck.height / 2, truck.z0))  # middle of its back
+        assert inside(seq, u, v) and TRUCK_DISTANCE[0] - 0.1 <= z <= TRUCK_DISTANCE[1] + 0.1
+        assert depth_at(seq, i, u, v) == pytest.approx(z, rel=0.01)
+        depths.append(depth_at(seq, i, u, v))
+        # its pixels: nearer than the street without it
+        on_truck = np.abs(seq.depths[i] - bare.depths[k]) > 0.05
+        shares.append(on_truck.mean())
+        assert np.abs(seq.depths[i][on_truck] - z).max() < 0.2 * z  # the flat back and chassis
+    assert min(shares) > 0.12  # a big share of the image
+    assert np.ptp(depths) / np.mean(depths) < 0.02  # constant depth: it drives with the camera
+    np.testing.assert_allclose(np.diff([plan.vehicles[i][0].z0 for i in idx]),
+                               seq.params.speed, rtol=1e-9)
+    assert all(not plan.vehicles[i] for i in frames_of(seq.labels, "creep"))
+
+
 def test_moving_vehicle_carries_its_texture():
     """A car and the camera both moved by 1.3 m along x: with the anchor the car looks the same,
     without it the world-anchored texture would slide over it."""
@@ -251,14 +336,20 @@ def test_default_hard_drive_plan():
     params = sample_scene_params(1, "B")
     plan = plan_drive(params)
     n = sum(s.frames for s in DEFAULT_HARD_SEGMENTS)
-    assert len(plan) == len(plan.labels) == len(plan.vehicles) == len(plan.exposure) == n == 165
+    assert len(plan) == len(plan.labels) == len(plan.vehicles) == len(plan.exposure) == n == 250
     # each hard segment covers at least one whole window of 15 frames side by side
-    for kind in ("rotate", "static", "crossing", "lead", "exposure"):
+    for kind in ("rotate", "static", "crossing", "lead", "exposure", "turn", "creep", "truck"):
         idx = frames_of(plan.labels, kind)
         assert any(set(range(w, w + 15)) <= set(idx) for w in range(0, n, 15)), kind
     changed = [i for i, e in enumerate(plan.exposure) if e != 1.0]
     assert changed == list(range(140, 150))
     assert plan.exposure[140] in EXPOSURE_FACTORS
+    # the first 165 frames are the drive of the first five kinds, as they were
+    first = plan_drive(params, DEFAULT_HARD_SEGMENTS[:11])
+    assert len(first) == 165 and first.vehicles == plan.vehicles[:165]
+    assert [s.kind for s in DEFAULT_HARD_SEGMENTS[:11]] == [
+        "drive", "rotate", "drive", "static", "drive", "crossing", "drive", "lead", "drive",
+        "exposure", "drive"]
     # deterministic for the scene
     again = plan_drive(params)
     assert again.vehicles == plan.vehicles and again.exposure == plan.exposure

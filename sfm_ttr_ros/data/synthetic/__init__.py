@@ -31,8 +31,9 @@ street, tall grey concrete/glass facades, darker asphalt, more parked cars, few 
 wider-angle camera, more yaw wobble, flatter contrast).
 
 Hard drives (:mod:`.scenario`, issue 19): segments of ordinary driving, turning on the spot,
-a standing camera, cars crossing ahead, a vehicle ahead moving with the camera and a sudden
-exposure change, one label per frame (:func:`make_hard_sequence`, :data:`DEFAULT_HARD_SEGMENTS`).
+a standing camera, cars crossing ahead, a vehicle ahead moving with the camera, a sudden
+exposure change, turning while creeping, creeping straight and a truck ahead moving with the
+camera, one label per frame (:func:`make_hard_sequence`, :data:`DEFAULT_HARD_SEGMENTS`).
 
 Modules, one job each: :mod:`.scene` (parameters, domains, camera path),
 :mod:`.textures` (procedural textures), :mod:`.materials` (mip-mapped atlases and their
