@@ -68,6 +68,7 @@ def make_ttr(reuse: bool, weight_policy: str = "continue", batch: int = 1) -> Sf
     cfg = TTRConfig(refinement=RefinementConfig(steps=3, lr=1e-2),
                     reuse_predictions=reuse, weight_policy=weight_policy,
                     predict_batch=batch)
+    cfg.check.min_parallax = 0.0  # the fake SfM's cameras do not move: no parallax to check
     ttr = SfmTTR(bn_model(), cfg)
     ttr.reconstructor.close()
     ttr.reconstructor = FakeReconstructor()
