@@ -37,7 +37,13 @@ from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.params import build
 from sfm_ttr_ros.core.pipeline import SfmTTR
-from sfm_ttr_ros.core.verification import WindowCheck, accept, sanity_check
+from sfm_ttr_ros.core.verification import (
+    WindowCheck,
+    accept,
+    sanity_check,
+    unsupported_change,
+    unsupported_refusal,
+)
 from sfm_ttr_ros.tools.benchmark.run import segment_labels
 from sfm_ttr_ros.tools.benchmark.settings import default_params_file
 from sfm_ttr_ros.tools.cli_args import (
@@ -61,6 +67,20 @@ def window_abs_rel(depths: dict, names: list[str], seq, frame_names: dict) -> fl
         if gt is not None and name in depths and ev.add(name, depths[name], gt) is not None:
             n += 1
     return ev.summary()["abs_rel"] if n else float("nan")
+
+
+#: (ρ, τ) pairs of the unsupported-change statistic recorded for every window besides the
+#: configured one, to see which separates harmful from helpful windows
+GRID = ((0.03, 1.25), (0.05, 1.15), (0.05, 1.25), (0.05, 1.5), (0.08, 1.25))  # (ρ, τ)
+
+
+def unsupported_grid(res, after: dict) -> dict:
+    """U of the window (verification.unsupported_change) for every (ρ, τ) of GRID."""
+    if res.sfm is None or not res.sfm.ok or not after:
+        return {}
+    pixels = {n: res.sfm.frames[n].pixels for n in res.names if n in res.sfm.frames}
+    return {f"{r:g}/{f:g}": unsupported_change(res.depths_before, after, pixels, radius=r,
+                                                factor=f) for r, f in GRID}
 
 
 def windows_of(n: int, size: int, stride: int) -> list[range]:
@@ -121,6 +141,8 @@ def main(argv=None) -> int:
                 verdict = res.reason_key or ("not refined: " + res.reason)[:40]
             elif not accept(judge, c.error_before, c.error_after):
                 verdict = "rejected_by_check"
+            elif unsupported_refusal(judge, c.unsupported_change):
+                verdict = "check_unsupported_change"
             else:
                 verdict = "accepted"
             previous_accepted = verdict == "accepted"
@@ -130,13 +152,15 @@ def main(argv=None) -> int:
                    "verdict": verdict, "window_seconds": seconds,
                    **{k: v for k, v in c.summary().items() if k not in ("reason", "reason_key",
                                                                          "seconds")},
-                   "check_seconds": c.seconds}
+                   "check_seconds": c.seconds,
+                   "unsupported_grid": unsupported_grid(res, after)}
             records.append(rec)
             print(f"window {rec['window']:2d} {rec['frames'][0]:4d}-{rec['frames'][1]:4d} "
                   f"{seg:9s} abs rel {before_e:.4f} -> {after_e:.4f}  reproj "
                   f"{c.reprojection_error:.2f} track {c.track_length:.2f} par {c.parallax:.3f} inl "
                   f"{c.inlier_ratio:.2f} spread {c.scale_spread:.2f} jump {c.scale_jump:.2f} "
-                  f"check {c.error_before:.4f} -> {c.error_after:.4f}  {verdict}",
+                  f"check {c.error_before:.4f} -> {c.error_after:.4f} unsupported "
+                  f"{c.unsupported_change:.3f}  {verdict}",
                   file=sys.stderr, flush=True)
     finally:
         ttr.close()

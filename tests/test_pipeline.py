@@ -298,6 +298,34 @@ def test_a_window_that_misses_the_margin_is_rejected_and_changes_nothing(run, mo
 
 
 @pytest.mark.slow
+def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypatch):
+    """The unsupported-change check (issue 19): measured on every refined window; with τ made
+    tiny every pixel far from the SfM points that moved at all counts, and a threshold below
+    the measured share refuses the refined weights like the held-out check does."""
+    import sfm_ttr_ros.core.verification as verification
+
+    ttr = pinned(run, monkeypatch)
+    original = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
+    measured = ttr.process_window(run.window, run.intr)  # off (0): measured, never refuses
+    u = measured.check.unsupported_change
+    assert measured.refined and 0.0 <= u < 0.5
+    pixels = {n: measured.sfm.frames[n].pixels for n in measured.names
+              if n in measured.sfm.frames}
+    assert u == pytest.approx(verification.unsupported_change(
+        measured.depths_before, measured.depths, pixels))
+    ttr.reset_model()
+    monkeypatch.setattr(verification, "UNSUPPORTED_FACTOR", 1.0 + 1e-6)
+    monkeypatch.setattr(ttr.config.check, "max_unsupported_change", 1e-6)
+    res = ttr.process_window(run.window, run.intr)
+    c = res.check
+    assert not res.refined and res.reason_key == c.reason_key == "check_unsupported_change"
+    assert c.unsupported_change > 1e-6 and "far from every SfM point" in res.reason
+    assert all(np.array_equal(res.depths[n], res.depths_before[n]) for n in res.names)
+    assert res.depths_candidate and _encoder_equals(ttr.model, original)
+    assert res.timings["check"] < 0.1 * res.timings["refine"]
+
+
+@pytest.mark.slow
 def test_a_failed_sanity_check_refuses_the_window_before_refining(run, monkeypatch):
     ttr = pinned(run, monkeypatch)
     original = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}

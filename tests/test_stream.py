@@ -69,7 +69,7 @@ class ScriptedTTR:
         elif outcome == "rejected":
             res.reason_key, res.reason = "rejected_by_check", "rejected by check: 0.1 -> 0.2"
             res.check = WindowCheck(check_points=40, error_before=0.1, error_after=0.2,
-                                    reason_key="rejected_by_check")
+                                    unsupported_change=0.03, reason_key="rejected_by_check")
         else:
             res.reason = "too few supervision points: 3 selected of 10 (< 50)"
         return res
@@ -161,6 +161,7 @@ def test_a_window_refused_by_its_check_is_counted_with_its_check_errors():
     assert (c["windows_ok"], c["windows_failed"], c["windows_rejected"]) == (2, 1, 1)
     w = seen_windows[1]
     assert (w.check_error_before, w.check_error_after) == (0.1, 0.2)
+    assert w.unsupported_change == 0.03
     assert np.isnan(seen_windows[0].check_error_before)
 
 

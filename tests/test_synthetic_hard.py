@@ -336,7 +336,7 @@ def test_default_hard_drive_plan():
     params = sample_scene_params(1, "B")
     plan = plan_drive(params)
     n = sum(s.frames for s in DEFAULT_HARD_SEGMENTS)
-    assert len(plan) == len(plan.labels) == len(plan.vehicles) == len(plan.exposure) == n == 250
+    assert len(plan) == len(plan.labels) == len(plan.vehicles) == len(plan.exposure) == n == 280
     # each hard segment covers at least one whole window of 15 frames side by side
     for kind in ("rotate", "static", "crossing", "lead", "exposure", "turn", "creep", "truck"):
         idx = frames_of(plan.labels, kind)
@@ -344,6 +344,10 @@ def test_default_hard_drive_plan():
     changed = [i for i, e in enumerate(plan.exposure) if e != 1.0]
     assert changed == list(range(140, 150))
     assert plan.exposure[140] in EXPOSURE_FACTORS
+    # the first 250 frames are the drive before its last segment grew from 10 to 40 frames
+    shorter = plan_drive(params, (*DEFAULT_HARD_SEGMENTS[:-1], Segment("drive", 10)))
+    assert len(shorter) == 250 and shorter.vehicles == plan.vehicles[:250]
+    assert shorter.exposure == plan.exposure[:250]
     # the first 165 frames are the drive of the first five kinds, as they were
     first = plan_drive(params, DEFAULT_HARD_SEGMENTS[:11])
     assert len(first) == 165 and first.vehicles == plan.vehicles[:165]

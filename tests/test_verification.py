@@ -20,10 +20,13 @@ from sfm_ttr_ros.core.verification import (
     accept,
     check_error,
     frame_scale_spread,
+    frame_unsupported_change,
     held_out_tracks,
     sanity_check,
     scale_jump,
     split_supervision,
+    unsupported_change,
+    unsupported_refusal,
 )
 
 H, W = 24, 32
@@ -176,3 +179,62 @@ def test_check_parameters_reach_the_config_and_bad_ones_are_refused():
     assert "factor >= 1" in validate({"check.max_scale_jump": 0.5})
     assert validate({"check.holdout_fraction": 1.0})
     assert validate({"check.min_inlier_ratio": -0.1})
+
+
+def _grid_points(h: int, w: int, hole: tuple[slice, slice], spacing: int = 8) -> np.ndarray:
+    """SfM observations every ``spacing`` px over an h x w frame, none inside ``hole``."""
+    ys, xs = np.mgrid[0:h:spacing, 0:w:spacing]
+    px = np.c_[xs.ravel(), ys.ravel()].astype(np.float64)
+    inside = ((px[:, 1] >= hole[0].start) & (px[:, 1] < hole[0].stop)
+              & (px[:, 0] >= hole[1].start) & (px[:, 0] < hole[1].stop))
+    return px[~inside]
+
+
+def test_unsupported_change_sees_a_region_without_points_move_and_nothing_else():
+    h, w = 200, 400
+    rng = np.random.default_rng(0)
+    before = rng.uniform(2, 30, (h, w))
+    hole = (slice(60, 180), slice(120, 280))  # no SfM point in here (a vehicle moving along)
+    px = _grid_points(h, w, hole)
+    # a global scale change is no error: the depth is up to scale
+    assert frame_unsupported_change(before, 3.0 * before, px, step=1) == 0.0
+    # the region without points pushed 2x away: its pixels farther than 5 % of the width
+    # (20 px) from every point count, nothing else
+    after = before.copy()
+    after[hole] *= 2.0
+    got = frame_unsupported_change(before, after, px, step=1)
+    yy, xx = np.mgrid[0:h, 0:w]
+    interior = ((yy >= 60 + 20) & (yy < 180) & (xx >= 120 + 20) & (xx < 280 - 20))
+    assert got == pytest.approx(interior.mean(), rel=0.1) and got > 0.05
+    # ... and by less than the factor τ = 1.5: nothing
+    after[hole] = before[hole] * 1.4
+    assert frame_unsupported_change(before, after, px, step=1) == 0.0
+    # a supported region (points in it) that moves is refinement doing its job
+    after = before.copy()
+    after[:60, :120] *= 2.0
+    assert frame_unsupported_change(before, after, px, step=1) == 0.0
+    # the sampled version (every 4th pixel, the default) agrees
+    after = before.copy()
+    after[hole] *= 2.0
+    assert frame_unsupported_change(before, after, px) == pytest.approx(got, abs=0.02)
+    # nothing to measure
+    assert math.isnan(frame_unsupported_change(before, after, np.zeros((0, 2))))
+    assert math.isnan(frame_unsupported_change(before, np.full_like(before, np.nan), px))
+
+
+def test_window_unsupported_change_is_the_mean_over_frames_and_its_verdict():
+    h, w = 100, 200
+    before = {n: np.full((h, w), 10.0) for n in "ab"}
+    after = {"a": before["a"] * 1.5, "b": before["b"].copy()}
+    after["b"][:, 100:] = 30.0  # the right half of frame b tripled, no point there
+    px = np.c_[np.arange(0, 100, 5), np.full(20, 50.0)]
+    u = unsupported_change(before, after, {"a": px, "b": px, "missing": px})
+    share_b = frame_unsupported_change(before["b"], after["b"], px)
+    assert 0.3 < share_b < 0.5 and u == pytest.approx(share_b / 2)
+    assert unsupported_refusal(CheckConfig(max_unsupported_change=0.1), u).startswith(
+        f"{u:.3g} of the pixels moved")
+    assert unsupported_refusal(CheckConfig(max_unsupported_change=0.5), u) == ""
+    assert unsupported_refusal(CheckConfig(), u) == ""  # 0 = off
+    assert unsupported_refusal(CheckConfig(max_unsupported_change=0.1), float("nan")) == ""
+    assert "check_unsupported_change" in CHECK_REASONS
+    assert validate({"check.max_unsupported_change": 1.5})

@@ -132,6 +132,7 @@ class StreamDiagnostics:
                 "last_window.steps_done": w.steps_done,
                 "last_window.check_error_before": w.check_error_before,
                 "last_window.check_error_after": w.check_error_after,
+                "last_window.unsupported_change": w.unsupported_change,
             })
             v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
         return v

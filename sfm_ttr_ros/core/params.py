@@ -250,6 +250,11 @@ PARAMS: tuple[Param, ...] = (
        "the frames it shares with the previous accepted window differs by more than this "
        "factor in network units ('check_scale_jump'; windows that share no frame are not "
        "compared); 0 = off.", 0.0, 1e3, constraints="0 or >= 1"),
+    _p("check.max_unsupported_change", "check.max_unsupported_change", "Refuse the refined "
+       "weights of a window when, on average over its frames, more than this share of the "
+       "pixels lying far (> 5 % of the width) from every SfM point changed depth by more than "
+       "1.5x against the change at the points: a region SfM says nothing about, e.g. a "
+       "vehicle moving with the camera ('check_unsupported_change'); 0 = off.", 0.0, 1.0),
     _p("seed", "sfm.seed,alignment.seed,refinement.seed,check.seed", "Random seed of SfM, "
        "RANSAC, refinement and the held-out split.", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------

@@ -56,6 +56,8 @@ from sfm_ttr_ros.core.verification import (
     scale_jump,
     split_supervision,
     track_length,
+    unsupported_change,
+    unsupported_refusal,
 )
 
 WEIGHT_POLICIES = ("reset", "continue", "continual")
@@ -115,7 +117,7 @@ class WindowResult:
     reason: str = ""  # why the window was not refined ("" when it was)
     reason_key: str = ""  # a verification.CHECK_REASONS key when a check refused the window
     check: WindowCheck | None = None  # what the window checks measured (issue 19)
-    # the refined weights' depths of a window the held-out check refused (for evaluation only)
+    # the refined weights' depths of a window a check refused after refining (for evaluation)
     depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
     sfm: SfmResult | None = None
     alignment: AlignmentResult | None = None
@@ -369,16 +371,24 @@ class SfmTTR:
             res.refined, res.reason, res.depths = False, f"rolled back: {why}", dict(before)
             return res
         t0 = time.perf_counter()
-        res.check.error_after = check_error(res.depths, held, cfg.refinement.sampling, rescale)
-        res.check.seconds += time.perf_counter() - t0
-        t["check"] = res.check.seconds
-        if not accept(cfg.check, res.check.error_before, res.check.error_after):
-            restore_encoder(self.model, start)
-            c = res.check
-            c.reason_key = res.reason_key = "rejected_by_check"
+        c = res.check
+        c.error_after = check_error(res.depths, held, cfg.refinement.sampling, rescale)
+        if rescale:
+            c.unsupported_change = unsupported_change(
+                before, res.depths, {n: sfm.frames[n].pixels for n in reg})
+        c.seconds += time.perf_counter() - t0
+        t["check"] = c.seconds
+        if not accept(cfg.check, c.error_before, c.error_after):
+            c.reason_key = "rejected_by_check"
             c.reason = (f"held-out check error {c.error_before:.4g} -> {c.error_after:.4g} "
                         f"on {c.check_points} points did not fall by "
                         f"check.holdout_margin {cfg.check.holdout_margin:g}")
+        elif unsupported_refusal(cfg.check, c.unsupported_change):
+            c.reason_key = "check_unsupported_change"
+            c.reason = unsupported_refusal(cfg.check, c.unsupported_change)
+        if c.reason_key:
+            restore_encoder(self.model, start)
+            res.reason_key = c.reason_key
             res.refined, res.reason = False, f"rejected by check: {c.reason}"
             res.depths_candidate, res.depths = res.depths, dict(before)
             return res

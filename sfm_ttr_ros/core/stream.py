@@ -153,6 +153,7 @@ class WindowStats:
     steps_done: int = 0
     check_error_before: float = float("nan")  # held-out check error (issue 19)
     check_error_after: float = float("nan")
+    unsupported_change: float = float("nan")  # share of unsupported pixels moved (issue 19)
     timings: dict[str, float] = field(default_factory=dict)
     cloud_frame: Frame | None = field(default=None, repr=False)
     cloud_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32),
@@ -565,6 +566,7 @@ class StreamProcessor:
         if res.check is not None:
             stats.check_error_before = res.check.error_before
             stats.check_error_after = res.check.error_after
+            stats.unsupported_change = res.check.unsupported_change
         stats.timings = dict(res.timings)
         # The history keeps the SfM/alignment summary but not the per-frame depth maps: a deque of
         # 100 windows x 10 full-size maps each would grow memory for the whole first 100 windows.

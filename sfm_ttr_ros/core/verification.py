@@ -31,6 +31,22 @@ served or kept. Not in the paper.
    Scale-based checks need depth up to scale: for affine-invariant (relative inverse depth)
    outputs they are skipped.
 
+3. Unsupported change (after refining; :func:`unsupported_change`): no statistic of the SfM
+   points can see a region that has no points, e.g. a vehicle moving with the camera (its
+   features are static in the image, so SfM triangulates none on it) while the static street
+   around it is reconstructed right. Refined on the street, the network may still move that
+   region far away (measured: the hard drive's truck window, abs rel 0.23 → 0.35). Per
+   registered frame j, with L(p) = log(D_after(p) / D_before(p)) and the frame's change at its
+   own SfM observations g_j = median_l L(p_lj) (a global scale change is no error: the depth is
+   up to scale),
+
+       U_j = |{p : dist(p, {p_lj}) > ρ·W  and  |L(p) − g_j| > log τ}| / |{p}|
+
+   the share of the frame's pixels farther than ρ·W from every observation (W the width) whose
+   depth moved by more than the factor τ against the supported change; the window's U is the
+   mean over its frames, refused above ``max_unsupported_change``. Refinement should move the
+   scene where SfM supervises it; a large change where it says nothing is a guess.
+
 2. Held-out check (:func:`split_supervision`, :func:`check_error`): the selected supervision
    points are split BY TRACK (a 3D point and all its observations go to one side; seeded) into a
    train set and a check set of ``holdout_fraction`` of the tracks. The refinement sees the train
@@ -54,6 +70,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
@@ -69,7 +86,14 @@ CHECK_REASONS = {
     "check_inlier_ratio": "sanity check: alignment inlier ratio too low",
     "check_scale_spread": "sanity check: per-frame scales disagree",
     "check_scale_jump": "sanity check: scale jumped against the previous window",
+    "check_unsupported_change": "refined weights rejected: depth changed where SfM has no points",
 }
+
+#: ρ and τ of :func:`unsupported_change` (module docstring, 3.)
+UNSUPPORTED_RADIUS = 0.05
+UNSUPPORTED_FACTOR = 1.5
+#: the depth maps are read on every STEP-th pixel (the share is a ratio of pixel counts)
+UNSUPPORTED_STEP = 4
 
 
 @dataclass
@@ -84,12 +108,13 @@ class CheckConfig:
     min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
     max_scale_spread: float = 0.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
     max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
+    max_unsupported_change: float = 0.0  # share of pixels moved > τ far from any SfM point
     seed: int = 0
 
     def __post_init__(self) -> None:
         for name in ("holdout_fraction", "holdout_margin", "max_reprojection_error",
                      "min_track_length", "min_parallax", "min_inlier_ratio", "max_scale_spread",
-                     "max_scale_jump"):
+                     "max_scale_jump", "max_unsupported_change"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"check.{name} must be a finite number >= 0, got {v}")
@@ -99,6 +124,9 @@ class CheckConfig:
         if self.holdout_margin >= 1:
             raise InputError(f"check.holdout_margin must lie in [0, 1), got "
                              f"{self.holdout_margin}")
+        if self.max_unsupported_change > 1:
+            raise InputError(f"check.max_unsupported_change is a share in [0, 1], got "
+                             f"{self.max_unsupported_change}")
         if self.min_inlier_ratio > 1:
             raise InputError(f"check.min_inlier_ratio must lie in [0, 1], got "
                              f"{self.min_inlier_ratio}")
@@ -125,6 +153,7 @@ class WindowCheck:
     check_points: int = 0
     error_before: float = float("nan")
     error_after: float = float("nan")
+    unsupported_change: float = float("nan")
     reason_key: str = ""  # a CHECK_REASONS key when the window is refused
     reason: str = ""
     seconds: float = 0.0
@@ -300,3 +329,56 @@ def accept(config: CheckConfig, error_before: float, error_after: float) -> bool
     if not (math.isfinite(error_before) and math.isfinite(error_after)):
         return True
     return error_after <= (1.0 - config.holdout_margin) * error_before
+
+
+# -- 3. unsupported change -------------------------------------------------------------------
+def frame_unsupported_change(before: np.ndarray, after: np.ndarray, pixels: np.ndarray,
+                             radius: float | None = None, factor: float | None = None,
+                             step: int = UNSUPPORTED_STEP) -> float:
+    """U_j of one frame (module docstring, 3.): the share of its pixels farther than
+    ``radius``·W from every observation in ``pixels`` (N x 2, x y) whose depth changed by more
+    than ``factor`` against the median change at the observations (None: UNSUPPORTED_RADIUS,
+    UNSUPPORTED_FACTOR). NaN without an observation or a valid depth at one."""
+    radius = UNSUPPORTED_RADIUS if radius is None else radius
+    factor = UNSUPPORTED_FACTOR if factor is None else factor
+    b = np.asarray(before, np.float64)[::step, ::step]
+    a = np.asarray(after, np.float64)[::step, ::step]
+    h, w = b.shape
+    px = np.asarray(pixels, np.float64).reshape(-1, 2) / step
+    if px.size == 0 or h == 0 or w == 0:
+        return float("nan")
+    valid = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
+    change = np.zeros_like(b)
+    change[valid] = np.log(a[valid] / b[valid])
+    xi = np.clip(np.floor(px[:, 0]).astype(np.int64), 0, w - 1)
+    yi = np.clip(np.floor(px[:, 1]).astype(np.int64), 0, h - 1)
+    at_points = valid[yi, xi]
+    if not at_points.any():
+        return float("nan")
+    g = float(np.median(change[yi[at_points], xi[at_points]]))
+    seeds = np.full((h, w), 255, np.uint8)
+    seeds[yi, xi] = 0
+    dist = cv2.distanceTransform(seeds, cv2.DIST_L2, 3)
+    far = dist > radius * w
+    moved = valid & (np.abs(change - g) > math.log(factor))
+    return float(np.count_nonzero(far & moved) / (h * w))
+
+
+def unsupported_change(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
+                       pixels: Mapping[str, np.ndarray], **kwargs) -> float:
+    """The window's U: the mean of :func:`frame_unsupported_change` over the frames in
+    ``pixels`` (the registered frames' SfM observations); NaN when no frame can be measured."""
+    values = [frame_unsupported_change(before[n], after[n], p, **kwargs)
+              for n, p in pixels.items() if n in before and n in after]
+    values = [v for v in values if math.isfinite(v)]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def unsupported_refusal(config: CheckConfig, value: float) -> str:
+    """Why the window's unsupported change ``value`` refuses it ("" = accepted; a NaN value or
+    ``max_unsupported_change`` 0 accepts)."""
+    t = config.max_unsupported_change
+    if t <= 0 or not math.isfinite(value) or value <= t:
+        return ""
+    return (f"{value:.3g} of the pixels moved by more than {UNSUPPORTED_FACTOR:g}x far from "
+            f"every SfM point > check.max_unsupported_change {t:g}")

@@ -44,11 +44,13 @@ The random choices of a segment (vehicles, distances, speeds, exposure factor) a
 the scene's seed and domain and the segment's position in the list: a drive is deterministic for
 its :class:`~sfm_ttr_ros.data.synthetic.scene.SceneParams`, whatever the augmentation seed.
 
-:data:`DEFAULT_HARD_SEGMENTS` (250 frames) puts every hard segment over at least one whole window
+:data:`DEFAULT_HARD_SEGMENTS` (280 frames) puts every hard segment over at least one whole window
 of the 15-frame side-by-side windows of ``params/kitti.yaml`` (frames 15–29 rotate, 45–59 static,
 75–89 crossing, 105–119 lead, 135–149 exposure with the change at frame 140, 165–179 turn,
-195–209 creep, 225–239 truck), with ordinary driving between them. Its first 165 frames are the
-drive of the first five kinds as it was before ``turn``, ``creep`` and ``truck`` were added.
+195–209 creep, 225–239 truck), with ordinary driving between them and 40 frames after the last
+(two whole windows to see a policy recover). Its first 165 frames are the drive of the first five
+kinds as it was before ``turn``, ``creep`` and ``truck`` were added; its first 250 frames the
+drive before the last segment grew from 10 to 40 frames.
 """
 
 from __future__ import annotations
@@ -140,7 +142,7 @@ DEFAULT_HARD_SEGMENTS: tuple[Segment, ...] = (
     Segment("creep", 15),  # 195-209
     Segment("drive", 15),  # 210-224
     Segment("truck", 15),  # 225-239
-    Segment("drive", 10),  # 240-249
+    Segment("drive", 40),  # 240-279: two whole windows after the truck (recovery)
 )
 
 

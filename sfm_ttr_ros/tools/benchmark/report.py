@@ -143,14 +143,16 @@ def results_markdown(results: Mapping[str, Any]) -> str:
 
 
 def window_check_lines(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
-    """Markdown: per windowed mode, each window's outcome, reason key and held-out check error
-    before -> after (issue 19); the window timeline figure."""
+    """Markdown: per windowed mode, each window's outcome, reason key, held-out check error
+    before -> after and unsupported change (issue 19); the window timeline figure."""
     logged = [m for m in modes if results[m].get("window_log")]
     if not logged:
         return []
     lines = ["Windows (issue 19: refused = a window check refused it; check = held-out error "
-             "before -> after):", "", "| method | window | frames | outcome | check |",
-             "|---|---:|---|---|---|"]
+             "before -> after; unsupported = share of the pixels far from every SfM point whose "
+             "depth the refinement moved):", "",
+             "| method | window | frames | outcome | check | unsupported |",
+             "|---|---:|---|---|---|---:|"]
     for m in logged:
         for w in results[m]["window_log"]:
             c = w.get("check") or {}
@@ -158,6 +160,8 @@ def window_check_lines(results: Mapping[str, Any], modes: Sequence[str]) -> list
                    if c.get("check_points") else "-")
             frames = w.get("frames") or [0]
             what = "refined" if w.get("refined") else w.get("reason_key") or "unrefined"
+            u = c.get("unsupported_change")
+            u = f"{u:.3f}" if isinstance(u, float) and math.isfinite(u) else "-"
             lines.append(f"| {m} | {w['index']} | {min(frames)}-{max(frames)} | {what} | "
-                         f"{err} |")
+                         f"{err} | {u} |")
     return lines + ["", "![windows](windows.png)", ""]
