@@ -4,8 +4,8 @@ network's depth.
 
 :class:`AffineInverse` wraps test_pipeline's biased street network (its encoder and decoder,
 shared) and outputs p = a_j / D + b_j with a scale a_j and shift b_j drawn at random PER FRAME
-(seeded by the frame's pixels, so a frame keeps its pair between prediction and refinement): what
-a MiDaS / Depth Anything relative head promises and no more. The scale-only path runs on the
+(the frame is recognised by its input, so it keeps its pair between prediction and refinement):
+what a MiDaS / Depth Anything relative head promises and no more. The scale-only path runs on the
 plain network; both runs use the same SfM result, so the comparison is the alignment and the
 loss space only."""
 
@@ -32,13 +32,23 @@ scene, biased_state = test_pipeline.scene, test_pipeline.biased_state  # fixture
 
 
 class AffineInverse(DepthModel):
-    """``inner``'s depth D as p = a_j / D + b_j, (a_j, b_j) random per frame."""
+    """``inner``'s depth D as p = a_j / D + b_j, (a_j, b_j) random per frame of ``images``.
+
+    A frame is recognised by the nearest per-channel mean of its network input, not by an exact
+    key. The exact key (a pixel sum rounded at 1e-3, one frame 2.5e-5 from a rounding edge here)
+    failed on CI once: loss up while depth still improved, what a frame given two pairs by a
+    last-bit difference between its lone and batched input would do. Frames' means lie ~1e-3
+    apart; last-bit differences are ~1e-7."""
 
     output_kind = "relative_inverse_depth"
 
-    def __init__(self, inner: DepthModel):
+    def __init__(self, inner: DepthModel, images):
         super().__init__()
         self.inner = inner
+        self.fingerprints = self.fingerprint(inner.preprocess(list(images)))
+        rng = np.random.default_rng(7)
+        a = rng.uniform(0.5, 5.0, len(images))
+        self.pairs = np.stack([a, a * rng.uniform(0.0, 0.3, len(images))], axis=1)
 
     encoder = property(lambda self: self.inner.encoder)
     decoder = property(lambda self: self.inner.decoder)
@@ -48,15 +58,15 @@ class AffineInverse(DepthModel):
         return self.inner.preprocess(images)
 
     @staticmethod
-    def frame_affine(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(a, b), N x 1 x 1 x 1 each: a in [0.5, 5], b in [0, 0.3·a], seeded by the pixels."""
-        keys = torch.round(x.detach().double().sum(dim=(1, 2, 3)) * 1e3).long().tolist()
-        pairs = []
-        for key in keys:
-            rng = np.random.default_rng(abs(int(key)))
-            a = rng.uniform(0.5, 5.0)
-            pairs.append((a, a * rng.uniform(0.0, 0.3)))
-        ab = torch.tensor(pairs, dtype=x.dtype, device=x.device)
+    def fingerprint(x: torch.Tensor) -> torch.Tensor:
+        return x.detach().double().mean(dim=(2, 3)).cpu()
+
+    def frame_affine(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(a, b), N x 1 x 1 x 1 each: a in [0.5, 5], b in [0, 0.3·a], of the frame x shows."""
+        dist = torch.cdist(self.fingerprint(x), self.fingerprints)
+        nearest = dist.argmin(dim=1)
+        assert float(dist.min(dim=1).values.max()) < 1e-5, "an input that is no frame of the scene"
+        ab = torch.as_tensor(self.pairs[nearest.numpy()], dtype=x.dtype, device=x.device)
         return ab[:, 0].view(-1, 1, 1, 1), ab[:, 1].view(-1, 1, 1, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -69,7 +79,7 @@ def runs(scene, biased_state):
     plain = SfmTTR(street_model(biased_state), config())
     scale_only = plain.process_window(scene.frames, scene.seq.intrinsics)
     plain.close()
-    wrapped = AffineInverse(street_model(biased_state))
+    wrapped = AffineInverse(street_model(biased_state), scene.seq.images)
     ttr = SfmTTR(wrapped, config())
     ttr.reconstructor.reconstruct = lambda *a, **k: scale_only.sfm  # the same SfM result
     affine = ttr.process_window(scene.frames, scene.seq.intrinsics)
@@ -82,9 +92,11 @@ def runs(scene, biased_state):
 
 
 def test_the_wrapper_is_a_different_affine_map_per_frame(scene):
-    model = AffineInverse(street_model())
+    model = AffineInverse(street_model(), scene.seq.images)
     assert is_affine_output(model) and not is_affine_output(model.inner)
     a, b = model.frame_affine(model.preprocess([f.image for f in scene.frames[:4]]))
+    alone = [model.frame_affine(model.preprocess(f.image)) for f in scene.frames[:4]]
+    assert torch.equal(torch.cat([p[0] for p in alone]), a)  # a frame alone keeps its pair
     assert len(set(np.round(a.flatten().tolist(), 6))) == 4
     assert len(set(np.round(b.flatten().tolist(), 6))) == 4
 
@@ -102,10 +114,11 @@ def test_affine_path_refines_as_well_as_the_scale_only_path(scene, runs):
           f"{after_affine:.4f}")
     assert after_scale < 0.8 * before
     # Measured (80 steps, lr 1e-3): before 0.244-0.264, scale-only 0.140-0.141, affine
-    # 0.149-0.151 (6-8 % behind; issue 18's target is 2 %, NOT met). Weighting the L1 in
-    # inverse depth by the Jacobian D²/a (a first-order copy of the depth loss) did not close
-    # it (0.151): the per-frame shift absorbs part of the network's shape error, so the
-    # targets ask less of it. The affine path must stay a real refinement and near the paper's.
+    # 0.145-0.151 (3-8 % behind, by the per-frame pairs drawn; issue 18's target is 2 %, NOT
+    # met). Weighting the L1 in inverse depth by the Jacobian D²/a (a first-order copy of the
+    # depth loss) did not close it (0.151): the per-frame shift absorbs part of the network's
+    # shape error, so the targets ask less of it. The affine path must stay a real refinement
+    # and near the paper's.
     assert after_affine < 0.7 * before
     assert abs(after_affine - after_scale) <= 0.10 * after_scale
 
@@ -121,7 +134,7 @@ def test_affine_targets_live_in_the_networks_output_space(runs):
 
 
 def test_photometric_loss_is_refused_for_affine_outputs(scene):
-    ttr = SfmTTR(AffineInverse(street_model()), config())
+    ttr = SfmTTR(AffineInverse(street_model(), scene.seq.images), config())
     cfg = config()
     cfg.refinement.loss = "hybrid"
     with pytest.raises(InputError, match="affine-invariant inverse depth"):
