@@ -211,6 +211,11 @@ PARAMS: tuple[Param, ...] = (
        "the photometric loss: window offsets of the target, comma-separated (\"-1,1\" = the "
        "previous and the next frame); unregistered sources give no term.",
        constraints="distinct non-zero integers, e.g. -1,1 or -2,-1,1,2"),
+    _p("refinement.hybrid_min_parallax", "refinement.hybrid_min_parallax", "hybrid loss only: "
+       "parallax gate of its photometric term, a source counts at a pixel only where moving the "
+       "pixel's point from its predicted depth to infinity moves its projection by at least this "
+       "many pixels (at the network's input size); far pixels are left to the SfM term; 0 = "
+       "every pixel (Monodepth2's loss; 'photometric' is never gated).", 0.0, 1e3),
     _p("weight_policy", "ttr.weight_policy", "Weights across windows: 'reset' (every window "
        "refines from the start-up weights), 'continue' (from the previous window's result), "
        "'continual' (continue, replaying earlier windows' supervision, pulled toward the "

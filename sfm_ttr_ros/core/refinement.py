@@ -96,6 +96,9 @@ class RefinementConfig:
     photometric_alpha: float = 0.85
     smoothness_weight: float = 1e-3
     photometric_sources: str = "-1,1"
+    # hybrid only: the parallax gate of its photometric term (core/photometric.py), px at the
+    # network's size; Ph-TTR (loss "photometric") stays Monodepth2's loss, ungated.
+    hybrid_min_parallax: float = 4.0
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -124,11 +127,13 @@ class RefinementConfig:
                 raise InputError(f"{name} must be one of {allowed}, got {value!r}")
 
     def photometric_config(self) -> PhotometricConfig:
-        """The photometric loss's settings (:class:`PhotometricConfig`) these fields give."""
+        """The photometric loss's settings (:class:`PhotometricConfig`) these fields give; the
+        parallax gate only for ``hybrid`` (``photometric`` is Monodepth2's loss as published)."""
+        gate = self.hybrid_min_parallax if self.loss == "hybrid" else 0.0
         return PhotometricConfig(alpha=self.photometric_alpha,
                                  smoothness_weight=self.smoothness_weight,
                                  source_offsets=parse_offsets(self.photometric_sources),
-                                 seed=self.seed)
+                                 seed=self.seed, min_parallax=gate)
 
     @property
     def uses_photometric(self) -> bool:

@@ -11,7 +11,8 @@
 * ``ph_ttr_online`` / ``ph_ttr_offline`` and ``hybrid_online`` / ``hybrid_offline`` (issue 16,
   on request with ``--modes``): the same windows with ``refinement.loss`` ``photometric``
   (Ph-TTR: Monodepth2's loss with the window's SfM poses) and ``hybrid`` (Eq. 5 + λ·photometric);
-  the ``sfm_ttr_*`` modes always run ``sfm`` (:func:`.runners.mode_config`).
+  the ``sfm_ttr_online`` / ``_offline`` modes always run ``sfm`` (:func:`.runners.mode_config`);
+  ``sfm_ttr_live`` runs the parameter file's loss, as the node does (its ``loss`` key).
 
 Each mode starts from a fresh copy of the original weights (``model_factory()``). Every frame
 that has ground truth is evaluated (KITTI protocol, :mod:`sfm_ttr_ros.core.evaluation`); frames that

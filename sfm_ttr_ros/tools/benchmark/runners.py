@@ -122,7 +122,9 @@ class ModeRun:
 
 def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                 cfg: TTRConfig, progress) -> None:
-    ttr = SfmTTR(model, copy.deepcopy(cfg))
+    cfg = copy.deepcopy(cfg)
+    cfg.refinement.loss = "sfm"  # never refines: a loss this model cannot run must not stop it
+    ttr = SfmTTR(model, cfg)
     try:
         b = max(1, cfg.predict_batch)
         for k in range(0, len(indices), b):
