@@ -16,6 +16,7 @@ from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
 from sfm_ttr_ros.core.photometric import (
     PhotometricConfig,
     identity_errors,
+    mean_3x3,
     network_intrinsics,
     parallax,
     photometric_loss,
@@ -26,6 +27,7 @@ from sfm_ttr_ros.core.photometric import (
     scale_outputs,
     smoothness_loss,
     source_poses,
+    ssim_target,
     ssim_term,
     warp,
 )
@@ -78,6 +80,32 @@ def test_ssim_term_is_zero_for_an_image_with_itself_and_bounded():
     # alpha = 0: plain L1 averaged over RGB.
     torch.testing.assert_close(reprojection_error(x, y, alpha=0.0),
                                (x - y).abs().mean(1, keepdim=True))
+
+
+def monodepth2_ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Monodepth2's layers.py SSIM, written out as published (the reference)."""
+    pool = torch.nn.AvgPool2d(3, 1)
+    x, y = torch.nn.ReflectionPad2d(1)(x), torch.nn.ReflectionPad2d(1)(y)
+    mu_x, mu_y = pool(x), pool(y)
+    sigma_x = pool(x ** 2) - mu_x ** 2
+    sigma_y = pool(y ** 2) - mu_y ** 2
+    sigma_xy = pool(x * y) - mu_x * mu_y
+    n = (2 * mu_x * mu_y + 0.01 ** 2) * (2 * sigma_xy + 0.03 ** 2)
+    d = (mu_x ** 2 + mu_y ** 2 + 0.01 ** 2) * (sigma_x + sigma_y + 0.03 ** 2)
+    return torch.clamp((1 - n / d) / 2, 0, 1)
+
+
+def test_ssim_with_the_targets_statistics_cached_is_monodepth2s():
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(1, 3, 24, 40, generator=g)
+    y = torch.rand(1, 3, 24, 40, generator=g)
+    stats = ssim_target(y)
+    torch.testing.assert_close(ssim_term(x, y), monodepth2_ssim(x, y), rtol=1e-5, atol=1e-6)
+    assert torch.equal(ssim_term(x, y, stats), ssim_term(x, y))  # the same numbers, cached
+    box = torch.nn.functional.avg_pool2d(x, 3, 1)  # the separable 3 x 3 mean is the pool
+    torch.testing.assert_close(mean_3x3(x), box, rtol=1e-6, atol=1e-6)
+    with pytest.raises(InputError, match="SSIM target"):
+        ssim_term(x[..., :20], y[..., :20], stats)
 
 
 def test_warp_with_identity_pose_returns_the_image():

@@ -328,7 +328,7 @@ def _step_loss(model: DepthModel, x, frozen_stages: int,
                            target, weight)
     outputs = _scale_outputs(model, x, frozen_stages, photometric_cfg.scales)
     ph = photometric_objective(outputs, frame.target, frame.sources, frame.K, frame.poses,
-                               photometric_cfg, frame.identity).total
+                               photometric_cfg, frame.identity, frame.ssim_target).total
     if cfg.loss == "photometric":
         return ph
     sfm = weighted_l1(sample_depth(outputs[0].depth, grid, cfg.sampling), target, weight)
