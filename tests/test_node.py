@@ -582,6 +582,7 @@ def test_installed_refiner_runs_and_stops_on_sigint(installed, context, tmp_path
     assert proc.returncode == 0, stderr[-3000:]
     assert "Traceback" not in stderr, stderr[-3000:]
     assert "refiner ready" in stdout + stderr and "stopped:" in stdout + stderr
+    assert "live ~/depth: 0 received, 0 published, 0 skipped" in stdout + stderr  # accounted
     assert elapsed < 10
 
 

@@ -408,7 +408,8 @@ class RefinerNode(Node):
         self.get_logger().info(
             f"stopped: {v['frames_received']} received, {v['frames_refined']} refined, "
             f"{v['frames_unrefined']} unrefined, {v['frames_dropped']} dropped, "
-            f"{v['frames_pending']} pending not published (no flush on shutdown)")
+            f"{v['frames_pending']} pending not published (no flush on shutdown)"
+            + _live_summary(v))
         if self.online.worker_alive:
             return  # the model and the SfM workspace are still in use: leave them alone
         try:
@@ -494,5 +495,16 @@ def main(args=None) -> int:
     return code
 
 
+def _live_summary(v: dict) -> str:
+    """The live output's accounting for the shutdown line ("" when ~/depth is off)."""
+    if "live.received" not in v:
+        return ""
+    why = ", ".join(f"{k[len('live.skipped.'):]} {n}" for k, n in v.items()
+                    if k.startswith("live.skipped.") and n)
+    return (f"; live ~/depth: {v['live.received']} received, {v['live.published']} published, "
+            f"{v['live.skipped']} skipped" + (f" ({why})" if why else ""))
+
+
 if __name__ == "__main__":
     sys.exit(main())
+

@@ -302,8 +302,11 @@ def run_demo(opts: DemoOptions) -> dict:
     print(table)
     print(f"SfM-TTR (windowed, ~/depth_refined) vs no TTR: {gain_line} (gain; positive = lower "
           "error)")
+    missing = expected - node["live_received"]
     print(f"SfM-TTR live (~/depth) vs no TTR: {live_line} ({node['live_received']}/{expected} "
-          "live frames received)")
+          "live frames received" + (f"; the node counts the {missing} it skipped under load: "
+                                    "the 'stopped:' line of refiner.log" if missing else "")
+          + ")")
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if fig_path:
