@@ -12,7 +12,7 @@ import json
 import pytest
 
 from sfm_ttr_ros.core.models.registry import default_weights_available
-from sfm_ttr_ros.tools.demo import DemoOptions, run_demo
+from sfm_ttr_ros.tools.demo import DemoOptions, _live_accounting, _live_line, run_demo
 
 pytestmark = pytest.mark.skipif(not default_weights_available(),
                                 reason="default weights not trained yet")
@@ -29,6 +29,14 @@ def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     assert res["frames"] == 16
     assert res["refiner"]["received"] == 16
     assert res["refiner"]["exit_code"] == 0
+    # every live frame is accounted: recorded, or counted as skipped by the node; none is lost
+    # between node and recorder (the recorder matches the node's publishers before playing)
+    node = res["refiner"]
+    assert node["live_published"] + node["live_skipped"] == 16, node
+    assert node["live_received"] == node["live_published"], node
+    live = res["metrics"]["sfm_ttr_live"]
+    base = res["metrics"].get("no_ttr (live's frames)", res["metrics"]["no_ttr"])
+    assert live["frames"] == base["frames"] > 0
     before, after = res["metrics"]["no_ttr"], res["metrics"]["sfm_ttr"]
     assert before["frames"] == after["frames"] == res["gt_frames"] == 14
     assert after["abs_rel"] < before["abs_rel"], (before, after)
@@ -42,3 +50,21 @@ def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     assert (out / "figure.png").stat().st_size > 10_000
     log = (out / "refiner.log").read_text()
     assert "Traceback" not in log
+
+
+def test_the_demo_tells_skipped_from_lost_live_frames():
+    node = {"live_received": 12, "live_published": 28, "live_skipped": 2}
+    line = _live_line(node, 30)
+    assert line.startswith("12/30 live frames recorded")
+    assert "skipped 2 under load" in line and "16 published by the node but not recorded" in line
+    assert _live_line({"live_received": 30, "live_published": 30, "live_skipped": 0}, 30) == \
+        "30/30 live frames recorded"
+
+
+def test_the_demo_reads_the_nodes_live_count_from_its_shutdown_line(tmp_path):
+    log = tmp_path / "refiner.log"
+    log.write_text("[INFO] [1.0] [refiner]: stopped: 30 received, 30 refined, 0 unrefined; "
+                   "live ~/depth: 30 received, 27 published, 3 skipped (overflow 3)\n")
+    assert _live_accounting(log) == {"live_published": 27, "live_skipped": 3}
+    log.write_text("no shutdown line\n")
+    assert _live_accounting(log) == {"live_published": None, "live_skipped": None}

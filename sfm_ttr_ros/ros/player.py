@@ -371,6 +371,27 @@ class TopicRecorder:
     def publisher_count(self, topic: str) -> int:
         return self._node.count_publishers(topic) if self._node else 0
 
+    def wait_for_publishers(self, topics: list[str], timeout: float,
+                            alive=lambda: True, settle_s: float = 0.5) -> list[str]:
+        """Wait until a publisher of each of ``topics`` has been discovered, or ``timeout``
+        s passed, or ``alive()`` turned False (the publishing process died); returns the
+        topics still without a publisher.
+
+        A VOLATILE subscription receives only what is published after the two endpoints have
+        matched, so a recorder must wait for this before the data it records is produced. The
+        graph shows the writer once this side discovered it; the writer's side of the match
+        follows within the same discovery round, hence ``settle_s`` more once all are seen.
+        """
+        deadline = time.monotonic() + float(timeout)
+        while True:
+            missing = [t for t in topics if self.publisher_count(t) == 0]
+            if not missing:
+                time.sleep(settle_s)
+                return []
+            if time.monotonic() >= deadline or not alive():
+                return missing
+            time.sleep(0.05)
+
     def wait_for(self, counts: dict[str, int], timeout: float,
                  idle_timeout: float | None = None) -> bool:
         """Wait until each topic has at least ``counts[topic]`` messages (True), or until

@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import random
+import re
 import shutil
 import subprocess
 import sys
@@ -45,6 +46,7 @@ from sfm_ttr_ros.tools.process import interrupt
 DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live ~/depth: /refiner/depth
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
 LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
+NODE_START_TIMEOUT_S = 120.0  # from starting the refiner to its publishers being discovered
 
 
 def _say(msg: str) -> None:
@@ -179,6 +181,20 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
         try:
             wanted = {DEPTH_TOPIC: IMAGE_MSGTYPE, REFINED_TOPIC: IMAGE_MSGTYPE}
             with TopicRecorder(out / "refined_bag", wanted, storage=opts.storage) as rec:
+                # the recorder's subscriptions are VOLATILE: what the node publishes before they
+                # match is never delivered (the first live frames were lost that way)
+                missing = rec.wait_for_publishers(list(wanted), timeout=NODE_START_TIMEOUT_S,
+                                                  alive=lambda: proc.poll() is None)
+                if proc.poll() is not None:
+                    raise InputError(f"refiner exited with code {proc.returncode} at start-up; "
+                                     f"see {log_path}")
+                if REFINED_TOPIC in missing:
+                    raise InputError(f"no publisher of {REFINED_TOPIC} within "
+                                     f"{NODE_START_TIMEOUT_S:.0f} s of starting the refiner; "
+                                     f"see {log_path}")
+                if missing:
+                    _say(f"   no publisher of {', '.join(missing)} (publish_live off?): the live "
+                         "output is not recorded")
                 played = play_bag(bag, rate=opts.rate,
                                   wait_topics=[bag_image_topic(opts.compressed),
                                                CAMERA_INFO_TOPIC],
@@ -209,7 +225,49 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
         raise InputError(f"only {received} of {expected} depth images came back from refiner "
                          f"within {opts.timeout_s:.0f} s; see {log_path}")
     return {"received": received, "live_received": live_received, "seconds": seconds,
-            "exit_code": proc.returncode, "command": " ".join(cmd)}
+            "exit_code": proc.returncode, "command": " ".join(cmd),
+            **_live_accounting(log_path)}
+
+
+_LIVE_LINE = re.compile(r"live ~/depth: (\d+) received, (\d+) published, (\d+) skipped")
+
+
+def _live_accounting(log_path: Path) -> dict:
+    """The node's own count of its live output, from its shutdown line in ``log_path``
+    (``live_published`` / ``live_skipped``; None where the line is absent: live off, or the
+    node did not stop cleanly)."""
+    try:
+        found = _LIVE_LINE.findall(log_path.read_text(errors="replace"))
+    except OSError:
+        found = []
+    if not found:
+        return {"live_published": None, "live_skipped": None}
+    _, published, skipped = (int(x) for x in found[-1])
+    return {"live_published": published, "live_skipped": skipped}
+
+
+def _live_line(node: dict, expected: int) -> str:
+    """Where each of the ``expected`` live frames went: recorded, skipped by the node (its
+    count), or published and not recorded (lost in transport)."""
+    got, published, skipped = node["live_received"], node["live_published"], node["live_skipped"]
+    text = f"{got}/{expected} live frames recorded"
+    if published is None:
+        return text + ("" if got == expected else "; the node's count is in refiner.log")
+    if skipped:
+        text += f"; the node skipped {skipped} under load (the 'stopped:' line of refiner.log)"
+    if published > got:
+        text += f"; {published - got} published by the node but not recorded (lost in transport)"
+    return text
+
+
+def _mean_over(per_frame: list[dict], names: set[str]) -> dict:
+    """Mean metrics of the per-frame rows whose frame is in ``names``."""
+    from sfm_ttr_ros.core.evaluation import METRICS
+
+    rows = [r for r in per_frame if r["name"] in names]
+    out = {m: float(np.mean([r[m] for r in rows])) if rows else float("nan") for m in METRICS}
+    out["frames"] = len(rows)
+    return out
 
 
 def run_demo(opts: DemoOptions) -> dict:
@@ -264,7 +322,14 @@ def run_demo(opts: DemoOptions) -> dict:
     metrics = {k: {m: v for m, v in e.items() if not isinstance(v, list | dict)}
                for k, e in evals.items()}
     gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr"])
-    live_gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr_live"])
+    # the live output against no TTR on the same frames (a live frame the node skipped, or
+    # that was not recorded, is left out of both)
+    live_names = {r["name"] for r in evals["sfm_ttr_live"]["per_frame"]}
+    live_base = metrics["no_ttr"]
+    if live_names != {r["name"] for r in evals["no_ttr"]["per_frame"]}:
+        live_base = metrics["no_ttr (live's frames)"] = _mean_over(
+            evals["no_ttr"]["per_frame"], live_names)
+    live_gain = relative_gain(live_base, metrics["sfm_ttr_live"])
     table = format_table(metrics)
 
     # figure: the middle GT frame
@@ -302,11 +367,8 @@ def run_demo(opts: DemoOptions) -> dict:
     print(table)
     print(f"SfM-TTR (windowed, ~/depth_refined) vs no TTR: {gain_line} (gain; positive = lower "
           "error)")
-    missing = expected - node["live_received"]
-    print(f"SfM-TTR live (~/depth) vs no TTR: {live_line} ({node['live_received']}/{expected} "
-          "live frames received" + (f"; the node counts the {missing} it skipped under load: "
-                                    "the 'stopped:' line of refiner.log" if missing else "")
-          + ")")
+    print(f"SfM-TTR live (~/depth) vs no TTR on the same frames: {live_line} "
+          f"({_live_line(node, expected)})")
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if fig_path:
