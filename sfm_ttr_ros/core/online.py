@@ -7,8 +7,10 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
   the network (:class:`~sfm_ttr_ros.core.serving.ServingModel`), no intrinsics needed.
 * :meth:`OnlineRefiner.submit` — frames with intrinsics to the
   :class:`~sfm_ttr_ros.core.stream.StreamProcessor`, stepped by a background worker thread at a
-  lower OS priority (``StreamSettings.worker_nice``): keyframes, windows, SfM, alignment,
-  refinement; each window's frames come out again on ``on_refined`` (today's windowed output).
+  lower OS priority (``StreamSettings.worker_nice``) with an OpenMP team of its own
+  (``StreamSettings.worker_threads``, :mod:`~sfm_ttr_ros.core.openmp`): keyframes, windows, SfM,
+  alignment, refinement; each window's frames come out again on ``on_refined`` (today's
+  windowed output).
 * When a window is refined (and not rolled back) its encoder is swapped into the serving copy:
   version = window index + 1 (0 = the start-up weights). A window that fails, is skipped or
   is rolled back leaves the served weights unchanged.
@@ -25,9 +27,11 @@ import threading
 import time
 from collections.abc import Callable
 
+from sfm_ttr_ros.core import openmp
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.live import LiveOutput, LiveServer, lower_thread_priority
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.refinement import warm_up_optimiser
 from sfm_ttr_ros.core.serving import ServingModel
 from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats
 
@@ -62,6 +66,7 @@ class OnlineRefiner:
         self.live = LiveServer(self.serving, on_live or (lambda out: None),
                                max_queue=settings.live_max_queue, logger=self.log)
         self._nice = settings.worker_nice
+        self._threads = settings.worker_threads
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self.serving_updates = 0
@@ -78,12 +83,19 @@ class OnlineRefiner:
 
     # -- threads --------------------------------------------------------------------------------
     def start(self) -> None:
+        """Start serving and the worker, after paying the one-time costs of both paths here
+        (:func:`~sfm_ttr_ros.core.refinement.warm_up_optimiser`, the serving copy's first
+        forward pass) so that no live frame waits behind them."""
+        warm_up_optimiser()
+        self.serving.warm_up()
         self.live.start()
         self._worker = threading.Thread(target=self._work, name="refiner-worker", daemon=True)
         self._worker.start()
 
     def _work(self) -> None:
         lower_thread_priority(self._nice)  # before torch / pycolmap start threads from here
+        if self._threads:  # this thread's own OpenMP team (core/openmp.py)
+            openmp.set_thread_team(self._threads)
         while not self._stop.is_set():
             try:
                 self.stream.step(timeout=0.1)

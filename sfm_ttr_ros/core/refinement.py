@@ -363,6 +363,22 @@ def _forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
     return model.depth_from_features(_encode(model, x, frozen_stages))
 
 
+def warm_up_optimiser() -> None:
+    """Pay torch's one-time costs of the refinement path now, on a throw-away parameter.
+
+    The first ``torch.optim`` step imports ``torch._dynamo`` and with it sympy (~800 modules,
+    ~0.9 s of Python holding the GIL on these machines). Paid inside the refinement worker, that
+    import stalls every other thread: live frames waited up to 0.6 s behind it. Call this before
+    the worker and the live server start (:meth:`~sfm_ttr_ros.core.online.OnlineRefiner.start`);
+    later calls are cheap. No model's weights are touched.
+    """
+    param = torch.nn.Parameter(torch.zeros(1, 1, 3, 3))
+    optimizer = torch.optim.Adam([param], lr=1e-4)
+    torch.nn.functional.conv2d(torch.zeros(1, 1, 8, 8), param).sum().backward()
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+
+
 def snapshot_encoder(model: DepthModel) -> dict[str, torch.Tensor]:
     """A copy of the encoder's weights (and BN buffers) to reset to later."""
     return copy.deepcopy(model.encoder.state_dict())

@@ -64,6 +64,13 @@ class ServingModel:
             self._version = int(version)
             self._updated = time.monotonic()
 
+    def warm_up(self) -> None:
+        """One prediction on a grey image at the network's input size, not counted: the first
+        forward pass pays for allocations and kernel set-up, a frame should not."""
+        h, w = self._model.input_size
+        with self._lock, torch.inference_mode():
+            self._model.predict([np.full((h, w, 3), 128, np.uint8)])
+
     def predict(self, image: np.ndarray) -> tuple[np.ndarray, int]:
         """(depth H x W float32 at the image's size, version of the weights that made it)."""
         with self._lock, torch.inference_mode():

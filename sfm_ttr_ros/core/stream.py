@@ -111,6 +111,9 @@ class StreamSettings:
     # nice value added to the background window worker, so live prediction gets the cores first.
     live_max_queue: int = 4
     worker_nice: int = 10
+    # OpenMP threads of the window worker's torch ops (core/openmp.py): 1 measured fastest on
+    # 2 cores next to live serving; 0 = the runtime's default
+    worker_threads: int = 1
 
     def __post_init__(self) -> None:
         if self.window_size < 2:
@@ -126,6 +129,8 @@ class StreamSettings:
                 raise InputError(f"{name} must be a finite number >= 0, got {v}")
         if self.live_max_queue < 1:
             raise InputError(f"live_max_queue must be >= 1, got {self.live_max_queue}")
+        if self.worker_threads < 0:
+            raise InputError(f"worker_threads must be >= 0, got {self.worker_threads}")
         if not 0 <= self.worker_nice <= 19:
             raise InputError(f"worker_nice must lie in 0..19, got {self.worker_nice}")
         if self.overload_pending < 0:

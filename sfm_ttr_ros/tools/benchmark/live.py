@@ -28,6 +28,9 @@ from sfm_ttr_ros.tools.benchmark.runners import ModeRun, log, window_record
 FORWARD_PROBES = 10
 #: The feeder evaluates served depths only while more than this is left before the next frame.
 EVAL_SLACK_S = 0.03
+#: Served depths held for evaluation after the feed; beyond this many bytes the feeder
+#: evaluates between frames (GT read + metrics, ~15 ms a frame of CPU the node would not spend).
+DEFER_EVAL_BYTES = 1 << 30
 
 
 def bare_forward_s(model, image: np.ndarray, probes: int = FORWARD_PROBES) -> float:
@@ -58,12 +61,19 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     def on_live(out: LiveOutput) -> None:  # the live thread: hand over only
         latencies.append(out.latency_s)
         versions.append(out.version)
+        held[0] += out.depth.nbytes
         served.append(out)
 
+    held = [0]  # bytes of the served depths waiting in ``served``
+
     def evaluate(until: float | None = None) -> None:
-        """Evaluate served depths (GT read + metrics, ~15 ms each) while time allows."""
-        while served and (until is None or until - time.monotonic() > EVAL_SLACK_S):
+        """Evaluate served depths (GT read + metrics, ~15 ms each): all of them after the
+        feed (``until`` None); during it only while more than DEFER_EVAL_BYTES are held, and
+        while time allows: the node spends no CPU on evaluation, the feeder should not either."""
+        while served and (until is None or (held[0] > DEFER_EVAL_BYTES
+                                            and until - time.monotonic() > EVAL_SLACK_S)):
             out = served.popleft()
+            held[0] -= out.depth.nbytes
             run.add(out.frame.index, out.depth, out.version > 0,
                     "" if out.version > 0 else "start_up_weights")
 
