@@ -86,7 +86,6 @@ def main() -> int:
     return 0
 
 
-
 def _print_windows(mode: str, timings: list[dict]) -> int:
     for k, t in enumerate(timings):
         print(f"{mode}: window {k}: " + ", ".join(f"{n} {v:.2f} s" for n, v in t.items()))

@@ -63,8 +63,11 @@ def test_the_demo_tells_skipped_from_lost_live_frames():
 
 def test_the_demo_reads_the_nodes_live_count_from_its_shutdown_line(tmp_path):
     log = tmp_path / "refiner.log"
-    log.write_text("[INFO] [1.0] [refiner]: stopped: 30 received, 30 refined, 0 unrefined; "
-                   "live ~/depth: 30 received, 27 published, 3 skipped (overflow 3)\n")
+    from sfm_ttr_ros.ros.node import _live_summary
+
+    line = _live_summary({"live.received": 30, "live.published": 27, "live.skipped": 3,
+                          "live.skipped.overflow": 3})
+    log.write_text(f"[INFO] [1.0] [refiner]: stopped: 30 received, 30 refined{line}\n")
     assert _live_accounting(log) == {"live_published": 27, "live_skipped": 3}
     log.write_text("no shutdown line\n")
     assert _live_accounting(log) == {"live_published": None, "live_skipped": None}

@@ -27,6 +27,7 @@ Bad predictions at valid ground-truth pixels are handled explicitly:
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -218,6 +219,15 @@ def evaluate_frame(
     return result
 
 
+def mean_over_frames(rows: Sequence[Mapping[str, float]]) -> dict:
+    """The KITTI summary of per-frame metrics: each metric's mean over the frames (NaN for
+    none) and ``frames``; ``rows`` are per-frame metric dicts (e.g. a ``per_frame`` subset)."""
+    out: dict = {m: float(np.mean([r[m] for r in rows])) if rows else math.nan
+                 for m in METRICS}
+    out["frames"] = len(rows)
+    return out
+
+
 @dataclass
 class Evaluator:
     """Accumulates frames and reports the protocol's means over frames."""
@@ -243,11 +253,7 @@ class Evaluator:
 
     def summary(self) -> dict:
         """Mean metrics over frames plus counts, scaling-ratio statistics and per-frame rows."""
-        out: dict = {}
-        for m in METRICS:
-            vals = [r.metrics[m] for r in self.results]
-            out[m] = float(np.mean(vals)) if vals else math.nan
-        out["frames"] = len(self.results)
+        out = mean_over_frames([r.metrics for r in self.results])
         out["skipped"] = len(self.skipped)
         out["skipped_frames"] = dict(self.skipped)
         out["invalid_pred"] = self.invalid_pred

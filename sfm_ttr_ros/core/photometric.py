@@ -274,23 +274,23 @@ def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
     if source_image.shape[0] != n or source_image.shape[-2:] != depth_target.shape[-2:]:
         raise InputError(f"source image {tuple(source_image.shape)} and target depth "
                          f"{tuple(depth_target.shape)} differ in batch or size")
-    uv, cam = _project(depth_target, K, T_source_from_target)
+    uv, cam, far = _project(depth_target, K, T_source_from_target, with_far=min_parallax > 0)
     grid = torch.stack([uv[:, 0] / (w - 1) * 2 - 1, uv[:, 1] / (h - 1) * 2 - 1], dim=-1)
     warped = F.grid_sample(source_image, grid.reshape(n, h, w, 2), mode="bilinear",
                            padding_mode="border", align_corners=True)
     valid = (cam[:, 2:3] > PROJECTION_EPS).reshape(n, 1, h, w)
-    if min_parallax > 0:
+    if far is not None:
         with torch.no_grad():
-            far, _ = _project(depth_target.detach(), K, T_source_from_target, at_infinity=True)
             moved = _distance(uv.detach(), far).reshape(n, 1, h, w)
         valid = valid & (moved >= min_parallax)
     return warped, valid
 
 
-def _project(depth_target: torch.Tensor, K, T_source_from_target, at_infinity: bool = False):
+def _project(depth_target: torch.Tensor, K, T_source_from_target, with_far: bool = False):
     """Every target pixel's point moved into the source camera and projected: (uv N x 2 x HW in
-    pixels, camera points N x 3 x HW). ``at_infinity``: the point at infinity on the pixel's ray
-    (rotation only, K R K⁻¹ p̃)."""
+    pixels, camera points N x 3 x HW, and with ``with_far`` the projection of the point at
+    infinity on the pixel's ray, K R K⁻¹ p̃, without gradient; else None). One grid of rays
+    serves both."""
     n, _, h, w = depth_target.shape
     K = _batched(K, n, 3, depth_target, "K")
     T = _batched(T_source_from_target, n, 4, depth_target, "T_source_from_target")
@@ -299,12 +299,17 @@ def _project(depth_target: torch.Tensor, K, T_source_from_target, at_infinity: b
                             indexing="ij")
     pix = torch.stack([xs, ys, torch.ones_like(xs)]).reshape(1, 3, h * w)
     rays = torch.linalg.inv(K) @ pix  # N x 3 x HW
-    if at_infinity:
-        cam = T[:, :3, :3] @ rays.expand(n, 3, h * w)
-    else:
-        cam = T[:, :3, :3] @ (rays * depth_target.reshape(n, 1, h * w)) + T[:, :3, 3:]
-    proj = K @ cam
-    return proj[:, :2] / (proj[:, 2:3] + PROJECTION_EPS), cam
+    cam = T[:, :3, :3] @ (rays * depth_target.reshape(n, 1, h * w)) + T[:, :3, 3:]
+    far = None
+    if with_far:
+        with torch.no_grad():
+            far = _pixels(K @ (T[:, :3, :3] @ rays.expand(n, 3, h * w)))
+    return _pixels(K @ cam), cam, far
+
+
+def _pixels(proj: torch.Tensor) -> torch.Tensor:
+    """Homogeneous N x 3 x HW image points → N x 2 x HW pixels (divided by z + eps)."""
+    return proj[:, :2] / (proj[:, 2:3] + PROJECTION_EPS)
 
 
 def parallax(depth_target: torch.Tensor, K, T_source_from_target) -> torch.Tensor:
@@ -312,8 +317,7 @@ def parallax(depth_target: torch.Tensor, K, T_source_from_target) -> torch.Tenso
     its point goes from ``depth_target`` to infinity, |π(K (R P + t)) − π(K R K⁻¹ p̃)|: the
     image motion the photometric loss can measure the pixel's depth by (no gradient)."""
     with torch.no_grad():
-        near, _ = _project(depth_target.detach(), K, T_source_from_target)
-        far, _ = _project(depth_target.detach(), K, T_source_from_target, at_infinity=True)
+        near, _, far = _project(depth_target.detach(), K, T_source_from_target, with_far=True)
     n, _, h, w = depth_target.shape
     return _distance(near, far).reshape(n, 1, h, w)
 

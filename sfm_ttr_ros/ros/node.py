@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import signal
 import sys
 import threading
@@ -495,8 +496,13 @@ def main(args=None) -> int:
     return code
 
 
+#: The live part of the shutdown line, as :func:`_live_summary` writes it (read by the demo).
+LIVE_SUMMARY_RE = re.compile(r"live ~/depth: (\d+) received, (\d+) published, (\d+) skipped")
+
+
 def _live_summary(v: dict) -> str:
-    """The live output's accounting for the shutdown line ("" when ~/depth is off)."""
+    """The live output's accounting for the shutdown line ("" when ~/depth is off); parsed
+    back by :data:`LIVE_SUMMARY_RE`."""
     if "live.received" not in v:
         return ""
     why = ", ".join(f"{k[len('live.skipped.'):]} {n}" for k, n in v.items()
@@ -507,4 +513,3 @@ def _live_summary(v: dict) -> str:
 
 if __name__ == "__main__":
     sys.exit(main())
-

@@ -29,7 +29,6 @@ import argparse
 import json
 import os
 import random
-import re
 import shutil
 import subprocess
 import sys
@@ -229,15 +228,14 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
             **_live_accounting(log_path)}
 
 
-_LIVE_LINE = re.compile(r"live ~/depth: (\d+) received, (\d+) published, (\d+) skipped")
-
-
 def _live_accounting(log_path: Path) -> dict:
     """The node's own count of its live output, from its shutdown line in ``log_path``
     (``live_published`` / ``live_skipped``; None where the line is absent: live off, or the
     node did not stop cleanly)."""
+    from sfm_ttr_ros.ros.node import LIVE_SUMMARY_RE
+
     try:
-        found = _LIVE_LINE.findall(log_path.read_text(errors="replace"))
+        found = LIVE_SUMMARY_RE.findall(log_path.read_text(errors="replace"))
     except OSError:
         found = []
     if not found:
@@ -260,23 +258,18 @@ def _live_line(node: dict, expected: int) -> str:
     return text
 
 
-def _mean_over(per_frame: list[dict], names: set[str]) -> dict:
-    """Mean metrics of the per-frame rows whose frame is in ``names``."""
-    from sfm_ttr_ros.core.evaluation import METRICS
-
-    rows = [r for r in per_frame if r["name"] in names]
-    out = {m: float(np.mean([r[m] for r in rows])) if rows else float("nan") for m in METRICS}
-    out["frames"] = len(rows)
-    return out
-
-
 def run_demo(opts: DemoOptions) -> dict:
     """Run the whole demo; returns the results written to ``out/results.json``."""
     import cv2
     import torch
 
     from msg_adapters.image import image_to_depth
-    from sfm_ttr_ros.core.evaluation import EvalConfig, format_table, relative_gain
+    from sfm_ttr_ros.core.evaluation import (
+        EvalConfig,
+        format_table,
+        mean_over_frames,
+        relative_gain,
+    )
     from sfm_ttr_ros.core.models import build_model
     from sfm_ttr_ros.ros.bag import bag_topics, read_bag
     from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
@@ -327,8 +320,8 @@ def run_demo(opts: DemoOptions) -> dict:
     live_names = {r["name"] for r in evals["sfm_ttr_live"]["per_frame"]}
     live_base = metrics["no_ttr"]
     if live_names != {r["name"] for r in evals["no_ttr"]["per_frame"]}:
-        live_base = metrics["no_ttr (live's frames)"] = _mean_over(
-            evals["no_ttr"]["per_frame"], live_names)
+        live_base = metrics["no_ttr (live's frames)"] = mean_over_frames(
+            [r for r in evals["no_ttr"]["per_frame"] if r["name"] in live_names])
     live_gain = relative_gain(live_base, metrics["sfm_ttr_live"])
     table = format_table(metrics)
 

@@ -56,15 +56,14 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     versions: list[int] = []
     windows = {"windows": 0, "windows_refined": 0, "windows_rolled_back": 0, "window_log": []}
 
-    served: deque[LiveOutput] = deque()  # evaluated by the feeder between frames
+    served: deque[LiveOutput] = deque()  # evaluated by the feeder after the feed
+    held = [0]  # bytes of the served depths waiting in ``served``
 
     def on_live(out: LiveOutput) -> None:  # the live thread: hand over only
         latencies.append(out.latency_s)
         versions.append(out.version)
         held[0] += out.depth.nbytes
         served.append(out)
-
-    held = [0]  # bytes of the served depths waiting in ``served``
 
     def evaluate(until: float | None = None) -> None:
         """Evaluate served depths (GT read + metrics, ~15 ms each): all of them after the
