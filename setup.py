@@ -45,7 +45,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE_NAME}"]),
         (f"share/{PACKAGE_NAME}", ["package.xml"]),
-        (f"share/{PACKAGE_NAME}/params", sorted(glob("params/*.yaml"))),
+        (f"share/{PACKAGE_NAME}/params", sorted(glob("params/*.yaml") + glob("params/*.xml"))),
         (f"share/{PACKAGE_NAME}/launch", sorted(glob("launch/*.launch.py"))),
     ],
     # torch is deliberately loose: scripts/setup_env.sh installs torch==2.13.0 (the CPU wheel on

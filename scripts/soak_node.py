@@ -3,9 +3,12 @@
 ``--minutes`` (30 for the figures in BENCHMARKS.md "Soak") through the node started with
 ``params/kitti.yaml``, as an outside rclpy client through DDS.
 
-Sampled: the node process's RSS (every ``--rss-period`` s, /proc) and, per frame, the latency
-from publishing the image to receiving its ``~/depth`` (live) and its ``~/depth_refined``
-(window) message. Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
+Sampled: the node process's RSS (every ``--rss-period`` s, /proc); per frame, the latency from
+publishing the image to receiving its ``~/depth`` (live; taken by a listener process of its own,
+as a controller would be, unless ``--one-client``) and its ``~/depth_refined`` (window) message;
+with the RSS, the node's own live latency from /diagnostics (arrival in the node to published)
+and the machine's CPU steal, which tell a late depth made in the node from one late in DDS.
+Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
 "first / last 5 minutes" are the first / last sixth of the run):
 
 * every frame accounted: /diagnostics ``frames_received`` = frames sent, ``received = refined +
@@ -28,6 +31,7 @@ import argparse
 import json
 import os
 import random
+import signal
 import subprocess
 import sys
 import threading
@@ -44,13 +48,22 @@ from fuzz_node import rss_mib  # noqa: E402
 KITTI_W, KITTI_H = 1242, 375
 
 
+def cpu_times() -> tuple[float, float]:
+    """(steal, total) jiffies of the whole machine (/proc/stat): time the hypervisor gave
+    another guest, which no process here can account for."""
+    f = [float(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return (f[7] if len(f) > 7 else 0.0), sum(f[:8])
+
+
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
 def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float, float]],
-              refined: list[tuple[float, float]], title: str) -> None:
-    """Two panels (RSS MiB; latency s of ~/depth and ~/depth_refined) over minutes, OpenCV."""
+              refined: list[tuple[float, float]], title: str,
+              node_p95: list[tuple[float, float]] = ()) -> None:
+    """Two panels (RSS MiB; latency s of ~/depth and ~/depth_refined at the client, and the
+    node's own live p95 from /diagnostics) over minutes, OpenCV."""
     import cv2
 
     w, h, m = 1200, 800, 70
@@ -58,8 +71,9 @@ def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float
     cv2.putText(img, title, (m, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 2)
     t_max = max([t for t, _ in rss + live + refined] + [1.0]) / 60.0
     panels = [("RSS (MiB)", [(rss, (200, 0, 0))], 60, 380),
-              ("latency (s): live ~/depth blue, ~/depth_refined red",
-               [(live, (255, 120, 0)), (refined, (0, 0, 220))], 440, 760)]
+              ("latency (s): live ~/depth blue, ~/depth_refined red, live p95 in the node green",
+               [(live, (255, 120, 0)), (refined, (0, 0, 220)), (list(node_p95), (0, 160, 0))],
+               440, 760)]
     for name, series, top, bottom in panels:
         values = [v for s, _ in series for _, v in s if np.isfinite(v)]
         lo, hi = (min(values), max(values)) if values else (0.0, 1.0)
@@ -87,10 +101,55 @@ def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float
     cv2.imwrite(str(path), img)
 
 
+def listen_live(out_path: str, best_effort: bool = False) -> int:
+    """A second client process that only takes ``~/depth`` (what a controller would run) and
+    writes ``[[stamp_ns, received monotonic s], ...]`` to ``out_path`` on SIGINT / SIGTERM.
+
+    One process taking both outputs measures its own queue, not the node: a window releases
+    up to ``max_pending`` depth images on ``~/depth_refined`` at once (~190 MB at 1242x375), and
+    the live images arriving behind them in the same client wait until they are taken."""
+    import signal
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from sfm_ttr_ros.ros import names
+
+    got: list[tuple[int, float]] = []
+    rclpy.init()
+    node = Node("soak_live_listener")
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    if best_effort:  # sensor-data QoS, as a controller takes a camera-rate stream
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                         reliability=ReliabilityPolicy.BEST_EFFORT)
+    sub = node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED, lambda m: got.append(
+        (m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, time.monotonic())), qos)
+    ready = Path(out_path + ".ready")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+            if not ready.exists() and sub.get_publisher_count() >= 1:
+                ready.touch()  # matched the node's ~/depth: the soak may start
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    Path(out_path).write_text(json.dumps(got))
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
 class Client:
     """Publishes the drive, records output latencies and the last diagnostics."""
 
-    def __init__(self):
+    def __init__(self, live: bool = True):
         import rclpy  # noqa: F401
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
@@ -107,14 +166,18 @@ class Client:
                          reliability=ReliabilityPolicy.RELIABLE)
         self.pub_image = self.node.create_publisher(Image, names.IMAGE_TOPIC, qos)
         self.pub_info = self.node.create_publisher(CameraInfo, names.CAMERA_INFO_TOPIC, qos)
+        # The client keeps every depth it is sent (KEEP_ALL): a sample lost here would be
+        # blamed on the node.
+        qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
         self.sent_at: dict[int, float] = {}
         self.live: list[tuple[float, float]] = []
         self.refined: list[tuple[float, float]] = []
         self.diag: dict[str, str] = {}
         self.t0 = time.monotonic()
         self._lock = threading.Lock()
-        self.node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED,
-                                      lambda m: self._on_depth(m, self.live), qos)
+        if live:  # else a listener process of its own takes ~/depth (listen_live)
+            self.node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED,
+                                          lambda m: self._on_depth(m, self.live), qos)
         self.node.create_subscription(Image, names.DEPTH_REFINED_TOPIC_RESOLVED,
                                       lambda m: self._on_depth(m, self.refined), qos)
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC, self._on_diag,
@@ -131,6 +194,15 @@ class Client:
             sent = self.sent_at.get(ns)
             if sent is not None:
                 sink.append((sent - self.t0, now - sent))
+
+    def add_live(self, received: list) -> None:
+        """The listener process's ``[stamp_ns, received]`` pairs as (sent - t0, latency)."""
+        with self._lock:
+            for ns, at in received:
+                sent = self.sent_at.get(int(ns))
+                if sent is not None:
+                    self.live.append((sent - self.t0, at - sent))
+            self.live.sort()
 
     def _on_diag(self, msg) -> None:
         if any(s.name == self.names.DIAG_NAME for s in msg.status):
@@ -167,20 +239,32 @@ def run(args: argparse.Namespace) -> dict:
         cmd += ["-p", o]
     log_path = out / "refiner.log"
     with open(log_path, "w") as log:
+        node_env = dict(kv.split("=", 1) for kv in args.node_env or [])
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=out,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                env={**os.environ, "PYTHONUNBUFFERED": "1", **node_env})
+    listener = None
+    live_file = out / "live_received.json"
+    if args.split_live:
+        live_file.unlink(missing_ok=True)
+        Path(str(live_file) + ".ready").unlink(missing_ok=True)
+        listener = subprocess.Popen(
+            [sys.executable, __file__, "--listen-live", str(live_file)]
+            + (["--live-best-effort"] if args.live_best_effort else []), env=os.environ.copy())
     rclpy.init()
     c = None
     rss: list[tuple[float, float]] = []
+    node_live: list[tuple] = []  # (t, node p95, node max, publish max, live skipped, steal)
     sent = 0
     try:
-        c = Client()
+        c = Client(live=not args.split_live)
         deadline = time.monotonic() + 120
-        while c.pub_image.get_subscription_count() < 1:
+        while c.pub_image.get_subscription_count() < 1 or (
+                listener is not None and not Path(str(live_file) + ".ready").exists()):
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the node did not come up; see {log_path}")
             time.sleep(0.2)
         c.t0 = t0 = time.monotonic()
+        cpu = cpu_times()
         duration = args.minutes * 60.0
         period = 1.0 / args.rate
         next_rss = 0.0
@@ -193,6 +277,8 @@ def run(args: argparse.Namespace) -> dict:
             if now >= next_rss:
                 rss.append((now, rss_mib(proc.pid)))
                 next_rss += args.rss_period
+                node_live.append(node_sample(now, c.diag, cpu))
+                cpu = cpu_times()
             loop, i = divmod(sent, len(seq.images))
             rgb = seq.images[i]
             if loop:  # a new pixel digest per loop: no prediction is reused across loops
@@ -218,16 +304,40 @@ def run(args: argparse.Namespace) -> dict:
         time.sleep(2.0)
         alive = proc.poll() is None
         d = dict(c.diag)
+        if listener is not None:
+            listener.send_signal(signal.SIGINT)
+            listener.wait(30)
+            c.add_live(json.loads(live_file.read_text()) if live_file.exists() else [])
         live, refined = list(c.live), list(c.refined)
     finally:
+        if listener is not None and listener.poll() is None:
+            listener.kill()
         close_client_and_node(c, proc, timeout=30)
     return _report(args, out, cmd, sent, alive, proc.returncode, d, rss, live, refined,
-                   log_path)
+                   log_path, node_live)
 
 
-def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path) -> dict:
+def node_sample(now: float, diag: dict, cpu_before: tuple[float, float]) -> tuple:
+    """The node's own live figures (/diagnostics) and the machine's steal share since the last
+    sample: with the client's latencies they tell a late frame made in the node from one late on
+    the way through DDS or taken by the hypervisor."""
+    steal, total = cpu_times()
+    share = (steal - cpu_before[0]) / max(total - cpu_before[1], 1.0)
+
+    def num(key):
+        try:
+            return float(diag.get(key, "nan"))
+        except ValueError:
+            return float("nan")
+    return (now, num("live.latency_p95_s"), num("live.latency_max_s"),
+            num("live.publish_max_s"), num("live.skipped"), share)
+
+
+def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
+            node_live) -> dict:
     duration = args.minutes * 60.0
-    warm = min(300.0, duration / 6.0)  # "the first 5 minutes" (a sixth of a shorter run)
+    warm = args.warm_s or min(300.0, duration / 6.0)  # "the first 5 minutes" (a sixth of a
+    # shorter run); --warm-s 10 = issue 15's "after frame 100" at 10 Hz
 
     def num(key):
         return int(d.get(key, 0))
@@ -263,13 +373,27 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path) 
         "latency_median_s": {"refined": percentile([lat for _, lat in refined], 50),
                              "live": percentile([lat for _, lat in live], 50)},
         "diagnostics": d, "checks": checks, "ok": all(checks.values()), "exit_code": code,
-        "samples": {"rss": rss, "live": live, "refined": refined}, "log": str(log_path),
+        "node_live": _node_live_summary(node_live),
+        "samples": {"rss": rss, "live": live, "refined": refined, "node_live": node_live},
+        "log": str(log_path),
     }
     (out / "soak.json").write_text(json.dumps(report, indent=1, default=str))
     draw_plot(out / "soak.png", rss, live, refined,
               f"refiner soak: {args.minutes:g} min at {args.rate:g} Hz, params/kitti.yaml, "
-              f"{KITTI_W}x{KITTI_H}")
+              f"{KITTI_W}x{KITTI_H}", [(x[0], x[1]) for x in node_live])
     return report
+
+
+def _node_live_summary(samples: list[tuple]) -> dict:
+    """Over the run: the largest node-side live p95 / max / publish time seen in a sample, the
+    machine's mean and largest steal share."""
+    if not samples:
+        return {}
+    a = np.asarray([x[1:] for x in samples], dtype=float)
+    return {"node_latency_p95_max_s": float(np.nanmax(a[:, 0])),
+            "node_latency_max_s": float(np.nanmax(a[:, 1])),
+            "publish_max_s": float(np.nanmax(a[:, 2])),
+            "steal_mean": float(np.nanmean(a[:, 4])), "steal_max": float(np.nanmax(a[:, 4]))}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -285,11 +409,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drain-timeout", type=float, default=600.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--domain-id", type=int, default=0)
+    ap.add_argument("--one-client", dest="split_live", action="store_false",
+                    help="take ~/depth in the same client process as ~/depth_refined (default: "
+                         "a listener process of its own, as a controller would be)")
+    ap.add_argument("--warm-s", type=float, default=0.0,
+                    help="the warm-up the RSS and latency checks start after (default: 5 min, "
+                         "a sixth of a shorter run)")
+    ap.add_argument("--node-env", action="append", metavar="NAME=VALUE",
+                    help="an environment variable for the node's process only")
+    ap.add_argument("--live-best-effort", action="store_true",
+                    help="the ~/depth listener subscribes BEST_EFFORT (sensor-data QoS): a "
+                         "lost sample is lost, none holds the later ones back")
+    ap.add_argument("--listen-live", metavar="FILE", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.listen_live:
+        return listen_live(args.listen_live, args.live_best_effort)
     r = run(args)
     print(f"soak: {r['frames_sent']} frames in {r['minutes']:g} min; back on ~/depth_refined "
           f"{r['depth_refined_back']}, live {r['depth_live_back']}; RSS MiB {r['rss_mib']}; "
-          f"latency p95 s {r['latency_p95_s']}; median {r['latency_median_s']}")
+          f"latency p95 s {r['latency_p95_s']}; median {r['latency_median_s']}; in the node "
+          f"{r['node_live']}")
     d = r["diagnostics"]
     print("  " + ", ".join(f"{k} {d.get(k)}" for k in (
         "frames_received", "frames_refined", "frames_unrefined", "frames_dropped",

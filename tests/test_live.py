@@ -235,6 +235,25 @@ def test_live_latency_is_measured_from_arrival(one_thread):
     assert got[0].latency_s >= 0.5
 
 
+def test_live_counters_tell_node_latency_from_publish_time(one_thread):
+    """/diagnostics' live.latency_* cover arrival -> published; publish_max_s is the sink's own
+    time, so a slow publisher shows there and not as a slow prediction."""
+    model, _, _ = two_states()
+    server = LiveServer(ServingModel(model), lambda out: time.sleep(0.2))
+    assert np.isnan(server.counters()["latency_p95_s"])  # nothing published yet
+    server.start()
+    try:
+        server.submit(frame(0), arrival=time.monotonic() - 0.3)
+        server.submit(frame(1))
+        assert server.drain(10)
+    finally:
+        server.stop()
+    c = server.counters()
+    assert 0.2 <= c["publish_max_s"] < 0.5
+    assert c["latency_max_s"] >= 0.5  # 0.3 s old on arrival + the 0.2 s publish
+    assert 0.2 <= c["latency_p50_s"] <= c["latency_p95_s"] <= c["latency_max_s"]
+
+
 def test_the_warm_up_leaves_no_import_for_the_first_window():
     """torch.optim's first step imports torch._dynamo and sympy (~800 modules, ~1 s holding the
     GIL): paid inside the worker it stalled live frames up to 0.6 s. After the warm-up of

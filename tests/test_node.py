@@ -616,3 +616,5 @@ def test_live_depth_serves_every_frame_at_once_and_takes_the_refined_weights(gra
                  10, "live diagnostics")
     assert d["live.published"] == "7" and d["live.skipped"] == "0" and d["live.pending"] == "0"
     assert int(d["serving.updates"]) == 1 and float(d["serving.age_s"]) >= 0
+    lat = [float(d[f"live.latency_{k}_s"]) for k in ("p50", "p95", "max")]
+    assert 0 < lat[0] <= lat[1] <= lat[2] < 30 and 0 < float(d["live.publish_max_s"]) <= lat[2]

@@ -13,6 +13,9 @@ is bounded (``max_queue``): when it is full the OLDEST waiting frame is skipped 
 skips that frame (``skipped["prediction_error"]``, logged, throttled) and the server goes on.
 
 Accounting, as for the windowed stream: ``received == published + sum(skipped) + pending``.
+Timing, over the last :data:`LATENCY_WINDOW` published frames: the latency from a frame's
+arrival to its published depth (p50, p95, max) and the time ``on_depth`` took to publish it, so
+/diagnostics tells a late ``~/depth`` made in the node from one delayed on the way out.
 
 Scheduling on few cores: torch's intra-op thread count is one number per process, so the two
 roles cannot be given different torch thread counts. What can be separated is the OS priority:
@@ -44,6 +47,10 @@ LIVE_SKIP_REASONS = {
     "publish_error": "publishing the live depth failed",
     "stopped": "server stopped before the frame was served",
 }
+
+
+#: How many of the newest published frames the latency figures cover.
+LATENCY_WINDOW = 100
 
 
 def lower_thread_priority(nice: int) -> bool:
@@ -95,6 +102,8 @@ class LiveServer:
         self.skipped: Counter[str] = Counter()
         self._throttle = Throttle()
         self._thread: threading.Thread | None = None
+        self._latency: deque[float] = deque(maxlen=LATENCY_WINDOW)  # arrival -> published, s
+        self._publish_s: deque[float] = deque(maxlen=LATENCY_WINDOW)  # on_depth's own time
 
     # -- input ----------------------------------------------------------------------------
     def submit(self, frame: Frame, arrival: float | None = None) -> None:
@@ -151,8 +160,11 @@ class LiveServer:
             self.on_depth(out)
         except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving
             return self._skip("publish_error", frame, exc)
+        done = time.monotonic()
         with self._cv:
             self.published += 1
+            self._latency.append(done - arrival)
+            self._publish_s.append(done - out.served)
         return out
 
     def _skip(self, key: str, frame: Frame, exc: Exception) -> None:
@@ -188,8 +200,22 @@ class LiveServer:
         with self._cv:
             return {"received": self.received, "published": self.published,
                     "skipped": dict(self.skipped), "pending": len(self._queue) + self._busy,
-                    "version": self.serving.version, "weights_age_s": self.serving.age_s}
+                    "version": self.serving.version, "weights_age_s": self.serving.age_s,
+                    **latency_figures(self._latency, self._publish_s)}
 
     def _warn(self, key: str, message: str) -> None:
         if self._throttle.due(key):
             self.log.warning(message)
+
+
+def latency_figures(latency, publish_s) -> dict[str, float]:
+    """p50 / p95 / max of arrival-to-published latency and the max publish time, in s (NaN
+    before the first published frame)."""
+    lat = np.asarray(latency, dtype=float)
+    pub = np.asarray(publish_s, dtype=float)
+    if lat.size == 0:
+        return {"latency_p50_s": float("nan"), "latency_p95_s": float("nan"),
+                "latency_max_s": float("nan"), "publish_max_s": float("nan")}
+    return {"latency_p50_s": float(np.percentile(lat, 50)),
+            "latency_p95_s": float(np.percentile(lat, 95)), "latency_max_s": float(lat.max()),
+            "publish_max_s": float(pub.max())}

@@ -85,7 +85,7 @@ from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream import FrameOutput, WindowStats
 from sfm_ttr_ros.core.throttle import WARN_PERIOD_S, Throttle
-from sfm_ttr_ros.ros import names, outputs
+from sfm_ttr_ros.ros import dds, names, outputs
 from sfm_ttr_ros.ros import params as node_params
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
@@ -179,12 +179,6 @@ class RefinerNode(Node):
             image_input = (CompressedImage, names.compressed_topic(
                 self.resolve_topic_name(names.IMAGE_TOPIC)), self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input[1])
-        for msg_type, topic, callback in (image_input, (CameraInfo, names.CAMERA_INFO_TOPIC,
-                                                        self._on_camera_info)):
-            self.create_subscription(
-                msg_type, topic, callback, qos, qos_overriding_options=overrides,
-                event_callbacks=SubscriptionEventCallbacks(
-                    incompatible_qos=partial(self._on_incompatible_qos, topic)))
         out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(nv["qos_depth"]),
                              reliability=ReliabilityPolicy.RELIABLE)
 
@@ -204,7 +198,13 @@ class RefinerNode(Node):
                                      names.POINTS_TOPIC: self.pub_points}
         self.create_timer(float(nv["diagnostics_period_s"]), self._on_timer)
 
-        self.online.start()
+        self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
+        for msg_type, topic, callback in (image_input, (CameraInfo, names.CAMERA_INFO_TOPIC,
+                                                        self._on_camera_info)):
+            self.create_subscription(
+                msg_type, topic, callback, qos, qos_overriding_options=overrides,
+                event_callbacks=SubscriptionEventCallbacks(
+                    incompatible_qos=partial(self._on_incompatible_qos, topic)))
         self.get_logger().info(
             f"refiner ready: model {type(model).__name__} (input {model.input_size}), window "
             f"{values['window_size']}/{values['window_stride']}, refinement "
@@ -442,6 +442,7 @@ class RefinerNode(Node):
 
 def main(args=None) -> int:
     """Entry point of ``ros2 run sfm_ttr_ros refiner``."""
+    dds_note = dds.apply_profile()  # before rclpy.init: Fast DDS reads it when it starts
     # Our own signal handling: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread, so the
     # worker is stopped BEFORE the context goes down (the executor spins with a timeout).
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -455,6 +456,7 @@ def main(args=None) -> int:
     executor = None
     code = 0
     log = get_logger(names.NODE_NAME)
+    log.info(dds_note)
     try:
         try:
             node = RefinerNode()

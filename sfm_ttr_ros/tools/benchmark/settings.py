@@ -12,27 +12,21 @@ from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.stream import StreamSettings
-from sfm_ttr_ros.ros.names import NODE_NAME, PACKAGE
+from sfm_ttr_ros.ros.names import NODE_NAME
+from sfm_ttr_ros.ros.share import find_share_file, share_candidates
 
 PARAMS_FILE = "kitti.yaml"
 
 
 def default_params_file(name: str = PARAMS_FILE) -> Path:
-    """``params/<name>``: beside the package in a source checkout (or an editable install),
-    else in the package's ament share folder (colcon / pip install of the ROS package);
-    :class:`InputError` when neither exists."""
-    tried = [Path(__file__).resolve().parents[3] / "params" / name]
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        tried.append(Path(get_package_share_directory(PACKAGE)) / "params" / name)
-    except Exception:  # not installed, no AMENT_PREFIX_PATH, no ament_index_python
-        pass
-    for p in tried:
-        if p.is_file():
-            return p
-    raise InputError(f"parameter file {name} not found (looked in "
-                     f"{', '.join(str(p) for p in tried)}); pass --params-file")
+    """``params/<name>`` (:func:`~sfm_ttr_ros.ros.share.find_share_file`); :class:`InputError`
+    when it is nowhere."""
+    found = find_share_file("params", name)
+    if found is None:
+        raise InputError(f"parameter file {name} not found (looked in "
+                         f"{', '.join(str(p) for p in share_candidates('params', name))}); "
+                         "pass --params-file")
+    return found
 
 
 def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
