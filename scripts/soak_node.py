@@ -242,6 +242,9 @@ def run(args: argparse.Namespace) -> dict:
         node_env = dict(kv.split("=", 1) for kv in args.node_env or [])
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=out,
                                 env={**os.environ, "PYTHONUNBUFFERED": "1", **node_env})
+    if not args.clients_default_dds:  # the clients as a camera driver following the README
+        from sfm_ttr_ros.ros import dds
+        print(f"soak: clients' {dds.apply_profile()}", flush=True)
     listener = None
     live_file = out / "live_received.json"
     if args.split_live:
@@ -415,6 +418,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warm-s", type=float, default=0.0,
                     help="the warm-up the RSS and latency checks start after (default: 5 min, "
                          "a sixth of a shorter run)")
+    ap.add_argument("--clients-default-dds", action="store_true",
+                    help="the sending client and the listener keep Fast DDS's defaults (else "
+                         "they take the node's large-image profile, as the README advises a "
+                         "camera driver to)")
     ap.add_argument("--node-env", action="append", metavar="NAME=VALUE",
                     help="an environment variable for the node's process only")
     ap.add_argument("--live-best-effort", action="store_true",
