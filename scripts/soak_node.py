@@ -101,6 +101,11 @@ def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float
     cv2.imwrite(str(path), img)
 
 
+def ready_file(live_file: str | Path) -> Path:
+    """The file the listener creates once it has matched the node's ``~/depth``."""
+    return Path(f"{live_file}.ready")
+
+
 def listen_live(out_path: str, best_effort: bool = False) -> int:
     """A second client process that only takes ``~/depth`` (what a controller would run) and
     writes ``[[stamp_ns, received monotonic s], ...]`` to ``out_path`` on SIGINT / SIGTERM.
@@ -108,14 +113,13 @@ def listen_live(out_path: str, best_effort: bool = False) -> int:
     One process taking both outputs measures its own queue, not the node: a window releases
     up to ``max_pending`` depth images on ``~/depth_refined`` at once (~190 MB at 1242x375), and
     the live images arriving behind them in the same client wait until they are taken."""
-    import signal
-
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
+    from msg_adapters.stamp import stamp_to_ns
     from sfm_ttr_ros.ros import names
 
     got: list[tuple[int, float]] = []
@@ -126,8 +130,8 @@ def listen_live(out_path: str, best_effort: bool = False) -> int:
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                          reliability=ReliabilityPolicy.BEST_EFFORT)
     sub = node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED, lambda m: got.append(
-        (m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, time.monotonic())), qos)
-    ready = Path(out_path + ".ready")
+        (stamp_to_ns(m.header.stamp), time.monotonic())), qos)
+    ready = ready_file(out_path)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     stop = threading.Event()
@@ -158,9 +162,11 @@ class Client:
         from sensor_msgs.msg import CameraInfo, Image
 
         from msg_adapters import diagnostic_values
+        from msg_adapters.stamp import stamp_to_ns
         from sfm_ttr_ros.ros import names
 
-        self.names, self.diagnostic_values = names, diagnostic_values
+        self.names, self.diagnostic_values, self.stamp_to_ns = names, diagnostic_values, \
+            stamp_to_ns
         self.node = Node("soak_player")
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                          reliability=ReliabilityPolicy.RELIABLE)
@@ -189,20 +195,22 @@ class Client:
 
     def _on_depth(self, msg, sink: list) -> None:
         now = time.monotonic()
-        ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
         with self._lock:
-            sent = self.sent_at.get(ns)
-            if sent is not None:
-                sink.append((sent - self.t0, now - sent))
+            self._record(sink, self.stamp_to_ns(msg.header.stamp), now)
 
     def add_live(self, received: list) -> None:
-        """The listener process's ``[stamp_ns, received]`` pairs as (sent - t0, latency)."""
+        """The listener process's ``[stamp_ns, received]`` pairs, recorded as ``_on_depth``
+        records its own."""
         with self._lock:
             for ns, at in received:
-                sent = self.sent_at.get(int(ns))
-                if sent is not None:
-                    self.live.append((sent - self.t0, at - sent))
+                self._record(self.live, int(ns), at)
             self.live.sort()
+
+    def _record(self, sink: list, stamp_ns: int, received: float) -> None:
+        """(sent - t0, latency) of the frame stamped ``stamp_ns``, if this client sent it."""
+        sent = self.sent_at.get(stamp_ns)
+        if sent is not None:
+            sink.append((sent - self.t0, received - sent))
 
     def _on_diag(self, msg) -> None:
         if any(s.name == self.names.DIAG_NAME for s in msg.status):
@@ -249,7 +257,7 @@ def run(args: argparse.Namespace) -> dict:
     live_file = out / "live_received.json"
     if args.split_live:
         live_file.unlink(missing_ok=True)
-        Path(str(live_file) + ".ready").unlink(missing_ok=True)
+        ready_file(live_file).unlink(missing_ok=True)
         listener = subprocess.Popen(
             [sys.executable, __file__, "--listen-live", str(live_file)]
             + (["--live-best-effort"] if args.live_best_effort else []), env=os.environ.copy())
@@ -262,7 +270,7 @@ def run(args: argparse.Namespace) -> dict:
         c = Client(live=not args.split_live)
         deadline = time.monotonic() + 120
         while c.pub_image.get_subscription_count() < 1 or (
-                listener is not None and not Path(str(live_file) + ".ready").exists()):
+                listener is not None and not ready_file(live_file).exists()):
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the node did not come up; see {log_path}")
             time.sleep(0.2)

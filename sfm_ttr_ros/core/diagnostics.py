@@ -25,6 +25,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from sfm_ttr_ros.core.live import LATENCY_KEYS
 from sfm_ttr_ros.core.stream import StreamProcessor
 
 
@@ -115,8 +116,7 @@ class StreamDiagnostics:
             v.update({f"live.skipped.{k}": n for k, n in sorted(lv["skipped"].items())})
             v.update({"serving.version": lv["version"], "serving.age_s": lv["weights_age_s"],
                       "serving.updates": lv["serving_updates"]})
-            v.update({f"live.{k}": lv[k] for k in ("latency_p50_s", "latency_p95_s",
-                                                     "latency_max_s", "publish_max_s")})
+            v.update({f"live.{k}": lv[k] for k in LATENCY_KEYS})
         w = self.stream.last_window
         if w is not None:
             v.update({

@@ -51,6 +51,8 @@ LIVE_SKIP_REASONS = {
 
 #: How many of the newest published frames the latency figures cover.
 LATENCY_WINDOW = 100
+#: The keys of :func:`latency_figures` (also /diagnostics' ``live.<key>``).
+LATENCY_KEYS = ("latency_p50_s", "latency_p95_s", "latency_max_s", "publish_max_s")
 
 
 def lower_thread_priority(nice: int) -> bool:
@@ -212,10 +214,8 @@ def latency_figures(latency, publish_s) -> dict[str, float]:
     """p50 / p95 / max of arrival-to-published latency and the max publish time, in s (NaN
     before the first published frame)."""
     lat = np.asarray(latency, dtype=float)
-    pub = np.asarray(publish_s, dtype=float)
     if lat.size == 0:
-        return {"latency_p50_s": float("nan"), "latency_p95_s": float("nan"),
-                "latency_max_s": float("nan"), "publish_max_s": float("nan")}
-    return {"latency_p50_s": float(np.percentile(lat, 50)),
-            "latency_p95_s": float(np.percentile(lat, 95)), "latency_max_s": float(lat.max()),
-            "publish_max_s": float(pub.max())}
+        return dict.fromkeys(LATENCY_KEYS, float("nan"))
+    p50, p95 = np.percentile(lat, [50, 95])
+    return dict(zip(LATENCY_KEYS, (float(p50), float(p95), float(lat.max()),
+                                   float(max(publish_s))), strict=True))
