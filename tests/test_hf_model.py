@@ -289,3 +289,58 @@ def test_refine_encoder_runs_on_a_transformers_model(model_dirs):
     assert not np.allclose(model.predict(FRAME)[0], before)
     restore_encoder(model, original)
     np.testing.assert_array_equal(model.predict(FRAME)[0], before)
+
+
+def test_staged_depth_anything_matches_its_forward(model_dirs):
+    """Depth Anything's blocks as stages (models/hf_stages.py): split at any stage, the staged
+    forward gives the model's own output; DPT (no staged form here) keeps its backbone."""
+    from sfm_ttr_ros.core.models.hf_stages import Dinov2Stages
+    from sfm_ttr_ros.core.refinement import frozen_stage_count
+
+    model = load(model_dirs, "da")
+    stages = model.staged_encoder
+    assert isinstance(stages, Dinov2Stages)
+    assert (stages.num_stages, stages.level_stages) == (3, (2, 3))
+    x = model.preprocess(FRAME)
+    with torch.no_grad():
+        whole = model(x)
+        for split in range(stages.num_stages + 1):
+            mid = stages.forward_stages(x, 0, split, [])
+            _, feats = stages.forward_stages(mid[0] if split else x, split,
+                                             stages.num_stages, mid[1])
+            torch.testing.assert_close(model.depth_from_features(feats), whole,
+                                       rtol=0, atol=1e-6)
+    assert frozen_stage_count(stages, 1) == 2
+    dpt = load(model_dirs, "dpt")
+    assert dpt.staged_encoder is dpt.encoder
+    with pytest.raises(InputError, match="frozen_encoder_levels"):
+        frozen_stage_count(dpt.staged_encoder, 1)
+
+
+@pytest.mark.parametrize("mode", ["norm", "lora"])
+def test_trainable_blocks_compute_the_blocks_before_them_once(model_dirs, monkeypatch, mode):
+    """trainable_blocks = 1 on the 2-block tiny Depth Anything: the embedding and block 0 run
+    once per frame, not per step, and the refined network is the one the whole forward at every
+    step gives (same steps, same weights up to float rounding)."""
+    from sfm_ttr_ros.core import refinement
+
+    rng = np.random.default_rng(3)
+    pixels = np.stack([rng.uniform(0, 129, 60), rng.uniform(0, 39, 60)], axis=1)
+    sup = [FrameSupervision(f"f{i}", FRAME, pixels, rng.uniform(0.5, 2.0, 60), np.ones(60))
+           for i in range(2)]
+    cfg = RefinementConfig(steps=5, lr=1e-2, trainable=mode, lora_rank=2, trainable_blocks=1)
+    cached = load(model_dirs, "da")
+    assert refinement.block_prefix_stages(cached, 1) == 2
+    calls = []
+    block0 = cached.staged_encoder.blocks[0]
+    block0.register_forward_hook(lambda *a: calls.append(1))
+    loss_cached = refine_encoder(cached, sup, cfg).loss_history
+    assert len(calls) == len(sup)  # once per frame, not 5 steps
+    monkeypatch.setattr(refinement, "block_prefix_stages", lambda model, blocks: 0)
+    whole = load(model_dirs, "da")
+    loss_whole = refine_encoder(whole, sup, cfg).loss_history
+    np.testing.assert_allclose(loss_cached, loss_whole, rtol=1e-5)
+    assert loss_cached[-1] != loss_cached[0]
+    for (name, a), (_, b) in zip(cached.encoder.state_dict().items(),
+                                 whole.encoder.state_dict().items(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)

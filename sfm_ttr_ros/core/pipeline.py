@@ -181,7 +181,7 @@ class SfmTTR:
     def check_config(self, config: TTRConfig) -> None:
         """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
         without the staged-encoder protocol, or all of its levels)."""
-        frozen_stage_count(self.model.encoder, config.refinement.frozen_encoder_levels)
+        frozen_stage_count(self.model.staged_encoder, config.refinement.frozen_encoder_levels)
         r = config.refinement
         check_trainable(self.model, r.trainable, r.trainable_blocks)
         if r.uses_photometric and is_affine_output(self.model):

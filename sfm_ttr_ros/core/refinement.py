@@ -19,11 +19,14 @@ maps; at most 4, so that the 1/32 stages always train). Those outputs (the image
 features and skip connections) then do not change between steps, so they are computed once per
 frame and each step runs only the remaining stages, the decoder and the backward pass through
 them: at high resolution these are the costliest layers of a step. ``L = 0`` (the default) is
-the paper's whole-encoder refinement. The encoder must implement the staged-encoder protocol
-(``num_stages``, ``level_stages``, ``stage_modules(i)``, ``forward_stages(x, start, stop,
-features)``), as the MobileNetV2 and ResNet encoders here do. With ``bn_mode="train"`` the
-frozen stages normalise with the frame's own statistics once (their running statistics are
-updated once per frame, not once per step).
+the paper's whole-encoder refinement. The model's ``staged_encoder`` must implement the
+staged-encoder protocol (``num_stages``, ``level_stages``, ``stage_modules(i)``,
+``forward_stages(x, start, stop, features)``), as the MobileNetV2 and ResNet encoders here do,
+and Depth Anything's DINOv2 backbone through :mod:`~sfm_ttr_ros.core.models.hf_stages` (its
+stages: the patch embedding, then one per transformer block). There, ``trainable_blocks = N``
+caches every block before the last N the same way (:func:`block_prefix_stages`). With
+``bn_mode="train"`` the frozen stages normalise with the frame's own statistics once (their
+running statistics are updated once per frame, not once per step).
 
 The objective (``loss``, issue 16; not in the paper, whose Sec. 5-6 and Fig. 4 compare against
 it): ``sfm`` is Eq. (5); ``photometric`` is photometric test-time refinement (Ph-TTR) with
@@ -184,6 +187,17 @@ def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
     return stages
 
 
+def block_prefix_stages(model: DepthModel, blocks: int) -> int:
+    """With ``trainable_blocks = N`` on a staged transformer encoder (one with
+    ``stages_before_last_blocks``, e.g. :class:`~sfm_ttr_ros.core.models.hf_stages.Dinov2Stages`)
+    the leading stages that hold no trained parameter: computed once per frame, as frozen
+    encoder levels are (the same weights after every step, less work per step); 0 otherwise."""
+    staged = model.staged_encoder
+    if not blocks or not hasattr(staged, "stages_before_last_blocks"):
+        return 0
+    return int(staged.stages_before_last_blocks(blocks))
+
+
 def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
                    config: RefinementConfig | None = None,
                    should_stop: Callable[[], bool] | None = None,
@@ -222,7 +236,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
 
-    frozen = frozen_stage_count(model.encoder, cfg.frozen_encoder_levels)
+    frozen = max(frozen_stage_count(model.staged_encoder, cfg.frozen_encoder_levels),
+                 block_prefix_stages(model, cfg.trainable_blocks))
     params = select_trainable(model, cfg.trainable, cfg.lora_rank, frozen,
                               blocks=cfg.trainable_blocks)
     set_bn_mode(model, cfg.bn_mode)
@@ -234,7 +249,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
         x = model.preprocess(s.image)
         if frozen:
             with torch.no_grad():
-                x = model.encoder.forward_stages(x, 0, frozen, [])
+                x = model.staged_encoder.forward_stages(x, 0, frozen, [])
         inputs.append(x)
         grids.append(normalized_grid(s.pixels, w, h).to(device))
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
@@ -340,11 +355,11 @@ def _scale_outputs(model: DepthModel, x, frozen_stages: int,
     """The photometric loss's depth / disparity per output scale from one forward pass; a
     model with its own ``forward`` (not encoder → decoder, e.g. a transformers model) gives
     its one output with disparity 1 / depth."""
-    if frozen_stages or type(model).forward is DepthModel.forward:
+    if type(model).forward is DepthModel.forward:
         return scale_outputs(model, _encode(model, x, frozen_stages), scales)
     if tuple(scales) != (0,):
         raise InputError(f"{type(model).__name__} has a single output scale, got {scales}")
-    depth = model(x)
+    depth = _forward(model, x, frozen_stages)
     return [ScaleOutput(0, depth, 1.0 / depth)]
 
 
@@ -352,7 +367,7 @@ def _encode(model: DepthModel, x, frozen_stages: int):
     """g(I); with frozen leading stages ``x`` is their cached (output, features)."""
     if not frozen_stages:
         return model.encoder(x)
-    enc = model.encoder
+    enc = model.staged_encoder
     return enc.forward_stages(x[0], frozen_stages, enc.num_stages, x[1])[1]
 
 

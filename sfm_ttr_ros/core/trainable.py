@@ -17,9 +17,11 @@
 
 ``blocks = N > 0`` (``refinement.trainable_blocks``, not in the paper) restricts any mode to
 the last N transformer blocks of the encoder (:func:`encoder_blocks`): the backward pass then
-stops at the first trained block instead of running down to the patch embedding, ~2x cheaper
-per step on a ViT-S (BENCHMARKS.md). Convolutional encoders have no blocks: use
-``frozen_encoder_levels`` there.
+stops at the first trained block instead of running down to the patch embedding, and on
+Depth Anything the blocks before it run once per frame, not per step
+(:func:`~sfm_ttr_ros.core.refinement.block_prefix_stages`): a ViT-S step ~2.8x cheaper than the
+whole encoder with N = 4, ~3.8x with N = 2 (BENCHMARKS.md section 5). Convolutional encoders
+have no blocks: use ``frozen_encoder_levels`` there.
 
 The decoder h is never trained. Only this module imports ``peft`` (lazily, for ``lora``).
 """
@@ -75,11 +77,12 @@ def select_trainable(model: DepthModel, mode: str = "encoder", rank: int = 8,
     if scope:
         inside = {id(p) for name in scope for p in encoder.get_submodule(name).parameters()}
         chosen = [p for p in chosen if id(p) in inside]
-    if frozen_stages and not hasattr(encoder, "stage_modules"):
+    staged = model.staged_encoder
+    if frozen_stages and not hasattr(staged, "stage_modules"):
         raise InputError(f"frozen_stages = {frozen_stages} needs a staged encoder; "
-                         f"{type(encoder).__name__} has no stage_modules: use 0")
+                         f"{type(staged).__name__} has no stage_modules: use 0")
     frozen = {id(p) for i in range(frozen_stages)
-              for module in encoder.stage_modules(i) for p in module.parameters()}
+              for module in staged.stage_modules(i) for p in module.parameters()}
     params = [p for p in chosen if id(p) not in frozen]
     if not params:
         raise InputError(f"trainable {mode!r} selects no parameter of "

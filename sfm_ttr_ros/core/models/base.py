@@ -60,6 +60,13 @@ class DepthModel(nn.Module):
         """D_nn = h(·) for the encoder's output g(I): decoder, then :meth:`output_to_depth`."""
         return self.output_to_depth(self.decoder(features))
 
+    @property
+    def staged_encoder(self):
+        """What implements the staged-encoder protocol of :mod:`sfm_ttr_ros.core.refinement`
+        (frozen leading stages computed once per frame) for this model: the encoder itself
+        here; a model whose encoder is split elsewhere overrides it."""
+        return self.encoder
+
     # -- helpers shared by every model -------------------------------------------------------
     @property
     def device(self) -> torch.device:

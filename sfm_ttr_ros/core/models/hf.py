@@ -38,6 +38,7 @@ from torch import nn
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.models.base import DepthModel, ModelLoadError
+from sfm_ttr_ros.core.models.hf_stages import Dinov2Stages, dinov2_stages
 
 log = logging.getLogger(__name__)
 
@@ -227,6 +228,7 @@ class HFDepthModel(DepthModel):
         # Not registered: its modules are net's own (one set of state_dict keys).
         object.__setattr__(self, "_decoder", _ModuleGroup(_other_modules(net,
                                                                           self.encoder_name)))
+        self._stages: Dinov2Stages | bool | None = None  # built on first use
 
     @property
     def encoder(self) -> nn.Module:
@@ -271,29 +273,52 @@ class HFDepthModel(DepthModel):
                 x = x.clamp(0.0, 1.0)
         return x
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """The raw prediction N x 1 x h x w (in :attr:`output_kind`'s space) for a [0, 1] batch
-        already at the network's size: rescale and normalise as the processor, run ``net``."""
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        """A [0, 1] batch → the network's pixel values (the processor's rescale and
+        mean/std normalisation)."""
         prep = self.preprocessing
         pixels = x * prep.pixel_scale if prep.pixel_scale != 1.0 else x
         if prep.mean is not None:
             mean = torch.tensor(prep.mean, dtype=x.dtype, device=x.device).view(1, -1, 1, 1)
             std = torch.tensor(prep.std, dtype=x.dtype, device=x.device).view(1, -1, 1, 1)
             pixels = (pixels - mean) / std
-        out = self.net(pixel_values=pixels, return_dict=True).predicted_depth
-        if out.dim() == 3:
-            out = out.unsqueeze(1)
-        if tuple(out.shape[-2:]) != tuple(x.shape[-2:]):
-            out = F.interpolate(out, size=tuple(x.shape[-2:]), mode="bilinear",
-                                align_corners=False)
-        return out
+        return pixels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The raw prediction N x 1 x h x w (in :attr:`output_kind`'s space) for a [0, 1] batch
+        already at the network's size: rescale and normalise as the processor, run ``net``."""
+        out = self.net(pixel_values=self.normalise(x), return_dict=True).predicted_depth
+        return _at_size(out, tuple(x.shape[-2:]))
 
     def output_to_depth(self, output) -> torch.Tensor:
         return output
 
+    @property
+    def staged_encoder(self):
+        """Depth Anything on a DINOv2 backbone: its blocks as stages
+        (:class:`~sfm_ttr_ros.core.models.hf_stages.Dinov2Stages`); other models: the backbone
+        itself, which lacks the staged-encoder protocol."""
+        if self._stages is None:
+            self._stages = dinov2_stages(self.net, self.normalise) or False
+        return self._stages or self.encoder
+
     def depth_from_features(self, features) -> torch.Tensor:
-        raise InputError("a transformers model runs as one forward: frozen_encoder_levels "
-                         "does not apply to it (use 0)")
+        """The raw prediction from the staged features of :attr:`staged_encoder`."""
+        stages = self.staged_encoder
+        if not isinstance(stages, Dinov2Stages):
+            raise InputError(f"{type(self.net).__name__} runs as one forward: "
+                             "frozen_encoder_levels does not apply to it (use 0)")
+        grid = features[0]
+        return _at_size(stages.decode(features), (grid.height, grid.width))
+
+
+def _at_size(out: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """A model's N x h x w or N x 1 x h x w output as N x 1 x H x W (bilinear when resized)."""
+    if out.dim() == 3:
+        out = out.unsqueeze(1)
+    if tuple(out.shape[-2:]) != tuple(size):
+        out = F.interpolate(out, size=tuple(size), mode="bilinear", align_corners=False)
+    return out
 
 
 def read_processor_config(path: str, local_only: bool) -> dict | None:
