@@ -328,3 +328,77 @@ def test_the_window_worker_runs_its_own_openmp_team(threads):
     assert openmp.thread_team_size() == before
     with pytest.raises(InputError, match="worker_threads"):
         StreamSettings(worker_threads=-1)
+
+
+def test_serving_previews_are_withdrawn_or_kept_by_the_windows_verdict(one_thread):
+    """preview() serves a refining window's weights; revert() puts back those from before the
+    window's first preview (version and weights), update() keeps the window's."""
+    model, state_a, state_b = two_states()
+    serving = ServingModel(model)
+    start = serving.predict(IMAGE)[0]
+    assert serving.revert() is False  # nothing previewed
+    serving.preview(state_a, 1, 5)
+    serving.preview(state_b, 1, 10)
+    assert (serving.version, serving.interim_step) == (1, 10)
+    assert not np.array_equal(serving.predict(IMAGE)[0], start)
+    assert serving.revert() is True
+    assert (serving.version, serving.interim_step) == (0, 0)
+    assert np.array_equal(serving.predict(IMAGE)[0], start)
+    serving.preview(state_a, 2, 5)
+    serving.update(state_b, 2)  # accepted: nothing left to revert to
+    assert serving.revert() is False and (serving.version, serving.interim_step) == (2, 0)
+
+
+def online_window(lr: float, serve_every: int, holdout: float = 0.0):
+    """One 3-frame window through OnlineRefiner's stream (synchronously), the fake SfM of
+    window_run; returns the refiner, the previews it served and the start-up prediction."""
+    from sfm_ttr_ros.core.frames import Intrinsics
+    from sfm_ttr_ros.core.online import OnlineRefiner
+    from sfm_ttr_ros.core.stream import StreamSettings
+
+    cfg = TTRConfig(weight_policy="reset", min_supervision_points=10)
+    cfg.refinement.steps, cfg.refinement.lr = 10, lr
+    cfg.check.min_parallax, cfg.check.holdout_fraction = 0.0, holdout
+    ttr = SfmTTR(small_model(), cfg)
+    rng = np.random.default_rng(3)
+    frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
+                    name=f"{i:04d}") for i in range(3)]
+    ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    online = OnlineRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
+                                               serve_every_steps=serve_every))
+    start = online.serving.predict(IMAGE)[0]
+    previews = []
+    preview = online.serving.preview
+    online.serving.preview = lambda state, version, step: (previews.append((version, step)),
+                                                           preview(state, version, step))
+    try:
+        for f in frames:
+            online.stream.push(f, Intrinsics(40.0, 40.0, 24.0, 16.0, 48, 32))
+    finally:
+        ttr.close()
+    return online, previews, start
+
+
+def test_interim_weights_are_served_while_a_window_refines(one_thread):
+    online, previews, start = online_window(lr=1e-3, serve_every=4)
+    assert online.stream.last_window.refined
+    assert previews == [(1, 4), (1, 8)]  # window 0's weights after steps 4 and 8
+    c = online.counters_live()
+    assert (c["version"], c["interim_step"], c["serving_previews"]) == (1, 0, 2)
+    assert c["serving_updates"] == 1 and c["serving_reverts"] == 0
+    assert not np.array_equal(online.serving.predict(IMAGE)[0], start)
+
+
+def test_interim_weights_of_a_rolled_back_window_are_withdrawn(one_thread):
+    online, previews, start = online_window(lr=50.0, serve_every=1)
+    assert online.stream.last_window.reason.startswith("rolled back")
+    assert previews and previews[0] == (1, 1)
+    c = online.counters_live()
+    assert c["serving_previews"] >= 1  # weights of the window were served before its verdict
+    assert (c["version"], c["interim_step"], c["serving_reverts"]) == (0, 0, 1)
+    assert np.array_equal(online.serving.predict(IMAGE)[0], start)
+
+
+def test_no_interim_weights_while_a_check_runs_after_refinement(one_thread):
+    online, previews, _ = online_window(lr=1e-3, serve_every=1, holdout=0.3)
+    assert previews == [] and online.counters_live()["serving_previews"] == 0

@@ -15,7 +15,9 @@ are listed in README "Diagnostics". The frame accounting of the windowed output
 (frames held for want of intrinsics count as received and pending); that of the live output
 (``~/depth``, when a ``live`` provider is given) ``live.received = live.published +
 live.skipped + live.pending``, with the served weights' ``serving.version`` (the window that
-produced them, 0 = start-up) and ``serving.age_s``.
+produced them, 0 = start-up), ``serving.interim_step`` (the refinement step of interim weights
+of a window still refining, ``serve_every_steps``; 0 = a finished window's) and
+``serving.age_s``.
 """
 
 from __future__ import annotations
@@ -115,7 +117,10 @@ class StreamDiagnostics:
                       "live.skipped": sum(lv["skipped"].values()), "live.pending": lv["pending"]})
             v.update({f"live.skipped.{k}": n for k, n in sorted(lv["skipped"].items())})
             v.update({"serving.version": lv["version"], "serving.age_s": lv["weights_age_s"],
-                      "serving.updates": lv["serving_updates"]})
+                      "serving.updates": lv["serving_updates"],
+                      "serving.interim_step": lv["interim_step"],
+                      "serving.previews": lv["serving_previews"],
+                      "serving.reverts": lv["serving_reverts"]})
             v.update({f"live.{k}": lv[k] for k in LATENCY_KEYS})
         w = self.stream.last_window
         if w is not None:

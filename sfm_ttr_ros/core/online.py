@@ -14,6 +14,12 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
 * When a window is refined (and not rolled back) its encoder is swapped into the serving copy:
   version = window index + 1 (0 = the start-up weights). A window that fails, is skipped or
   is rolled back leaves the served weights unchanged.
+* With ``StreamSettings.serve_every_steps = N`` the refining window's weights are also served
+  after every N steps (:meth:`~sfm_ttr_ros.core.serving.ServingModel.preview`, same version,
+  ``interim_step`` = the step), so a frame gets part of a window's gain seconds before the window
+  ends; when the window then ends without being accepted the weights from before it are served
+  again (:meth:`~sfm_ttr_ros.core.serving.ServingModel.revert`). The pipeline calls the step
+  hook only when no check after refinement can still refuse the window.
 
 Weights across windows follow ``TTRConfig.weight_policy`` (reset, continue, continual: see
 :mod:`sfm_ttr_ros.core.pipeline`); whatever the policy, the serving copy only ever receives
@@ -27,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from sfm_ttr_ros.core import openmp
+from sfm_ttr_ros.core import heap, openmp
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.live import LiveOutput, LiveServer, lower_thread_priority
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
@@ -71,6 +77,9 @@ class OnlineRefiner:
         self._worker: threading.Thread | None = None
         self.serving_updates = 0
         self.serving_update_errors = 0
+        self.serving_previews = 0
+        self.serving_reverts = 0
+        ttr.on_refine_step = self._refine_step
 
     # -- input (any thread) ---------------------------------------------------------------------
     def submit_live(self, frame: Frame, arrival: float | None = None) -> None:
@@ -125,6 +134,19 @@ class OnlineRefiner:
         return self._worker is not None and self._worker.is_alive()
 
     # -- windows --------------------------------------------------------------------------------
+    def _refine_step(self, step: int) -> None:
+        """After each refinement step (worker thread): every ``serve_every_steps`` steps, serve
+        the window's weights as they are (non-finite ones are not served)."""
+        every = self.stream.settings.serve_every_steps
+        if every <= 0 or step % every:
+            return
+        try:
+            self.serving.preview(self.ttr.model.encoder.state_dict(),
+                                 self.stream.windows_started, step)
+            self.serving_previews += 1
+        except ValueError as exc:
+            self.log.warning(f"interim weights after step {step} not served: {exc}")
+
     def _window_done(self, stats: WindowStats) -> None:
         if stats.refined:
             try:
@@ -134,13 +156,28 @@ class OnlineRefiner:
                 self.serving_update_errors += 1
                 self.log.error(f"window {stats.index}: weights not served: "
                                f"{type(exc).__name__}: {exc}")
+                self._revert(stats)
+        else:
+            self._revert(stats)
         if self.on_window is not None:
             self.on_window(stats)
+        heap.release_free_heap()  # the window's freed memory back to the OS (core/heap.py)
+
+    def _revert(self, stats: WindowStats) -> None:
+        """A window that ends not accepted: serve the weights from before its interim ones."""
+        if self.serving.revert():
+            self.serving_reverts += 1
+            self.log.info(f"window {stats.index} not accepted ({stats.reason}): its interim "
+                          "weights withdrawn from serving")
 
     def counters_live(self) -> dict[str, object]:
-        """The live server's counters, the served weights' version and age, the swaps."""
+        """The live server's counters, the served weights' version, interim step and age, the
+        swaps (window ends, interim previews, reverts)."""
         return {**self.live.counters(), "serving_updates": self.serving_updates,
-                "serving_update_errors": self.serving_update_errors}
+                "serving_update_errors": self.serving_update_errors,
+                "serving_previews": self.serving_previews,
+                "serving_reverts": self.serving_reverts,
+                "interim_step": self.serving.interim_step}
 
     def counters(self) -> dict[str, object]:
         """The stream's counters plus the live server's under ``live``."""

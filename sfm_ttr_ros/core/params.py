@@ -145,6 +145,12 @@ PARAMS: tuple[Param, ...] = (
        "ops (its own team; live serving keeps torch_num_threads). 1 refines a window ~35 % "
        "faster than 2 on 2 cores (a second OpenMP team makes libgomp stop spin-waiting); "
        "0 = the OpenMP runtime's default.", 0, 256, **_START_UP),
+    _p("serve_every_steps", "stream.serve_every_steps", "While a window refines, swap its "
+       "weights into the live serving copy (~/depth) every this many steps, not only when it "
+       "ends; a window that is then cancelled, rolled back or refused puts the weights from "
+       "before it back. Off while a check runs after refinement (check.holdout_fraction or "
+       "check.max_unsupported_change > 0): only verified weights are served then. 0 = at the "
+       "window's end only.", 0, 100_000),
     # -- SfM (live) -------------------------------------------------------------------------
     _p("sfm.max_image_size", "sfm.max_image_size", "SIFT runs on images downscaled to this "
        "longest side; 0 = full resolution.", 0, 100_000,

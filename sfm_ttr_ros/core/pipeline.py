@@ -162,6 +162,9 @@ class SfmTTR:
         # the last accepted window's camera path in network units (the scale-jump check)
         self._path: PathReference | None = None
         self._stop = False
+        # called with the step count after each refinement step of a window that no check after
+        # refinement can still refuse (the live server's interim weights, core/online.py)
+        self.on_refine_step: Callable[[int], None] | None = None
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
         self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
@@ -351,7 +354,8 @@ class SfmTTR:
         res.refinement = refine_encoder(
             self.model, train, cfg.refinement, should_stop=stop, replay=replay,
             replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
-            photometric=self._photometric_frames(names, images, sfm, align.scale, intrinsics))
+            photometric=self._photometric_frames(names, images, sfm, align.scale, intrinsics),
+            on_step=None if cfg.check.after_refinement else self.on_refine_step)
         t["refine"] = time.perf_counter() - t0
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
             res.reason = "refinement cancelled"

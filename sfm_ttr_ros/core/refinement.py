@@ -205,7 +205,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
                    replay: Sequence[FrameSupervision] = (), replay_ratio: float = 0.5,
                    anchor: dict[str, torch.Tensor] | None = None,
                    anchor_weight: float = 0.0,
-                   photometric: Sequence[PhotometricFrame] = ()) -> RefinementResult:
+                   photometric: Sequence[PhotometricFrame] = (),
+                   on_step: Callable[[int], None] | None = None) -> RefinementResult:
     """Run SfM-TTR's refinement in place on ``model``'s encoder; returns the loss history.
 
     ``config.loss`` picks a step's objective (:func:`_step_loss`); ``photometric`` holds the
@@ -213,7 +214,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     window with the SfM poses, :func:`~sfm_ttr_ros.core.photometric.prepare_frames`), used by
     ``photometric`` and ``hybrid``.
 
-    ``should_stop`` is polled between steps (cancellation). Deterministic for a seed on CPU.
+    ``should_stop`` is polled between steps (cancellation); ``on_step(steps_done)`` is called
+    after each step (the live server's interim weights). Deterministic for a seed on CPU.
 
     Continual refinement (not in the paper): with ``replay`` (frames of earlier windows) a step
     trains on a replayed frame with probability ``replay_ratio``, else on one of this window's;
@@ -284,6 +286,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
             value = float(loss.detach())
             result.loss_history.append(value)
             result.steps_done += 1
+            if on_step is not None:
+                on_step(result.steps_done)
             if cfg.early_stop_patience > 0:
                 running = value if running is None else 0.9 * running + 0.1 * value
                 if running < best * 0.999:

@@ -8,6 +8,13 @@ the swap holds the same lock as :meth:`ServingModel.predict`, so a prediction ru
 the old or entirely on the new weights, never on half a state dict. ``version`` names the
 window that produced the weights being served (0 = the start-up weights) and ``age_s`` says how
 long ago they were swapped in.
+
+Interim weights (``serve_every_steps``, issue 15): while a window refines, :meth:`preview` serves
+its weights after every N steps; the first preview of a window keeps a copy of the weights it
+replaces, :meth:`update` (the window was accepted) drops that copy and :meth:`revert` (it was
+not: cancelled, rolled back, refused) puts them back, so a window that fails leaves the served
+weights as they were before it. ``interim_step`` is the refinement step of the previewed
+weights (0: a finished window's, or the start-up weights).
 """
 
 from __future__ import annotations
@@ -38,6 +45,9 @@ class ServingModel:
         self._lock = threading.Lock()
         self._version = 0
         self._updated = time.monotonic()
+        self._interim_step = 0
+        # (encoder state, version, swapped-in time) the first preview of a window replaced
+        self._before_preview: tuple[dict[str, torch.Tensor], int, float] | None = None
         self.predictions = 0
 
     @property
@@ -54,6 +64,11 @@ class ServingModel:
         """Seconds since the served weights were swapped in (or since start-up)."""
         return time.monotonic() - self._updated
 
+    @property
+    def interim_step(self) -> int:
+        """The refinement step of previewed weights; 0 for a finished window's weights."""
+        return self._interim_step
+
     def update(self, encoder_state: dict[str, torch.Tensor], version: int) -> None:
         """Serve these encoder weights from the next prediction on. ``load_state_dict`` copies
         them into the serving copy's own tensors, so the caller may go on changing its own."""
@@ -63,6 +78,33 @@ class ServingModel:
             self._model.encoder.load_state_dict(encoder_state)
             self._version = int(version)
             self._updated = time.monotonic()
+            self._interim_step = 0
+            self._before_preview = None
+
+    def preview(self, encoder_state: dict[str, torch.Tensor], version: int, step: int) -> None:
+        """Serve a refining window's weights after its ``step``-th step, until :meth:`update`
+        or :meth:`revert` ends the window (non-finite weights: ValueError, nothing changes)."""
+        if not finite_state(encoder_state):
+            raise ValueError("refusing to serve non-finite encoder weights")
+        with self._lock:
+            if self._before_preview is None:
+                self._before_preview = (copy.deepcopy(self._model.encoder.state_dict()),
+                                        self._version, self._updated)
+            self._model.encoder.load_state_dict(encoder_state)
+            self._version, self._interim_step = int(version), int(step)
+            self._updated = time.monotonic()
+
+    def revert(self) -> bool:
+        """Serve again the weights from before this window's first :meth:`preview`; False when
+        nothing was previewed."""
+        with self._lock:
+            if self._before_preview is None:
+                return False
+            state, self._version, self._updated = self._before_preview
+            self._model.encoder.load_state_dict(state)
+            self._interim_step = 0
+            self._before_preview = None
+            return True
 
     def warm_up(self) -> None:
         """One prediction on a grey image at the network's input size, not counted: the first

@@ -114,6 +114,8 @@ class StreamSettings:
     # OpenMP threads of the window worker's torch ops (core/openmp.py): 1 measured fastest on
     # 2 cores next to live serving; 0 = the runtime's default
     worker_threads: int = 1
+    # > 0: while a window refines, its weights are served every this many steps (core/online.py)
+    serve_every_steps: int = 0
 
     def __post_init__(self) -> None:
         if self.window_size < 2:
@@ -131,6 +133,8 @@ class StreamSettings:
             raise InputError(f"live_max_queue must be >= 1, got {self.live_max_queue}")
         if self.worker_threads < 0:
             raise InputError(f"worker_threads must be >= 0, got {self.worker_threads}")
+        if self.serve_every_steps < 0:
+            raise InputError(f"serve_every_steps must be >= 0, got {self.serve_every_steps}")
         if not 0 <= self.worker_nice <= 19:
             raise InputError(f"worker_nice must lie in 0..19, got {self.worker_nice}")
         if self.overload_pending < 0:
@@ -392,6 +396,11 @@ class StreamProcessor:
     @property
     def last_window(self) -> WindowStats | None:
         return self.windows[-1] if self.windows else None
+
+    @property
+    def windows_started(self) -> int:
+        """Windows begun so far: during a window, its index + 1."""
+        return self._window_index
 
     # -- internals -------------------------------------------------------------------------------
     def _take(self, timeout: float | None) -> tuple[Frame, Intrinsics] | None:

@@ -139,6 +139,12 @@ class CheckConfig:
     def holdout(self) -> bool:
         return self.holdout_fraction > 0
 
+    @property
+    def after_refinement(self) -> bool:
+        """Whether a check runs on the refined weights (the held-out error or the unsupported
+        change) and may still refuse the window once its steps are done."""
+        return self.holdout or self.max_unsupported_change > 0
+
 
 @dataclass
 class WindowCheck:
