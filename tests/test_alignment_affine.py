@@ -141,3 +141,24 @@ def test_weighted_least_squares_closed_form():
     (c, d), *_ = np.linalg.lstsq(design, np.ones(300), rcond=None)
     assert a == pytest.approx(1 / c, rel=1e-9) and b == pytest.approx(-d / c, rel=1e-9)
     assert np.isnan(weighted_ls_affine(np.full(10, 4.0), np.full(10, 0.2))[0])
+
+
+def test_the_affine_path_takes_its_own_ransac_iterations():
+    """alignment.affine_ransac_iterations, not the one-point model's 20, runs the two-point
+    RANSAC: with 1 iteration a 30 %-outlier frame is fitted from one random pair (the inlier
+    count of that pair), with the default 200 from the best of many."""
+    from sfm_ttr_ros.core.alignment import AlignmentConfig
+    from sfm_ttr_ros.core.alignment_affine import align_output
+
+    d_sfm, pred, out = planted(3, n=400)
+    kind = "relative_inverse_depth"
+    default = align_output(d_sfm, pred, kind, AlignmentConfig())
+    assert AlignmentConfig().affine_ransac_iterations == 200
+    one = [align_output(d_sfm, pred, kind, AlignmentConfig(affine_ransac_iterations=1, seed=s))
+           for s in range(5)]
+    many = default.ransac_inliers.sum()
+    assert all(r.ransac_inliers.sum() <= many for r in one)
+    assert any(r.ransac_inliers.sum() < many for r in one)
+    assert not (default.ransac_inliers & out).any()
+    with pytest.raises(InputError, match="affine_ransac_iterations"):
+        AlignmentConfig(affine_ransac_iterations=0)

@@ -26,13 +26,16 @@ from sfm_ttr_ros.core.frames import InputError
 @dataclass
 class AlignmentConfig:
     ransac_iterations: int = 20
+    # two-point (scale, shift) RANSAC of relative inverse-depth outputs (alignment_affine.py)
+    affine_ransac_iterations: int = 200
     tau: float = 0.5  # RANSAC inlier threshold on (s·D_sfm − D_nn)² / (s·D_sfm)
     relaxed_tau: float = 0.5  # final selection threshold on |s·D_sfm − D_nn| / (s·D_sfm)
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.ransac_iterations < 1:
-            raise InputError(f"ransac_iterations must be >= 1, got {self.ransac_iterations}")
+        if self.ransac_iterations < 1 or self.affine_ransac_iterations < 1:
+            raise InputError(f"ransac_iterations and affine_ransac_iterations must be >= 1, got "
+                             f"{self.ransac_iterations}, {self.affine_ransac_iterations}")
         if not (self.tau > 0 and self.relaxed_tau > 0):
             raise InputError(f"tau and relaxed_tau must be > 0 ({self.tau}, {self.relaxed_tau})")
 

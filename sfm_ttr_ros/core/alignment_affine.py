@@ -52,7 +52,7 @@ MIN_INVERSE_DEPTH_SPREAD = 1e-6
 
 @dataclass
 class AffineAlignmentConfig:
-    ransac_iterations: int = 20
+    ransac_iterations: int = 200  # two-point samples: AlignmentConfig.affine_ransac_iterations
     tau: float = 0.2  # RANSAC inlier threshold on e = |a·u + b − p| / (a·u)
     relaxed_tau: float = 0.5  # supervision selection threshold on the same e
     seed: int = 0
@@ -270,12 +270,12 @@ def align_output(d_sfm: np.ndarray, pred: np.ndarray, output_kind: str,
                  frame_sizes=None) -> AlignmentResult:
     """Stage 3 for a network of ``output_kind``: for affine-invariant inverse depth one
     :func:`align_affine` per frame (:func:`align_affine_frames`, ``frame_sizes``; the whole
-    array as one frame when None; RANSAC iterations and seed from ``config``, its thresholds
-    are relative errors, see :class:`AffineAlignmentConfig`), else the paper's
+    array as one frame when None; ``config.affine_ransac_iterations`` and its seed, thresholds
+    on relative errors, see :class:`AffineAlignmentConfig`), else the paper's
     :func:`~sfm_ttr_ros.core.alignment.align_scale` with ``config``, unchanged."""
     cfg = config or AlignmentConfig()
     if output_kind in AFFINE_OUTPUT_KINDS:
         sizes = [np.asarray(d_sfm).size] if frame_sizes is None else frame_sizes
         return align_affine_frames(d_sfm, pred, sizes, AffineAlignmentConfig(
-            ransac_iterations=cfg.ransac_iterations, seed=cfg.seed))
+            ransac_iterations=cfg.affine_ransac_iterations, seed=cfg.seed))
     return align_scale(d_sfm, pred, cfg)

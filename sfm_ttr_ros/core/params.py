@@ -173,6 +173,12 @@ PARAMS: tuple[Param, ...] = (
     # -- alignment (live) -------------------------------------------------------------------
     _p("alignment.ransac_iterations", "alignment.ransac_iterations", "RANSAC iterations of the "
        "one-point scale model.", 1, 1_000_000),
+    _p("alignment.affine_ransac_iterations", "alignment.affine_ransac_iterations", "RANSAC "
+       "iterations of the per-frame two-point (scale, shift) model of relative inverse-depth "
+       "networks (output_kind relative_inverse_depth): a two-point sample is all-inlier far "
+       "less often than the paper's one-point one (20 iterations); ~ms per window "
+       "(BENCHMARKS.md section 5b).",
+       1, 1_000_000),
     _p("alignment.tau", "alignment.tau", "RANSAC inlier threshold on (s*D_sfm - D_nn)^2 / "
        "(s*D_sfm).", 0.0, 1e6, constraints="> 0"),
     _p("alignment.relaxed_tau", "alignment.relaxed_tau", "Threshold of the relaxed second pass "
