@@ -22,8 +22,8 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
   hook only when no check after refinement can still refuse the window.
 
 Weights across windows follow ``TTRConfig.weight_policy`` (reset, continue, continual: see
-:mod:`sfm_ttr_ros.core.pipeline`); whatever the policy, the serving copy only ever receives
-weights of a window that finished refined.
+:mod:`sfm_ttr_ros.core.pipeline`); whatever the policy, the serving copy keeps only weights
+of a window that finished refined (interim ones are withdrawn when their window is not).
 """
 
 from __future__ import annotations
