@@ -41,6 +41,11 @@ def summary(ev: Evaluator) -> dict:
     return {"abs_rel": s["abs_rel"], "rmse": s["rmse"], "frames": s["frames"]}
 
 
+def summaries(evs: dict[str, Evaluator]) -> dict[str, dict]:
+    """:func:`summary` of each evaluator that holds a frame."""
+    return {k: s for k, s in ((k, summary(e)) for k, e in evs.items()) if s["frames"]}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kitti-raw", required=True)
@@ -92,7 +97,7 @@ def main() -> int:
                     evs[key].add(f.name, d, gt)
                     w_ev[key].add(f.name, d, gt)
             row = {"start": start, "refined": bool(af.refined), "reason": af.reason,
-                   **{k: summary(e) for k, e in w_ev.items() if e.summary()["frames"]}}
+                   **summaries(w_ev)}
             windows.append(row)
             if "affine" in row:
                 print(f"frames {start}-{start + size - 1}: before {row['before']['abs_rel']:.4f}"

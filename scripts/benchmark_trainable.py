@@ -90,11 +90,10 @@ def run_mode(name: str, steps: int, rank: int) -> dict:
     from sfm_ttr_ros.core.trainable import select_trainable
 
     n = sum(p.numel() for p in select_trainable(model, mode, rank, blocks=blocks))
-    return {"mode": name + ("_no_cache" if refinement.block_prefix_stages(model, 1) == 0
-                            and blocks else ""),
+    cached = refinement.block_prefix_stages(model, blocks)
+    return {"mode": name + ("_no_cache" if blocks and not cached else ""),
             "trainable_params": n, "step_s": step_s,
-            "window_setup_s": min(short) - FEW * step_s,
-            "cached_stages": refinement.block_prefix_stages(model, blocks),
+            "window_setup_s": min(short) - FEW * step_s, "cached_stages": cached,
             "forward_nograd_s": forward_s, "rss_model_mb": rss_model,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
@@ -102,7 +101,7 @@ def run_mode(name: str, steps: int, rank: int) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--steps", type=int, default=6)
+    p.add_argument("--steps", type=int, default=10)
     p.add_argument("--rank", type=int, default=8)
     p.add_argument("--modes", default=",".join(MODES))
     p.add_argument("--no-block-cache", action="store_true",

@@ -4,7 +4,8 @@ A window allocates hundreds of MB for a few seconds (SfM's features and matches,
 activations and gradients, the window's frames and depths) and frees them; glibc's malloc keeps
 most of the freed pages mapped for reuse, so between windows the node's RSS stays near the
 window's peak and creeps up as the arenas fragment. ``malloc_trim(0)`` returns every free page it
-can (also from the middle of the arenas), at ~15-40 ms in the window worker after each window;
+can (also from the middle of the arenas), at ~15-40 ms in the window worker after each window
+that ran SfM (a window skipped for overload frees next to nothing);
 in a 2.5-min soak of the node at 10 Hz the RSS between windows fell from ~1.6 GB to ~1.0 GB and
 the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). Not glibc (musl, macOS): a no-op.
 """

@@ -161,7 +161,8 @@ class OnlineRefiner:
             self._revert(stats)
         if self.on_window is not None:
             self.on_window(stats)
-        heap.release_free_heap()  # the window's freed memory back to the OS (core/heap.py)
+        if "sfm" in stats.timings:  # a window that ran SfM: its working set back to the OS
+            heap.release_free_heap()  # (core/heap.py; skipped windows free next to nothing)
 
     def _revert(self, stats: WindowStats) -> None:
         """A window that ends not accepted: serve the weights from before its interim ones."""

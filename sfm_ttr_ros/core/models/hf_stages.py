@@ -48,9 +48,9 @@ class Dinov2Stages:
         self.backbone = net.backbone
         self.normalise = normalise
         self.blocks = self.backbone.encoder.layer
-        names = list(self.backbone.stage_names)  # "stem", "stage1", ... one per hidden state
-        self.taps = tuple(i for i, name in enumerate(names)
-                          if name in set(self.backbone.out_features))
+        tapped = set(self.backbone.out_features)
+        # stage_names: "stem", "stage1", ... one per hidden state
+        self.taps = tuple(i for i, name in enumerate(self.backbone.stage_names) if name in tapped)
         self.patch = int(net.config.patch_size)
 
     @property
