@@ -28,7 +28,7 @@ import dataclasses
 import json
 import sys
 import time
-from collections import Counter
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,7 @@ from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.params import build
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.verification import (
+    UNSUPPORTED_HISTORY,
     WindowCheck,
     accept,
     sanity_check,
@@ -106,7 +107,8 @@ def main(argv=None) -> int:
     settings = build(values)
     judge = settings.ttr.check
     measure_cfg = copy.deepcopy(settings.ttr)
-    measure_cfg.check = dataclasses.replace(judge, **{k: 0.0 for k in SANITY})
+    measure_cfg.check = dataclasses.replace(  # measures every check, refuses nothing
+        judge, **{k: 0.0 for k in (*SANITY, "max_unsupported_change")})
     seq = open_sequence(args)
     stop = len(seq) if args.max_frames <= 0 else min(len(seq), args.start + args.max_frames)
     indices = list(range(args.start, stop))
@@ -115,6 +117,7 @@ def main(argv=None) -> int:
     st = settings.stream
     records = []
     previous_accepted = True
+    accepted_u: deque[float] = deque(maxlen=UNSUPPORTED_HISTORY)  # unsupported_change_ratio
     try:
         for w in windows_of(len(indices), st.window_size, st.window_stride):
             frames = []
@@ -141,11 +144,13 @@ def main(argv=None) -> int:
                 verdict = res.reason_key or ("not refined: " + res.reason)[:40]
             elif not accept(judge, c.error_before, c.error_after):
                 verdict = "rejected_by_check"
-            elif unsupported_refusal(judge, c.unsupported_change):
+            elif unsupported_refusal(judge, c.unsupported_change, accepted_u):
                 verdict = "check_unsupported_change"
             else:
                 verdict = "accepted"
             previous_accepted = verdict == "accepted"
+            if previous_accepted and np.isfinite(c.unsupported_change):
+                accepted_u.append(c.unsupported_change)
             seg = Counter(labels[k] for k in w).most_common(1)[0][0]
             rec = {"window": len(records), "frames": [indices[w.start], indices[w.stop - 1]],
                    "segment": seg, "abs_rel_before": before_e, "abs_rel_after": after_e,

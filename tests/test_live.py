@@ -3,6 +3,7 @@ continual refinement (replay, L2 pull to the start-up weights) and the rollback 
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from functools import partial
@@ -349,7 +350,7 @@ def test_serving_previews_are_withdrawn_or_kept_by_the_windows_verdict(one_threa
     assert serving.revert() is False and (serving.version, serving.interim_step) == (2, 0)
 
 
-def online_window(lr: float, serve_every: int, holdout: float = 0.0):
+def online_window(lr: float, serve_every: int, holdout: float = 0.0, unsupported: float = 0.0):
     """One 3-frame window through OnlineRefiner's stream (synchronously), the fake SfM of
     window_run; returns the refiner, the previews it served and the start-up prediction."""
     from sfm_ttr_ros.core.frames import Intrinsics
@@ -359,6 +360,7 @@ def online_window(lr: float, serve_every: int, holdout: float = 0.0):
     cfg = TTRConfig(weight_policy="reset", min_supervision_points=10)
     cfg.refinement.steps, cfg.refinement.lr = 10, lr
     cfg.check.min_parallax, cfg.check.holdout_fraction = 0.0, holdout
+    cfg.check.max_unsupported_change = unsupported
     ttr = SfmTTR(small_model(), cfg)
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
@@ -402,3 +404,24 @@ def test_interim_weights_of_a_rolled_back_window_are_withdrawn(one_thread):
 def test_no_interim_weights_while_a_check_runs_after_refinement(one_thread):
     online, previews, _ = online_window(lr=1e-3, serve_every=1, holdout=0.3)
     assert previews == [] and online.counters_live()["serving_previews"] == 0
+
+
+def test_interim_weights_are_served_only_when_their_unsupported_change_passes(one_thread,
+                                                                             monkeypatch):
+    """With check.max_unsupported_change on (issue 19) interim weights are measured on a few of
+    the window's frames before each preview: served when they pass, kept back (counted) when
+    not, and the finished window is then refused by the same check."""
+    import sfm_ttr_ros.core.verification as verification
+
+    online, previews, _ = online_window(lr=1e-3, serve_every=4, unsupported=1.0)  # U <= 1
+    assert previews == [(1, 4), (1, 8)] and online.stream.last_window.refined
+    assert math.isfinite(online.ttr.interim_unsupported)
+    assert online.counters_live()["serving_interim_refused"] == 0
+    monkeypatch.setattr(verification, "UNSUPPORTED_FACTOR", 1.0 + 1e-9)  # any change counts
+    online, previews, start = online_window(lr=1e-3, serve_every=4, unsupported=1e-9)
+    c = online.counters_live()
+    assert previews == [] and (c["serving_previews"], c["serving_interim_refused"]) == (0, 2)
+    assert online.ttr.interim_unsupported > 1e-9
+    assert online.stream.last_window.reason_key == "check_unsupported_change"
+    assert (c["version"], c["serving_reverts"]) == (0, 0)
+    assert np.array_equal(online.serving.predict(IMAGE)[0], start)

@@ -305,6 +305,7 @@ def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypa
     import sfm_ttr_ros.core.verification as verification
 
     ttr = pinned(run, monkeypatch)
+    ttr._unsupported.clear()  # the accepted windows of the tests before
     original = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
     measured = ttr.process_window(run.window, run.intr)  # off (0): measured, never refuses
     u = measured.check.unsupported_change
@@ -323,6 +324,13 @@ def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypa
     assert all(np.array_equal(res.depths[n], res.depths_before[n]) for n in res.names)
     assert res.depths_candidate and _encoder_equals(ttr.model, original)
     assert res.timings["check"] < 0.1 * res.timings["refine"]
+    # the reference of check.unsupported_change_ratio: U of the accepted windows only
+    assert list(ttr._unsupported) == [pytest.approx(u)]
+    monkeypatch.setattr(ttr.config.check, "unsupported_change_ratio",
+                        4 * c.unsupported_change / u)  # far above this stream's usual: refused
+    res = ttr.process_window(run.window, run.intr)  # ... unless the stream's usual is as high
+    assert res.refined and res.check.unsupported_change > 1e-6, res.reason
+    assert len(ttr._unsupported) == 2
 
 
 @pytest.mark.slow

@@ -22,6 +22,7 @@ from sfm_ttr_ros.core.verification import (
     frame_scale_spread,
     frame_unsupported_change,
     held_out_tracks,
+    probe_frames,
     sanity_check,
     scale_jump,
     split_supervision,
@@ -238,3 +239,28 @@ def test_window_unsupported_change_is_the_mean_over_frames_and_its_verdict():
     assert unsupported_refusal(CheckConfig(max_unsupported_change=0.1), float("nan")) == ""
     assert "check_unsupported_change" in CHECK_REASONS
     assert validate({"check.max_unsupported_change": 1.5})
+
+
+def test_the_unsupported_change_ratio_judges_a_window_against_the_streams_accepted_ones():
+    cfg = CheckConfig(max_unsupported_change=0.025, unsupported_change_ratio=5.0)
+    driving = [0.002, 0.001, 0.0007, 0.009]  # median 0.0015: a truck's 0.056 stands out
+    assert "unsupported_change_ratio 5 x 0.0015" in unsupported_refusal(cfg, 0.056, driving)
+    assert unsupported_refusal(cfg, 0.02, driving) == ""  # under the absolute floor
+    indoor = [0.36, 0.18, 0.32]  # walls move far from every point on every window
+    assert unsupported_refusal(cfg, 0.3, indoor) == ""
+    assert unsupported_refusal(cfg, 1.0, indoor) == ""  # 1.0 <= 5 x 0.32
+    assert unsupported_refusal(cfg, 0.5, []) == ""  # no accepted window yet: no reference
+    assert unsupported_refusal(cfg, 0.5, [float("nan")]) == ""
+    plain = CheckConfig(max_unsupported_change=0.025)  # ratio 0: the absolute threshold
+    assert unsupported_refusal(plain, 0.3, indoor) and unsupported_refusal(plain, 0.05, [])
+    assert validate({"check.unsupported_change_ratio": 0.5})  # a factor >= 1 or 0
+    assert not validate({"check.unsupported_change_ratio": 5.0})
+    assert cfg.interim_checkable and not CheckConfig().interim_checkable
+    assert not CheckConfig(max_unsupported_change=0.1, holdout_fraction=0.2).interim_checkable
+
+
+def test_interim_weights_are_checked_on_frames_spread_over_the_window():
+    names = [f"{i:02d}" for i in range(15)]
+    assert probe_frames(names) == ["03", "11"]  # the centres of the window's two halves
+    assert probe_frames(names, 3) == ["02", "07", "12"] and probe_frames(names, 1) == ["07"]
+    assert probe_frames(names[:1]) == ["00"] and probe_frames([]) == []

@@ -120,7 +120,8 @@ class StreamDiagnostics:
                       "serving.updates": lv["serving_updates"],
                       "serving.interim_step": lv["interim_step"],
                       "serving.previews": lv["serving_previews"],
-                      "serving.reverts": lv["serving_reverts"]})
+                      "serving.reverts": lv["serving_reverts"],
+                      "serving.interim_refused": lv["serving_interim_refused"]})
             v.update({f"live.{k}": lv[k] for k in LATENCY_KEYS})
         w = self.stream.last_window
         if w is not None:

@@ -79,6 +79,7 @@ class OnlineRefiner:
         self.serving_update_errors = 0
         self.serving_previews = 0
         self.serving_reverts = 0
+        self.serving_interim_refused = 0  # interim weights the window check kept from serving
         ttr.on_refine_step = self._refine_step
 
     # -- input (any thread) ---------------------------------------------------------------------
@@ -136,9 +137,15 @@ class OnlineRefiner:
     # -- windows --------------------------------------------------------------------------------
     def _refine_step(self, step: int) -> None:
         """After each refinement step (worker thread): every ``serve_every_steps`` steps, serve
-        the window's weights as they are (non-finite ones are not served)."""
+        the window's weights as they are (non-finite ones are not served), once the window
+        check can vouch for them (:meth:`SfmTTR.interim_refusal`)."""
         every = self.stream.settings.serve_every_steps
         if every <= 0 or step % every:
+            return
+        why = self.ttr.interim_refusal()
+        if why:
+            self.serving_interim_refused += 1
+            self.log.info(f"interim weights after step {step} not served: {why}")
             return
         try:
             self.serving.preview(self.ttr.model.encoder.state_dict(),
@@ -178,6 +185,7 @@ class OnlineRefiner:
                 "serving_update_errors": self.serving_update_errors,
                 "serving_previews": self.serving_previews,
                 "serving_reverts": self.serving_reverts,
+                "serving_interim_refused": self.serving_interim_refused,
                 "interim_step": self.serving.interim_step}
 
     def counters(self) -> dict[str, object]:

@@ -148,8 +148,9 @@ PARAMS: tuple[Param, ...] = (
     _p("serve_every_steps", "stream.serve_every_steps", "While a window refines, swap its "
        "weights into the live serving copy (~/depth) every this many steps, not only when it "
        "ends; a window that is then cancelled, rolled back or refused puts the weights from "
-       "before it back. Off while a check runs after refinement (check.holdout_fraction or "
-       "check.max_unsupported_change > 0): only verified weights are served then. 0 = at the "
+       "before it back. With check.max_unsupported_change > 0 each interim state is served only "
+       "if its unsupported change on 2 of the window's frames passes that check; with "
+       "check.holdout_fraction > 0 none is served (only verified weights are). 0 = at the "
        "window's end only.", 0, 100_000),
     # -- SfM (live) -------------------------------------------------------------------------
     _p("sfm.max_image_size", "sfm.max_image_size", "SIFT runs on images downscaled to this "
@@ -278,6 +279,12 @@ PARAMS: tuple[Param, ...] = (
        "pixels lying far (> 5 % of the width) from every SfM point changed depth by more than "
        "1.5x against the change at the points: a region SfM says nothing about, e.g. a "
        "vehicle moving with the camera ('check_unsupported_change'); 0 = off.", 0.0, 1.0),
+    _p("check.unsupported_change_ratio", "check.unsupported_change_ratio", "With "
+       "check.max_unsupported_change > 0: refuse only when the unsupported change is also above "
+       "this factor times its median over the stream's last 10 accepted windows (how far depth "
+       "may move without SfM points depends on the scene: indoors, with the network far off, "
+       "whole walls rightly move); a window with no accepted one before it is not refused by "
+       "it. 0 = the absolute threshold alone.", 0.0, 1000.0, constraints="0 or >= 1"),
     _p("seed", "sfm.seed,alignment.seed,refinement.seed,check.seed", "Random seed of SfM, "
        "RANSAC, refinement and the held-out split.", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------

@@ -43,6 +43,7 @@ from sfm_ttr_ros.core.supervision import (
 )
 from sfm_ttr_ros.core.trainable import check_trainable
 from sfm_ttr_ros.core.verification import (
+    UNSUPPORTED_HISTORY,
     CheckConfig,
     PathReference,
     WindowCheck,
@@ -51,6 +52,7 @@ from sfm_ttr_ros.core.verification import (
     frame_scale_spread,
     parallax,
     path_reference,
+    probe_frames,
     reprojection_error,
     sanity_check,
     scale_jump,
@@ -161,10 +163,15 @@ class SfmTTR:
         self._replay: deque[list[FrameSupervision]] = deque()
         # the last accepted window's camera path in network units (the scale-jump check)
         self._path: PathReference | None = None
+        # U of the last accepted windows: the reference of check.unsupported_change_ratio
+        self._unsupported: deque[float] = deque(maxlen=UNSUPPORTED_HISTORY)
         self._stop = False
-        # called with the step count after each refinement step of a window that no check after
-        # refinement can still refuse (the live server's interim weights, core/online.py)
+        # called with the step count after each refinement step of a window whose current
+        # weights may be served before its end (the live server's interim weights,
+        # core/online.py): no check after refinement, or one that interim_refusal() re-runs
         self.on_refine_step: Callable[[int], None] | None = None
+        self._interim_check: Callable[[], str] | None = None  # see interim_refusal()
+        self.interim_unsupported = float("nan")  # U of the last interim weights checked
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
         self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
@@ -350,12 +357,21 @@ class SfmTTR:
         anchor = self._original if continual and cfg.anchor_weight > 0 else None
         # the weights before the window (rollback); under "reset" they are the start-up weights
         start = self._original if cfg.weight_policy == "reset" else snapshot_encoder(self.model)
+        # interim weights: served unchecked without a check after refinement, else only when
+        # the unsupported change can be re-measured on them (interim_refusal)
+        self._interim_check = (self._interim_gate(before, images, sfm, reg)
+                               if cfg.check.interim_checkable and rescale else None)
+        on_step = (self.on_refine_step if not cfg.check.after_refinement
+                   or self._interim_check is not None else None)
         t0 = time.perf_counter()
-        res.refinement = refine_encoder(
-            self.model, train, cfg.refinement, should_stop=stop, replay=replay,
-            replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
-            photometric=self._photometric_frames(names, images, sfm, align.scale, intrinsics),
-            on_step=None if cfg.check.after_refinement else self.on_refine_step)
+        try:
+            res.refinement = refine_encoder(
+                self.model, train, cfg.refinement, should_stop=stop, replay=replay,
+                replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
+                photometric=self._photometric_frames(names, images, sfm, align.scale,
+                                                     intrinsics), on_step=on_step)
+        finally:
+            self._interim_check = None
         t["refine"] = time.perf_counter() - t0
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
             res.reason = "refinement cancelled"
@@ -387,9 +403,9 @@ class SfmTTR:
             c.reason = (f"held-out check error {c.error_before:.4g} -> {c.error_after:.4g} "
                         f"on {c.check_points} points did not fall by "
                         f"check.holdout_margin {cfg.check.holdout_margin:g}")
-        elif unsupported_refusal(cfg.check, c.unsupported_change):
+        elif unsupported_refusal(cfg.check, c.unsupported_change, self._unsupported):
             c.reason_key = "check_unsupported_change"
-            c.reason = unsupported_refusal(cfg.check, c.unsupported_change)
+            c.reason = unsupported_refusal(cfg.check, c.unsupported_change, self._unsupported)
         if c.reason_key:
             restore_encoder(self.model, start)
             res.reason_key = c.reason_key
@@ -397,12 +413,44 @@ class SfmTTR:
             res.depths_candidate, res.depths = res.depths, dict(before)
             return res
         self._path = path_reference(sfm, reg, align.scale) if self._scaled(align) else None
+        if math.isfinite(c.unsupported_change):
+            self._unsupported.append(c.unsupported_change)
         if continual and cfg.replay_windows > 0:
             self._replay.append(sup)
             while len(self._replay) > cfg.replay_windows:
                 self._replay.popleft()
         self._cloud(res, sfm, reg)
         return res
+
+    def interim_refusal(self) -> str:
+        """Why the refining window's current weights may not be served yet ("" = they may).
+        With ``check.max_unsupported_change`` on (and no held-out check), its unsupported change
+        measured on :func:`probe_frames` of the window with the weights as they are now, judged
+        as the finished window's will be (core/verification.py, 3.). For ``on_refine_step``
+        (the worker thread, between steps)."""
+        check = self._interim_check
+        return check() if check is not None else ""
+
+    def _interim_gate(self, before: dict[str, np.ndarray], images: dict[str, np.ndarray],
+                      sfm: SfmResult, reg: list[str]) -> Callable[[], str]:
+        probe = probe_frames(reg)
+        pixels = {n: sfm.frames[n].pixels for n in probe}
+        history = tuple(self._unsupported)
+
+        def refusal() -> str:
+            # mid-refinement: predict() switches to eval mode; put every module back as it was
+            # (bn_mode "train" keeps the encoder's BatchNorm in training mode)
+            modes = [(m, m.training) for m in self.model.modules()]
+            try:
+                depths = self._run_network([images[n] for n in probe])
+            finally:
+                for m, training in modes:
+                    m.training = training
+            self.interim_unsupported = unsupported_change(
+                before, dict(zip(probe, depths, strict=True)), pixels)
+            return unsupported_refusal(self.config.check, self.interim_unsupported, history)
+
+        return refusal
 
     def _scaled(self, align: AlignmentResult) -> bool:
         """Whether ``align`` is the paper's scale fit (depth up to scale): the scale checks'

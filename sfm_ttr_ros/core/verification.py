@@ -47,6 +47,19 @@ served or kept. Not in the paper.
    mean over its frames, refused above ``max_unsupported_change``. Refinement should move the
    scene where SfM supervises it; a large change where it says nothing is a guess.
 
+   How much depth may move far from the points depends on the scene and on how wrong the
+   network is there (measured: U ≤ 0.016 on every helpful driving window, 0.011–0.36 on helpful
+   windows of an indoor video whose network is far off and whose walls carry no point), so with
+   ``unsupported_change_ratio`` k > 0 the threshold is relative to this stream's own accepted
+   windows: refused when
+
+       U > max(max_unsupported_change, k · median U of the last UNSUPPORTED_HISTORY accepted)
+
+   and a window with no accepted predecessor (no reference yet) is not refused by U. While a
+   window refines, interim weights (``serve_every_steps``) are checked the same way on
+   INTERIM_PROBE_FRAMES of its registered frames before they are served
+   (:func:`probe_frames`).
+
 2. Held-out check (:func:`split_supervision`, :func:`check_error`): the selected supervision
    points are split BY TRACK (a 3D point and all its observations go to one side; seeded) into a
    train set and a check set of ``holdout_fraction`` of the tracks. The refinement sees the train
@@ -94,6 +107,11 @@ UNSUPPORTED_RADIUS = 0.05
 UNSUPPORTED_FACTOR = 1.5
 #: the depth maps are read on every STEP-th pixel (the share is a ratio of pixel counts)
 UNSUPPORTED_STEP = 4
+#: accepted windows whose U forms the reference of ``unsupported_change_ratio``
+UNSUPPORTED_HISTORY = 10
+#: registered frames on which interim weights are checked before they are served (one network
+#: forward each per preview: 2 x 7 previews x ~45 ms on one core, ~6 % of a KITTI window)
+INTERIM_PROBE_FRAMES = 2
 
 
 @dataclass
@@ -109,12 +127,13 @@ class CheckConfig:
     max_scale_spread: float = 0.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
     max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
     max_unsupported_change: float = 0.0  # share of pixels moved > τ far from any SfM point
+    unsupported_change_ratio: float = 0.0  # refuse U above k x the stream's accepted median
     seed: int = 0
 
     def __post_init__(self) -> None:
         for name in ("holdout_fraction", "holdout_margin", "max_reprojection_error",
                      "min_track_length", "min_parallax", "min_inlier_ratio", "max_scale_spread",
-                     "max_scale_jump", "max_unsupported_change"):
+                     "max_scale_jump", "max_unsupported_change", "unsupported_change_ratio"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"check.{name} must be a finite number >= 0, got {v}")
@@ -130,7 +149,7 @@ class CheckConfig:
         if self.min_inlier_ratio > 1:
             raise InputError(f"check.min_inlier_ratio must lie in [0, 1], got "
                              f"{self.min_inlier_ratio}")
-        for name in ("max_scale_spread", "max_scale_jump"):
+        for name in ("max_scale_spread", "max_scale_jump", "unsupported_change_ratio"):
             v = float(getattr(self, name))
             if 0 < v < 1:
                 raise InputError(f"check.{name} is a factor >= 1 (or 0 = off), got {v}")
@@ -144,6 +163,13 @@ class CheckConfig:
         """Whether a check runs on the refined weights (the held-out error or the unsupported
         change) and may still refuse the window once its steps are done."""
         return self.holdout or self.max_unsupported_change > 0
+
+    @property
+    def interim_checkable(self) -> bool:
+        """Whether interim weights can be verified while the window refines: the unsupported
+        change is the only check after refinement (the held-out error needs the finished
+        weights' verdict on points no step saw; it is not re-run per preview)."""
+        return self.max_unsupported_change > 0 and not self.holdout
 
 
 @dataclass
@@ -380,11 +406,35 @@ def unsupported_change(before: Mapping[str, np.ndarray], after: Mapping[str, np.
     return float(np.mean(values)) if values else float("nan")
 
 
-def unsupported_refusal(config: CheckConfig, value: float) -> str:
+def unsupported_refusal(config: CheckConfig, value: float,
+                        history: Sequence[float] = ()) -> str:
     """Why the window's unsupported change ``value`` refuses it ("" = accepted; a NaN value or
-    ``max_unsupported_change`` 0 accepts)."""
+    ``max_unsupported_change`` 0 accepts). ``history``: U of this stream's last accepted
+    windows, the reference of ``unsupported_change_ratio`` (module docstring, 3.); with a ratio
+    and no history nothing is refused."""
     t = config.max_unsupported_change
     if t <= 0 or not math.isfinite(value) or value <= t:
         return ""
-    return (f"{value:.3g} of the pixels moved by more than {UNSUPPORTED_FACTOR:g}x far from "
-            f"every SfM point > check.max_unsupported_change {t:g}")
+    why = (f"{value:.3g} of the pixels moved by more than {UNSUPPORTED_FACTOR:g}x far from "
+           f"every SfM point > check.max_unsupported_change {t:g}")
+    k = config.unsupported_change_ratio
+    if k <= 0:
+        return why
+    past = [v for v in history if math.isfinite(v)]
+    if not past:
+        return ""
+    reference = float(np.median(past))
+    if value <= k * reference:
+        return ""
+    return (f"{why} and > check.unsupported_change_ratio {k:g} x {reference:.3g} (the median "
+            f"of the last {len(past)} accepted windows)")
+
+
+def probe_frames(registered: Sequence[str], count: int = INTERIM_PROBE_FRAMES) -> list[str]:
+    """Up to ``count`` of the registered frames, at the centres of ``count`` equal parts of the
+    window: where interim weights are checked before they are served."""
+    n = len(registered)
+    if not n or count <= 0:
+        return []
+    idx = sorted({int((k + 0.5) * n / count) for k in range(min(count, n))})
+    return [registered[i] for i in idx]
