@@ -416,6 +416,8 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     online, previews, _ = online_window(lr=1e-3, serve_every=4, unsupported=1.0)  # U <= 1
     assert previews == [(1, 4), (1, 8)] and online.stream.last_window.refined
     assert math.isfinite(online.ttr.interim_unsupported)
+    t = online.stream.last_window.timings  # the probes' time, spent inside the refinement
+    assert 0 < t["interim_check"] < t["refine"] and t["check"] >= t["interim_check"]
     assert online.counters_live()["serving_interim_refused"] == 0
     monkeypatch.setattr(verification, "UNSUPPORTED_FACTOR", 1.0 + 1e-9)  # any change counts
     online, previews, start = online_window(lr=1e-3, serve_every=4, unsupported=1e-9)

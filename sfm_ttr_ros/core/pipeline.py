@@ -172,6 +172,7 @@ class SfmTTR:
         self.on_refine_step: Callable[[int], None] | None = None
         self._interim_check: Callable[[], str] | None = None  # see interim_refusal()
         self.interim_unsupported = float("nan")  # U of the last interim weights checked
+        self._interim_seconds = 0.0  # the window's time in interim checks (in its "refine")
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
         self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
@@ -359,6 +360,7 @@ class SfmTTR:
         start = self._original if cfg.weight_policy == "reset" else snapshot_encoder(self.model)
         # interim weights: served unchecked without a check after refinement, else only when
         # the unsupported change can be re-measured on them (interim_refusal)
+        self._interim_seconds = 0.0
         self._interim_check = (self._interim_gate(before, images, sfm, reg)
                                if cfg.check.interim_checkable and rescale else None)
         on_step = (self.on_refine_step if not cfg.check.after_refinement
@@ -373,6 +375,9 @@ class SfmTTR:
         finally:
             self._interim_check = None
         t["refine"] = time.perf_counter() - t0
+        if self._interim_seconds:  # part of the check's cost, spent between refinement steps
+            t["interim_check"] = self._interim_seconds
+            res.check.seconds += self._interim_seconds
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
             res.reason = "refinement cancelled"
             return res
@@ -438,6 +443,7 @@ class SfmTTR:
         history = tuple(self._unsupported)
 
         def refusal() -> str:
+            t0 = time.perf_counter()
             # mid-refinement: predict() switches to eval mode; put every module back as it was
             # (bn_mode "train" keeps the encoder's BatchNorm in training mode)
             modes = [(m, m.training) for m in self.model.modules()]
@@ -448,7 +454,9 @@ class SfmTTR:
                     m.training = training
             self.interim_unsupported = unsupported_change(
                 before, dict(zip(probe, depths, strict=True)), pixels)
-            return unsupported_refusal(self.config.check, self.interim_unsupported, history)
+            why = unsupported_refusal(self.config.check, self.interim_unsupported, history)
+            self._interim_seconds += time.perf_counter() - t0
+            return why
 
         return refusal
 
