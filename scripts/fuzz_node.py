@@ -9,7 +9,8 @@ a private ROS_DOMAIN_ID, sends ``--messages`` hostile and valid messages:
 * images the node must drop as ``bad_image``: unknown, empty, unicode and wrong-case encodings
   (``RGB8``, ``MONO8``), 32FC1, truncated and over-long data, a step below the row size, zero
   and huge declared sizes;
-* images it must take (every one comes back on ``~/depth_refined`` or is counted as dropped):
+* images it must take (every one comes back on ``~/depth_refined`` or is counted as dropped or
+  live-only, ``frames_live_only``):
   every supported encoding, padded rows, big- and little-endian 16 bit, blank / noise / static
   frames, tiny (1x1) and extreme-aspect (1x600, 2000x2) images, frames smaller than the fallback
   principal point before any CameraInfo (and after a live ``cx 5000``), duplicate / backwards /
@@ -23,10 +24,10 @@ a private ROS_DOMAIN_ID, sends ``--messages`` hostile and valid messages:
 Then it waits for the drain and checks: the process is alive; exact accounting from the last
 /diagnostics (every image received, ``received = refined + unrefined + dropped``, nothing
 pending); ``dropped.bad_image`` = the bad images sent; every valid frame back on
-``~/depth_refined`` or counted dropped; ``rejected_camera_info`` = the bad CameraInfos; no
-contained fault and no ``Traceback`` in the node's log; RSS bounded (final <= 2 x the RSS after
-the first phase + 200 MiB); every invalid parameter set refused with a reason. Exit 0 when every
-check passes, 1 otherwise; ``--json`` writes the figures.
+``~/depth_refined`` or counted dropped or live-only; ``rejected_camera_info`` = the bad
+CameraInfos; no contained fault and no ``Traceback`` in the node's log; RSS bounded (final
+<= 2 x the RSS after the first phase + 200 MiB); every invalid parameter set refused with a
+reason. Exit 0 when every check passes, 1 otherwise; ``--json`` writes the figures.
 
     .venv/bin/python scripts/fuzz_node.py                  # full size: >= 1000 messages
     .venv/bin/python scripts/fuzz_node.py --messages 300   # CI size (tests/test_fuzz.py)
@@ -478,7 +479,7 @@ def run(args: argparse.Namespace) -> dict:
             if (d.get("frames_pending") == "0"
                     and int(d.get("frames_received", -1)) == f.images
                     and f.refined_back >= int(d.get("frames_refined", 0))
-                    + int(d.get("frames_unrefined", 0))):
+                    + int(d.get("frames_unrefined", 0)) - int(d.get("frames_live_only", 0))):
                 break
             time.sleep(0.5)
             sample()
@@ -517,8 +518,9 @@ def _checks(f: Fuzzer, d: dict[str, str], alive: bool, rss, rss_first, log_path)
         "nothing_pending": num("frames_pending") == 0,
         "bad_images_counted": num("dropped.bad_image") == f.bad_images,
         "every_valid_frame_back_or_counted":
-            f.valid_images == f.refined_back + dropped_valid
-            and f.refined_back == num("frames_refined") + num("frames_unrefined"),
+            f.valid_images == f.refined_back + dropped_valid + num("frames_live_only")
+            and f.refined_back == num("frames_refined") + num("frames_unrefined")
+            - num("frames_live_only"),
         "bad_camera_infos_counted": num("rejected_camera_info") == f.bad_infos,
         "no_fault": num("faults") == 0,
         "memory_bounded": final <= 2 * rss_first + 200,

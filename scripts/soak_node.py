@@ -13,7 +13,7 @@ Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
 
 * every frame accounted: /diagnostics ``frames_received`` = frames sent, ``received = refined +
   unrefined + dropped`` and nothing pending after the drain, every frame published on
-  ``~/depth_refined`` or counted dropped;
+  ``~/depth_refined`` or counted dropped or live-only (``frames_live_only``);
 * memory: the peak RSS after the first 5 minutes <= 1.10 x the peak in them (RSS is a
   sawtooth since the node trims its heap after each window, core/heap.py);
 * latency: the p95 of ``~/depth_refined`` latency over the last 5 minutes within 20 % of the
@@ -373,7 +373,8 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
         "accounting_adds_up": num("frames_received") == num("frames_refined")
         + num("frames_unrefined") + dropped + num("frames_pending"),
         "nothing_pending": num("frames_pending") == 0,
-        "every_frame_back_or_counted": len(refined) + dropped == sent,
+        # live-only frames: unrefined, already on ~/depth, not sent again (republish_unrefined)
+        "every_frame_back_or_counted": len(refined) + dropped + num("frames_live_only") == sent,
         "rss_growth_le_10pct": peak_after <= 1.10 * peak_warm,
         "latency_p95_within_20pct": abs(p95["refined_last"] - p95["refined_first"])
         <= 0.20 * p95["refined_first"],

@@ -54,8 +54,10 @@ FRAME_ID = "camera_color_left"
 pytestmark = pytest.mark.ros
 
 
+# republish_unrefined: these tests follow ~/depth_refined frame by frame; the default (not
+# again) is tested on its own below
 FAST = {"refinement.steps": 5, "sfm.max_num_features": 2048, "min_supervision_points": 20,
-        "diagnostics_period_s": 0.5}
+        "diagnostics_period_s": 0.5, "republish_unrefined": True}
 
 
 def wait_for(pred, timeout: float, what: str):
@@ -348,6 +350,31 @@ def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence)
     msg.k = [0.0] * 9
     g.pub_info.publish(msg)
     wait_for(lambda: g.refiner.intrinsics.latest == intr, 10, "intrinsics from P")
+
+
+def test_an_unrefined_frame_already_on_depth_is_counted_not_sent_again(graph_factory,
+                                                                       sequence):
+    g = graph_factory(window_size=50, window_stride=1, idle_flush_s=0.5,
+                      republish_unrefined=False)
+    g.send_info(sequence.intrinsics, 1.0)
+    g.send_image(sequence.images[0], 1.0)
+    wait_for(lambda: len(g.live) == 1, 30, "the live depth")
+    # alone in its window: the idle flush passes it unrefined; ~/depth already carried it
+    wait_for(lambda: g.refiner.stream.counters()["pending"] == 0
+             and g.refiner.stream.counters()["unrefined"] == 1, 30, "the idle flush")
+    c = g.refiner.stream.counters()
+    assert c["unrefined_by_reason"] == {"end_of_stream": 1} and c["live_only"] == 1
+    d = wait_for(lambda: (lambda v: v if v.get("frames_live_only") == "1" else None)(
+        g.last_diag()), 10, "frames_live_only on /diagnostics")
+    assert d["frames_unrefined"] == "1" and d["frames_received"] == "1"
+    # without the live output the frame must come back on ~/depth_refined
+    assert g.refiner.set_parameters([Parameter("publish_live", value=False)])[0].successful
+    g.send_info(sequence.intrinsics, 2.0)
+    g.send_image(sequence.images[1], 2.0)
+    wait_for(lambda: len(g.depths) == 1, 30, "the frame on ~/depth_refined")
+    c = g.refiner.stream.counters()
+    assert c["unrefined"] == 2 and c["live_only"] == 1 and len(g.live) == 1
+    assert g.depths[0].header.stamp.sec == 2
 
 
 def test_fallback_principal_point_outside_the_frame_is_a_mismatch_not_fatal(graph_factory,

@@ -197,6 +197,37 @@ def test_overload_skips_refinement_until_the_queue_drains():
     assert c["windows_skipped"] == 2 and c["unrefined_by_reason"] == {"overload": 4}
 
 
+def test_frames_served_live_are_not_predicted_again_unless_republished():
+    class CountingTTR(ScriptedTTR):
+        predicted = 0
+
+        def predict(self, images):
+            self.predicted += len(images)
+            return super().predict(images)
+
+    for republish in (False, True):
+        ttr = CountingTTR()
+        stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
+                                                     overload_pending=2, max_pending=50,
+                                                     republish_unrefined=republish))
+        fs = frames(8)
+        for f in fs[:3]:  # the live output served these (core/live.py sets the flag)
+            f.served_live = True
+        for f in fs:
+            stream.submit(f, INTR)
+        outs = stream.process_available()
+        assert [o.reason_key for o in outs] == ["overload"] * 4 + [""] * 4
+        c = check_accounting(stream, outs, 8)  # counted as before, whatever is published
+        assert c["unrefined_by_reason"] == {"overload": 4}
+        live_only = [o.frame.index for o in outs if o.live_only]
+        if republish:
+            assert live_only == [] and ttr.predicted == 4 and c["live_only"] == 0
+        else:  # frame 3 was not served live (e.g. skipped there): still predicted
+            assert live_only == [0, 1, 2] and ttr.predicted == 1 and c["live_only"] == 3
+            assert all(o.depth is None for o in outs[:3]) and outs[3].depth is not None
+        assert all(o.depth is not None for o in outs[4:])  # refined frames always come out
+
+
 def test_keyframe_interval_and_motion():
     ttr = ScriptedTTR()
     stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=1,

@@ -95,6 +95,8 @@ class StreamDiagnostics:
             "frames_dropped": c["dropped"],
             "frames_pending": c["pending"] + held,
             "frames_held_no_intrinsics": held,
+            # unrefined frames ~/depth already carried, not sent again (republish_unrefined off)
+            "frames_live_only": c["live_only"],
         }
         v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})
         v.update({f"dropped.{k}": n for k, n in sorted(c["dropped_by_reason"].items())})

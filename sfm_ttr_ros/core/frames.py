@@ -101,6 +101,9 @@ class Frame:
     stamp: float = 0.0
     name: str = ""
     header: object = field(default=None, repr=False)  # opaque (e.g. a ROS header), passed through
+    # set by the live server (core/live.py) once the frame's depth went out on the live output:
+    # the stream then need not predict it again when no window refines it (republish_unrefined)
+    served_live: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.name:

@@ -162,6 +162,7 @@ class LiveServer:
             self.on_depth(out)
         except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving
             return self._skip("publish_error", frame, exc)
+        frame.served_live = True
         done = time.monotonic()
         with self._cv:
             self.published += 1

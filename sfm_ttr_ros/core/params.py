@@ -129,6 +129,10 @@ PARAMS: tuple[Param, ...] = (
     _p("overload_pending", "stream.overload_pending", "When a window is due while more frames "
        "than this are queued, refinement is skipped for it and its frames pass through "
        "unrefined; 0 = never.", 0, 1_000_000),
+    _p("republish_unrefined", "stream.republish_unrefined", "Frames no window refines (overload, "
+       "not a keyframe, ...) that ~/depth already carried are predicted again and published "
+       "on ~/depth_refined too; false = not again (counted in frames_live_only): under "
+       "overload the worker then spends its time on windows instead."),
     _p("max_pending", "stream.max_pending", "Bound of the input queue (and of the frames held "
        "while no intrinsics are known); when full the OLDEST pending frame is dropped and "
        "counted.", 1, 1_000_000, **_START_UP),

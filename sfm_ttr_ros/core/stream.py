@@ -27,6 +27,11 @@ Model of the stream
   matter most for a live robot. When a window is due while more than ``overload_pending``
   frames wait in the queue (0 = never), refinement is skipped for that window: its new frames are
   published unrefined (``overload``) so the queue drains, and refinement resumes later.
+* Unrefined frames are predicted again with the latest weights for the windowed output -
+  except, unless ``republish_unrefined``, those the live output already served
+  (``Frame.served_live``): they come out with ``depth`` None (``FrameOutput.live_only``, counted
+  under their reason and in ``live_only``), so an overloaded worker drains its queue at once
+  instead of spending its time predicting frames again.
 * Resolution / intrinsics change: every unpublished keyframe is published unrefined
   (``resolution_change`` / ``intrinsics_change``) and a new window starts with the new frame.
   A frame whose intrinsics are for another image size is published unrefined
@@ -116,6 +121,9 @@ class StreamSettings:
     worker_threads: int = 1
     # > 0: while a window refines, its weights are served every this many steps (core/online.py)
     serve_every_steps: int = 0
+    # False: a frame no window refines that the live output already served is not predicted
+    # again for the windowed output (FrameOutput.depth None; counted under its reason as before)
+    republish_unrefined: bool = False
 
     def __post_init__(self) -> None:
         if self.window_size < 2:
@@ -177,14 +185,21 @@ class WindowStats:
 
 @dataclass
 class FrameOutput:
-    """One published frame: its depth (network units, image size) and whether it was refined."""
+    """One frame out of the stream: its depth (network units, image size) and whether it was
+    refined. ``depth`` is None for an unrefined frame the live output already served when
+    ``StreamSettings.republish_unrefined`` is off (:attr:`live_only`): nothing to publish again."""
 
     frame: Frame
-    depth: np.ndarray
+    depth: np.ndarray | None
     refined: bool
     reason_key: str = ""
     reason: str = ""
     window: int | None = None  # index of the window that produced it
+
+    @property
+    def live_only(self) -> bool:
+        """Unrefined and not predicted again: its depth went out on the live output only."""
+        return self.depth is None
 
 
 @dataclass
@@ -266,6 +281,7 @@ class StreamProcessor:
         self._windows_disabled = 0
         self._windows_rejected = 0  # refused by a window check (issue 19), among the failed
         self._non_monotonic = 0
+        self._live_only = 0  # unrefined frames not predicted again: served live only
         self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
         self._cancelled = False
         self._last_input = time.monotonic()
@@ -381,6 +397,7 @@ class StreamProcessor:
                 "refined": self._refined,
                 "unrefined": sum(self._unrefined_n.values()),
                 "unrefined_by_reason": dict(self._unrefined_n),
+                "live_only": self._live_only,
                 "dropped": sum(self._dropped.values()),
                 "dropped_by_reason": dict(self._dropped),
                 "pending": len(self._queue) + len(self._taken),
@@ -596,22 +613,31 @@ class StreamProcessor:
 
     def _unrefined(self, frames: Sequence[Frame], key: str, reason: str,
                    window: int | None = None) -> list[FrameOutput]:
-        """Publish ``frames`` unrefined, predicted with the latest weights."""
+        """Publish ``frames`` unrefined, predicted with the latest weights - except the frames
+        the live output already served, unless ``republish_unrefined``: those come out with
+        ``depth`` None (:attr:`FrameOutput.live_only`), counted under ``key`` all the same.
+        Under overload this is most frames, and predicting them again took ~40 % of the
+        worker's time that windows then lacked (BENCHMARKS.md section 6d)."""
         if not frames:
             return []
-        try:
-            depths = self.ttr.predict([f.image for f in frames])
-        except Exception as exc:
-            msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
-            self.log.error(msg)
-            with self._cv:
-                self._dropped["prediction_error"] += len(frames)
-                self._taken.difference_update(id(f) for f in frames)
-            for f in frames:
-                self._emit_drop(f, "prediction_error", msg)
-            return []
-        outs = [FrameOutput(f, d, False, key, reason, window)
-                for f, d in zip(frames, depths, strict=True)]
+        again = self.settings.republish_unrefined
+        todo = [f for f in frames if again or not f.served_live]
+        depths: dict[int, np.ndarray] = {}
+        if todo:
+            try:
+                depths = dict(zip(map(id, todo), self.ttr.predict([f.image for f in todo]),
+                                  strict=True))
+            except Exception as exc:
+                msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
+                self.log.error(msg)
+                with self._cv:
+                    self._dropped["prediction_error"] += len(todo)
+                    self._taken.difference_update(map(id, todo))
+                for f in todo:
+                    self._emit_drop(f, "prediction_error", msg)
+                failed = set(map(id, todo))
+                frames = [f for f in frames if id(f) not in failed]
+        outs = [FrameOutput(f, depths.get(id(f)), False, key, reason, window) for f in frames]
         self._account(outs)
         return outs
 
@@ -622,6 +648,7 @@ class StreamProcessor:
                     self._refined += 1
                 else:
                     self._unrefined_n[o.reason_key] += 1
+                    self._live_only += o.live_only
                 self._taken.discard(id(o.frame))
         for o in outs:
             if self.on_output is not None:

@@ -12,8 +12,10 @@ on ``<image>/compressed`` instead) and ``camera_info``; publishes ``~/depth`` (3
 invalid, the input image's header: EVERY frame at once, predicted by the serving copy of the
 network with the newest refined weights), ``~/depth_colored`` (bgr8, the same),
 ``~/depth_refined`` (32FC1: every frame again once its window is done, refined or unrefined with
-a reason), ``~/points`` (PointCloud2 x, y, z, reprojection_error in the optical frame of the
-window's newest registered image, with that image's header; units = the depth's units) and
+a reason; a frame no window refined that ``~/depth`` already carried is not predicted and sent
+again unless ``republish_unrefined``: counted in ``frames_live_only``), ``~/points``
+(PointCloud2 x, y, z, reprojection_error in the optical frame of the window's newest registered
+image, with that image's header; units = the depth's units) and
 ``/diagnostics``. Threads: the live server (core/live.py) predicts and publishes ``~/depth``;
 the worker (core/online.py, at a lower OS priority) runs the windows.
 
@@ -358,7 +360,7 @@ class RefinerNode(Node):
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
-        if self._param("publish_refined"):
+        if self._param("publish_refined") and not out.live_only:
             self._publish(outputs.frame_messages(out))
         self.diagnostics.output_published(out.refined)
 

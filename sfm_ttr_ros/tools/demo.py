@@ -153,6 +153,8 @@ def refiner_command(params_file: Path, overrides: list[str],
            f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
     if compressed:
         cmd += ["-p", "image_transport:=compressed"]
+    # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
+    cmd += ["-p", "republish_unrefined:=true"]
     for o in overrides:
         cmd += ["-p", o]
     return cmd
