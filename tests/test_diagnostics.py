@@ -12,7 +12,8 @@ from sfm_ttr_ros.core.stream import StreamProcessor, WindowStats
 
 INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
 FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_dropped",
-              "frames_pending", "frames_held_no_intrinsics", "frames_live_only"]
+              "frames_pending", "frames_held_no_intrinsics", "frames_live_only",
+              "frames_backlog_released"]
 INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_monotonic_stamps",
                          "qos_incompatible", "windows_ok", "windows_failed",
                          "windows_skipped_overload", "windows_disabled",

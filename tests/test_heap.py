@@ -28,3 +28,13 @@ def test_free_pages_between_live_blocks_go_back_to_the_os():
     after = rss_anon_mib()
     assert before - after > 150, (before, after)
     assert float(sum(k[0] for k in kept)) == len(kept)  # the live blocks are intact
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_arenas_are_limited_unless_the_environment_says_otherwise(monkeypatch):
+    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
+    assert heap.limit_arenas(8) is True  # 8 = glibc's own per-core factor: harmless here
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
+    assert heap.limit_arenas(2) is False  # the user's value stands
+    with pytest.raises(ValueError):
+        heap.limit_arenas(0)

@@ -17,6 +17,7 @@ from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm import SfmResult
 from sfm_ttr_ros.core.stream import (
     DROP_REASONS,
+    RELEASED_IMAGE,
     UNREFINED_REASONS,
     FrameOutput,
     StreamProcessor,
@@ -211,10 +212,10 @@ def test_frames_served_live_are_not_predicted_again_unless_republished():
                                                      overload_pending=2, max_pending=50,
                                                      republish_unrefined=republish))
         fs = frames(8)
-        for f in fs[:3]:  # the live output served these (core/live.py sets the flag)
-            f.served_live = True
         for f in fs:
             stream.submit(f, INTR)
+        for f in fs[:3]:  # the live output served these since (core/live.py sets the flag);
+            f.served_live = True  # after the submissions, so the backlog bound took nothing
         outs = stream.process_available()
         assert [o.reason_key for o in outs] == ["overload"] * 4 + [""] * 4
         c = check_accounting(stream, outs, 8)  # counted as before, whatever is published
@@ -226,6 +227,35 @@ def test_frames_served_live_are_not_predicted_again_unless_republished():
             assert live_only == [0, 1, 2] and ttr.predicted == 1 and c["live_only"] == 3
             assert all(o.depth is None for o in outs[:3]) and outs[3].depth is not None
         assert all(o.depth is not None for o in outs[4:])  # refined frames always come out
+
+
+def test_the_backlog_keeps_the_images_of_overload_pending_plus_window_size_frames():
+    for republish in (False, True):
+        ttr = ScriptedTTR()
+        stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
+                                                     overload_pending=2, max_pending=50,
+                                                     republish_unrefined=republish))
+        fs = frames(10)
+        for f in fs:
+            f.served_live = f.index != 1  # frame 1: the live output skipped it
+            stream.submit(f, INTR)
+        queued = [f for f, _ in stream._queue]
+        held = [f.index for f in queued if f.image is not RELEASED_IMAGE]
+        outs = stream.process_available()
+        c = check_accounting(stream, outs, 10)
+        if republish:  # every frame predicted again: nothing released
+            assert held == list(range(10)) and c["backlog_released"] == 0
+            continue
+        # 2 + 2 = 4 images kept, frame 1 among them (it has no depth out yet): 6 released
+        assert held == [1, 7, 8, 9] and c["backlog_released"] == 6
+        # frame 2 (released) ends the window frame 1 had started: both overload; 7-8 refined
+        assert [o.frame.index for o in outs] == list(range(9)) and c["pending"] == 1
+        assert [o.reason_key for o in outs] == ["overload"] * 7 + ["", ""]
+        assert [o.frame.index for o in outs if o.live_only] == [0, 2, 3, 4, 5, 6]
+        assert outs[1].depth is not None  # frame 1 was never served: predicted
+        assert all(o.frame.stamp == fs[o.frame.index].stamp for o in outs)
+        assert ttr.windows == [["0000000007", "0000000008"]]  # no window spans released frames
+        assert c["live_only"] == 6
 
 
 def test_keyframe_interval_and_motion():

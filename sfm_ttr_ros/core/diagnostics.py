@@ -97,6 +97,8 @@ class StreamDiagnostics:
             "frames_held_no_intrinsics": held,
             # unrefined frames ~/depth already carried, not sent again (republish_unrefined off)
             "frames_live_only": c["live_only"],
+            # among those: queued frames whose image the backlog bound released (core/stream.py)
+            "frames_backlog_released": c["backlog_released"],
         }
         v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})
         v.update({f"dropped.{k}": n for k, n in sorted(c["dropped_by_reason"].items())})

@@ -32,6 +32,13 @@ Model of the stream
   (``Frame.served_live``): they come out with ``depth`` None (``FrameOutput.live_only``, counted
   under their reason and in ``live_only``), so an overloaded worker drains its queue at once
   instead of spending its time predicting frames again.
+* Backlog bound: in that case (``republish_unrefined`` off, ``overload_pending`` > 0) the queue
+  keeps the images of at most ``overload_pending + window_size`` frames: beyond that the OLDEST
+  queued frames the live output has served give their image up (:data:`RELEASED_IMAGE`). Such a
+  frame cannot join a window: when the worker reaches it, the window being filled is published
+  unrefined (``overload``) and so is the frame (live-only), counted in ``backlog_released``.
+  Under overload those frames' windows are skipped anyway; the queue's memory stays bounded
+  while a window refines (~90 frames arrive meanwhile at 10 Hz, 1.4 MB each at 1242x375).
 * Resolution / intrinsics change: every unpublished keyframe is published unrefined
   (``resolution_change`` / ``intrinsics_change``) and a new window starts with the new frame.
   A frame whose intrinsics are for another image size is published unrefined
@@ -99,6 +106,9 @@ DROP_REASONS = {
 }
 
 THUMB_WIDTH = 64
+#: The image of a queued frame released by the backlog bound (see the module docstring).
+RELEASED_IMAGE = np.zeros((0, 0, 3), np.uint8)
+RELEASED_IMAGE.flags.writeable = False
 
 
 @dataclass
@@ -282,6 +292,7 @@ class StreamProcessor:
         self._windows_rejected = 0  # refused by a window check (issue 19), among the failed
         self._non_monotonic = 0
         self._live_only = 0  # unrefined frames not predicted again: served live only
+        self._released = 0  # queued frames whose image the backlog bound released
         self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
         self._cancelled = False
         self._last_input = time.monotonic()
@@ -307,6 +318,7 @@ class StreamProcessor:
                 dropped, _ = self._queue.popleft()
                 self._dropped["overflow"] += 1
             self._queue.append((frame, intrinsics))
+            self._release_backlog()
             self._last_input = time.monotonic()
             self._cv.notify_all()
         if dropped is not None:
@@ -314,6 +326,21 @@ class StreamProcessor:
                             f"input queue full (max_pending={self.settings.max_pending}): dropped "
                             f"the oldest pending frame (stamp {dropped.stamp:.6f}); "
                             f"{self._dropped['overflow']} dropped so far")
+
+    def _release_backlog(self) -> None:
+        """The backlog bound (module docstring); called under ``self._cv``."""
+        s = self.settings
+        if s.republish_unrefined or s.overload_pending <= 0:
+            return
+        keep = s.overload_pending + s.window_size
+        held = sum(f.image is not RELEASED_IMAGE for f, _ in self._queue)
+        for i, (f, intr) in enumerate(self._queue):
+            if held <= keep:
+                break
+            if f.image is not RELEASED_IMAGE and f.served_live:
+                self._queue[i] = (dataclasses.replace(f, image=RELEASED_IMAGE), intr)
+                self._released += 1
+                held -= 1
 
     def reject(self, reason_key: str, message: str, frame: Frame | None = None) -> None:
         """Count a received frame that is not processed at all (bad image, no intrinsics...)."""
@@ -398,6 +425,7 @@ class StreamProcessor:
                 "unrefined": sum(self._unrefined_n.values()),
                 "unrefined_by_reason": dict(self._unrefined_n),
                 "live_only": self._live_only,
+                "backlog_released": self._released,
                 "dropped": sum(self._dropped.values()),
                 "dropped_by_reason": dict(self._dropped),
                 "pending": len(self._queue) + len(self._taken),
@@ -458,6 +486,16 @@ class StreamProcessor:
             outs += self._flush_unrefined("stamp_jump_back", "stamp went back: window reset")
             self._kf_stamp = self._kf_thumb = None
         self._last_stamp = frame.stamp
+
+        if frame.image is RELEASED_IMAGE:  # the backlog bound took its image: no window
+            reason = (f"overload: more than overload_pending + window_size = "
+                      f"{s.overload_pending + s.window_size} frames queued; image released "
+                      "(served live)")
+            self._warn("overload", reason)
+            outs += self._flush_unrefined("overload", reason)
+            self._kf_stamp = self._kf_thumb = None
+            outs += self._unrefined([frame], "overload", reason)
+            return outs
 
         if frame.size != (intr.width, intr.height):
             outs += self._unrefined([frame], "intrinsics_mismatch",
@@ -621,7 +659,8 @@ class StreamProcessor:
         if not frames:
             return []
         again = self.settings.republish_unrefined
-        todo = [f for f in frames if again or not f.served_live]
+        todo = [f for f in frames
+                if f.image is not RELEASED_IMAGE and (again or not f.served_live)]
         depths: dict[int, np.ndarray] = {}
         if todo:
             try:
