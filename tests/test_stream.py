@@ -198,6 +198,13 @@ def test_overload_skips_refinement_until_the_queue_drains():
     assert c["windows_skipped"] == 2 and c["unrefined_by_reason"] == {"overload": 4}
 
 
+def overloaded_stream(ttr, republish: bool) -> StreamProcessor:
+    """Windows of 2, refinement skipped while more than 2 frames wait (backlog bound: 4)."""
+    return StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
+                                               overload_pending=2, max_pending=50,
+                                               republish_unrefined=republish))
+
+
 def test_frames_served_live_are_not_predicted_again_unless_republished():
     class CountingTTR(ScriptedTTR):
         predicted = 0
@@ -208,9 +215,7 @@ def test_frames_served_live_are_not_predicted_again_unless_republished():
 
     for republish in (False, True):
         ttr = CountingTTR()
-        stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
-                                                     overload_pending=2, max_pending=50,
-                                                     republish_unrefined=republish))
+        stream = overloaded_stream(ttr, republish)
         fs = frames(8)
         for f in fs:
             stream.submit(f, INTR)
@@ -232,9 +237,7 @@ def test_frames_served_live_are_not_predicted_again_unless_republished():
 def test_the_backlog_keeps_the_images_of_overload_pending_plus_window_size_frames():
     for republish in (False, True):
         ttr = ScriptedTTR()
-        stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
-                                                     overload_pending=2, max_pending=50,
-                                                     republish_unrefined=republish))
+        stream = overloaded_stream(ttr, republish)
         fs = frames(10)
         for f in fs:
             f.served_live = f.index != 1  # frame 1: the live output skipped it
