@@ -86,6 +86,8 @@ def main() -> int:
     ap.add_argument("--runs", nargs="+", required=True, metavar="NAME=DIR")
     ap.add_argument("--mode", default="sfm_ttr_online")
     ap.add_argument("--baseline", default="no_ttr", help="also draw this mode of the first run")
+    ap.add_argument("--baseline-run", metavar="DIR", help="take --baseline from this run's "
+                    "per_frame.csv instead (e.g. a no_ttr run beside live-only runs)")
     ap.add_argument("--block", type=int, default=15, help="frames per point (one window)")
     ap.add_argument("--out", required=True, help="figure path (.png); a .json is written beside")
     args = ap.parse_args()
@@ -96,7 +98,7 @@ def main() -> int:
         curves[name] = blocks(idx, val, args.block)
         summary[name] = thirds(idx, val)
         if k == 0 and args.baseline:
-            bidx, bval = read_curve(Path(folder), args.baseline)
+            bidx, bval = read_curve(Path(args.baseline_run or folder), args.baseline)
             curves[args.baseline] = blocks(bidx, bval, args.block)
             summary[args.baseline] = thirds(bidx, bval)
     out = Path(args.out)
