@@ -412,6 +412,7 @@ def test_real_windows_on_a_synthetic_street(sequence):
     assert np.isfinite(w.loss_before) and np.isfinite(w.loss_after)
     assert w.cloud_xyz.shape == (w.points, 3) and w.cloud_frame is not None
     assert w.cloud_frame.name in w.names and {"sfm", "refine"} <= set(w.timings)
+    assert w.cloud_frame.image is RELEASED_IMAGE  # the history keeps no pixels
     for o in outs:
         assert o.depth.shape == (96, 320) and o.depth.dtype == np.float32
 
