@@ -38,6 +38,7 @@ def _libc_function(name: str):
         return None
 
 
+@functools.cache
 def _malloc_trim():
     trim = _libc_function("malloc_trim")
     if trim is not None:

@@ -136,6 +136,14 @@ class StreamSettings:
     # again for the windowed output (FrameOutput.depth None; counted under its reason as before)
     republish_unrefined: bool = False
 
+    @property
+    def backlog_images(self) -> int:
+        """Queued frames that keep their image under the backlog bound (module docstring);
+        0 = no bound (unrefined frames are republished, or no overload rule)."""
+        if self.republish_unrefined or self.overload_pending <= 0:
+            return 0
+        return self.overload_pending + self.window_size
+
     def __post_init__(self) -> None:
         if self.window_size < 2:
             raise InputError(f"window_size must be >= 2, got {self.window_size}")
@@ -330,10 +338,9 @@ class StreamProcessor:
 
     def _release_backlog(self) -> None:
         """The backlog bound (module docstring); called under ``self._cv``."""
-        s = self.settings
-        if s.republish_unrefined or s.overload_pending <= 0:
+        keep = self.settings.backlog_images
+        if not keep or len(self._queue) <= keep:  # the common case: nothing to count
             return
-        keep = s.overload_pending + s.window_size
         held = sum(f.image is not RELEASED_IMAGE for f, _ in self._queue)
         for i, (f, intr) in enumerate(self._queue):
             if held <= keep:
@@ -489,9 +496,8 @@ class StreamProcessor:
         self._last_stamp = frame.stamp
 
         if frame.image is RELEASED_IMAGE:  # the backlog bound took its image: no window
-            reason = (f"overload: more than overload_pending + window_size = "
-                      f"{s.overload_pending + s.window_size} frames queued; image released "
-                      "(served live)")
+            reason = ("overload: image released by the backlog bound (overload_pending + "
+                      "window_size images kept); served live")
             self._warn("overload", reason)
             outs += self._flush_unrefined("overload", reason)
             self._kf_stamp = self._kf_thumb = None
