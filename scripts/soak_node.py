@@ -32,6 +32,7 @@ import argparse
 import json
 import os
 import random
+import shlex
 import signal
 import subprocess
 import sys
@@ -243,7 +244,9 @@ def run(args: argparse.Namespace) -> dict:
     print(f"soak: rendering a {args.drive_frames}-frame {KITTI_W}x{KITTI_H} drive", flush=True)
     seq = make_sequence(seed=args.seed, domain="A", num_frames=args.drive_frames, width=KITTI_W,
                         height=KITTI_H)
-    cmd = [args.exe, "--ros-args", "--params-file", args.params_file]
+    # the node runs in the output folder: paths of the command made absolute first
+    exe = [str(Path(t).absolute()) if Path(t).exists() else t for t in shlex.split(args.exe)]
+    cmd = [*exe, "--ros-args", "--params-file", args.params_file]
     for o in args.param or []:
         cmd += ["-p", o]
     log_path = out / "refiner.log"
@@ -262,7 +265,7 @@ def run(args: argparse.Namespace) -> dict:
         listener = subprocess.Popen(
             [sys.executable, __file__, "--listen-live", str(live_file)]
             + (["--live-best-effort"] if args.live_best_effort else []), env=os.environ.copy())
-    rclpy.init()
+    rclpy.init(args=[sys.argv[0]])  # the soak's own flags (-p name:=value) are not ROS arguments
     c = None
     rss: list[tuple[float, float]] = []
     node_live: list[tuple] = []  # (t, node p95, node max, publish max, live skipped, steal)
@@ -419,7 +422,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=30.0)
     ap.add_argument("--rate", type=float, default=10.0, help="frames per second")
     ap.add_argument("--out", default="soak_out", help="folder for soak.json, soak.png, the log")
-    ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"))
+    ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"),
+                    help="the node's command (split like a shell line), e.g. "
+                    "'.venv/bin/python scripts/heap_probe.py' for the heap probe")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
     ap.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE")
     ap.add_argument("--drive-frames", type=int, default=30, help="length of the looped drive")

@@ -38,3 +38,24 @@ def test_arenas_are_limited_unless_the_environment_says_otherwise(monkeypatch):
     assert heap.limit_arenas(2) is False  # the user's value stands
     with pytest.raises(ValueError):
         heap.limit_arenas(0)
+
+
+def test_a_large_array_gets_its_own_mapping_and_returns_it_when_dropped():
+    """in_own_mapping: the same pixels, writeable, backed by an mmap of its own whose pages go
+    back to the OS the moment the last reference goes (no malloc_trim needed)."""
+    import mmap
+
+    src = np.random.default_rng(0).integers(0, 255, (375, 1242, 3), dtype=np.uint8)
+    img = heap.in_own_mapping(src)
+    assert np.array_equal(img, src) and img.flags.writeable and img.flags.c_contiguous
+    owner = img
+    while isinstance(owner, np.ndarray):  # the reshaped view -> the flat view -> the buffer
+        owner = owner.base
+    assert isinstance(owner.obj if isinstance(owner, memoryview) else owner, mmap.mmap)
+    small = np.zeros((8, 8, 3), np.uint8)
+    assert heap.in_own_mapping(small) is small  # under OWN_MAPPING_MIN_BYTES: as it is
+    if sys.platform.startswith("linux"):
+        big = heap.in_own_mapping(np.ones(48 << 20, np.uint8))  # 48 MB, touched by the copy
+        before = rss_anon_mib()
+        del big
+        assert before - rss_anon_mib() > 40

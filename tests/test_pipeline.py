@@ -373,6 +373,8 @@ def test_a_rejected_window_leaves_continual_weights_and_replay_untouched(run, mo
     monkeypatch.setattr(ttr.config, "weight_policy", "continual")
     first = ttr.process_window(run.window, run.intr)  # accepted: weights and replay move on
     assert first.refined and len(ttr._replay) == 1
+    # the replay keeps its frames at the network's input size (0.16 MB, not 1.4 MB, at KITTI's)
+    assert {s.image.shape[:2] for s in ttr._replay[0]} == {tuple(ttr.model.input_size)}
     kept = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
     monkeypatch.setattr(ttr.config.check, "holdout_fraction", 0.2)
     monkeypatch.setattr(ttr.config.check, "holdout_margin", 0.9)

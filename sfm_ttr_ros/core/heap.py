@@ -14,6 +14,9 @@ the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). Not glibc (musl, 
 arena of their own. The node sets 2 at start-up (:data:`NODE_ARENAS`) unless the environment
 sets ``MALLOC_ARENA_MAX``: in a 2.5-min soak the peak RSS fell from 1618 to 1500 MiB and the
 final from 1048 to 825 MiB, live latency unchanged (BENCHMARKS.md section 6e).
+
+:func:`in_own_mapping` keeps a large long-lived buffer (the node's decoded frames) out of the
+heap altogether, in an anonymous mapping of its own.
 """
 
 from __future__ import annotations
@@ -21,12 +24,18 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import mmap
 import os
+
+import numpy as np
 
 #: glibc's ``M_ARENA_MAX`` option of ``mallopt``.
 M_ARENA_MAX = -8
 #: Arenas the node allows (:func:`limit_arenas`).
 NODE_ARENAS = 2
+#: Arrays at least this large get a mapping of their own (:func:`in_own_mapping`); a mapping
+#: costs a system call and its page faults, so small frames stay in the heap.
+OWN_MAPPING_MIN_BYTES = 256 * 1024
 
 
 @functools.cache
@@ -66,3 +75,26 @@ def release_free_heap() -> bool:
     library has no malloc_trim)."""
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
+
+
+
+def in_own_mapping(array: np.ndarray) -> np.ndarray:
+    """``array`` copied into an anonymous memory mapping of its own (C order), which goes back
+    to the operating system (munmap) as soon as the last reference to it does; an array under
+    :data:`OWN_MAPPING_MIN_BYTES` is returned as it is.
+
+    For large buffers that arrive at a steady rate and live for seconds: the node's frames,
+    which wait in the window queue while a window allocates and frees hundreds of MB around
+    them. In glibc's heap each queued 1.4 MB image pins the pages around it, the window's freed
+    memory cannot be returned and the arena grows (fragmentation); in a 2.5-min soak of the
+    node the arena grew 600 -> 1010 MB with the images in the heap and 600 -> 760 MB with each
+    in its own mapping, peak RSS 1314 -> 1239 MiB (BENCHMARKS.md section 6f). The copy costs
+    ~0.2 ms for a KITTI frame (page faults included)."""
+    if array.nbytes < OWN_MAPPING_MIN_BYTES:
+        return array
+    private = getattr(mmap, "MAP_PRIVATE", None)  # not shared memory (Windows: no flags)
+    buf = (mmap.mmap(-1, array.nbytes) if private is None
+           else mmap.mmap(-1, array.nbytes, flags=private))
+    out = np.frombuffer(buf, dtype=array.dtype, count=array.size).reshape(array.shape)
+    out[...] = array
+    return out

@@ -37,6 +37,7 @@ from sfm_ttr_ros.core.serving import finite_state
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
 from sfm_ttr_ros.core.supervision import (
     FrameSupervision,
+    at_size,
     build_supervision,
     frame_loss,
     sample_at,
@@ -86,7 +87,11 @@ class TTRConfig:
     # many times its loss before (or anything is non-finite); 0 = only the non-finite check.
     max_loss_ratio: float = 2.0
     min_supervision_points: int = 50  # fewer selected points in the window: do not refine
-    predict_batch: int = 8
+    # Frames per forward pass of the window's predictions. 2 on CPU: a window's 15 KITTI-size
+    # frames in 0.44 s (1 thread) / 0.25 s (2 threads) against 0.45-0.60 / 0.31-0.34 s with 8,
+    # and +45 MiB of RSS at the peak against +220-237 MiB (scripts/predict_batch.py,
+    # BENCHMARKS.md section 6f).
+    predict_batch: int = 2
     # Reuse a prediction made with the same weights for the same pixels instead of running the
     # network again (the overlap frames of consecutive windows: the previous window's refined
     # prediction is the next window's "before"). The same numbers as computing it again (up to
@@ -421,7 +426,7 @@ class SfmTTR:
         if math.isfinite(c.unsupported_change):
             self._unsupported.append(c.unsupported_change)
         if continual and cfg.replay_windows > 0:
-            self._replay.append(sup)
+            self._replay.append(self._replay_frames(sup))
             while len(self._replay) > cfg.replay_windows:
                 self._replay.popleft()
         self._cloud(res, sfm, reg)
@@ -510,6 +515,16 @@ class SfmTTR:
             return []
         return prepare_frames(self.model, names, images, sfm.frames, scale, intrinsics,
                               r.photometric_config())
+
+    def _replay_frames(self, sup: list[FrameSupervision]) -> list[FrameSupervision]:
+        """A window's supervision as the replay keeps it: with a model that resizes its input
+        itself (:meth:`DepthModel.preprocess`) each image at the network's input size
+        (:func:`~sfm_ttr_ros.core.supervision.at_size`; 3 windows of 15 KITTI frames: 7 MB
+        instead of 63 MB); other models' images as they are."""
+        size = tuple(getattr(self.model, "input_size", ()))
+        if len(size) != 2 or type(self.model).preprocess is not DepthModel.preprocess:
+            return list(sup)
+        return [at_size(s, size) for s in sup]
 
     @staticmethod
     def _cloud(res: WindowResult, sfm: SfmResult, reg: list[str]) -> None:

@@ -243,16 +243,15 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     params = select_trainable(model, cfg.trainable, cfg.lora_rank, frozen,
                               blocks=cfg.trainable_blocks)
     set_bn_mode(model, cfg.bn_mode)
-    # Everything per frame that does not change between steps is prepared once: the input, the
-    # sampling grid, targets, weights and, with frozen leading stages, their outputs.
+    # Everything per frame that does not change between steps is prepared once: the sampling
+    # grid, targets, weights and, for this window's frames, the input (with frozen leading
+    # stages, their outputs). A replayed frame's input is made when a step draws it: with
+    # replay_ratio 0.5 about half of 3 windows' frames are drawn, and caching all of them held
+    # ~0.85 MB each (at 416x128) for the whole window.
     inputs, grids, targets, weights = [], [], [], []
-    for s in usable:
+    for k, s in enumerate(usable):
         h, w = s.image.shape[:2]
-        x = model.preprocess(s.image)
-        if frozen:
-            with torch.no_grad():
-                x = model.staged_encoder.forward_stages(x, 0, frozen, [])
-        inputs.append(x)
+        inputs.append(_step_input(model, s, frozen) if k < n_own else None)
         grids.append(normalized_grid(s.pixels, w, h).to(device))
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
         weights.append(torch.as_tensor(s.weights, dtype=torch.float32, device=device))
@@ -275,7 +274,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
                 if not order:
                     order = list(rng.permutation(n_own))
                 j = order.pop()
-            loss = _step_loss(model, inputs[j], frozen, (grids[j], targets[j], weights[j]),
+            x = inputs[j] if inputs[j] is not None else _step_input(model, usable[j], frozen)
+            loss = _step_loss(model, x, frozen, (grids[j], targets[j], weights[j]),
                               by_name.get(usable[j].name), cfg, photometric_cfg)
             total = loss
             if pull:
@@ -304,6 +304,16 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
             p.requires_grad_(False)
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _step_input(model: DepthModel, s: FrameSupervision, frozen_stages: int):
+    """A frame's network input; with frozen leading stages their (output, features), computed
+    without a graph (they never change during a refinement)."""
+    x = model.preprocess(s.image)
+    if frozen_stages:
+        with torch.no_grad():
+            x = model.staged_encoder.forward_stages(x, 0, frozen_stages, [])
+    return x
 
 
 def _anchor_pairs(model: DepthModel, params: Sequence[torch.nn.Parameter],

@@ -288,7 +288,8 @@ class RefinerNode(Node):
         that cannot be read (any exception: it is the message that is bad) is dropped and
         counted as ``bad_image``."""
         try:
-            rgb = decode(msg)
+            # queued frames live outside the malloc heap (core/heap.py: fragmentation)
+            rgb = heap.in_own_mapping(decode(msg))
             stamp_ns = stamp_to_ns(msg.header.stamp)
             frame = Frame(index=self.stream.counters()["received"] + self.intrinsics.held,
                           image=rgb, stamp=stamp_to_seconds(msg.header.stamp),
