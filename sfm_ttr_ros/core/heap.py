@@ -77,7 +77,6 @@ def release_free_heap() -> bool:
     return bool(trim(0)) if trim is not None else False
 
 
-
 def in_own_mapping(array: np.ndarray) -> np.ndarray:
     """``array`` copied into an anonymous memory mapping of its own (C order), which goes back
     to the operating system (munmap) as soon as the last reference to it does; an array under
@@ -86,10 +85,10 @@ def in_own_mapping(array: np.ndarray) -> np.ndarray:
     For large buffers that arrive at a steady rate and live for seconds: the node's frames,
     which wait in the window queue while a window allocates and frees hundreds of MB around
     them. In glibc's heap each queued 1.4 MB image pins the pages around it, the window's freed
-    memory cannot be returned and the arena grows (fragmentation); in a 2.5-min soak of the
-    node the arena grew 600 -> 1010 MB with the images in the heap and 600 -> 760 MB with each
-    in its own mapping, peak RSS 1314 -> 1239 MiB (BENCHMARKS.md section 6f). The copy costs
-    ~0.2 ms for a KITTI frame (page faults included)."""
+    memory cannot be returned and the arenas grow (fragmentation); in a 2.5-min soak of the
+    node the arenas grew 673 -> 1010 MB from frame 100 to the peak with the images in the heap
+    and 602 -> 759 MB with each in its own mapping, peak RSS over frame 100's +22.8 % -> +12.9 %
+    (BENCHMARKS.md section 6f). Cost: ~0.7 ms per 1242x375 frame (copy, page faults, munmap)."""
     if array.nbytes < OWN_MAPPING_MIN_BYTES:
         return array
     private = getattr(mmap, "MAP_PRIVATE", None)  # not shared memory (Windows: no flags)
