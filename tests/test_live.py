@@ -20,7 +20,12 @@ from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.refinement import RefinementConfig, refine_encoder, snapshot_encoder
 from sfm_ttr_ros.core.serving import ServingModel
 from sfm_ttr_ros.core.stream import reason_key_of
-from sfm_ttr_ros.core.supervision import FrameSupervision, at_size, frame_loss, normalized_grid
+from sfm_ttr_ros.core.supervision import (
+    FrameSupervision,
+    at_network_size,
+    frame_loss,
+    normalized_grid,
+)
 
 small_model = partial(tiny_model, (32, 48), downsample=False)
 IMAGE = np.random.default_rng(0).integers(0, 255, (32, 48, 3), dtype=np.uint8)
@@ -166,23 +171,24 @@ def test_replay_trains_on_earlier_windows_and_the_anchor_holds_the_weights(one_t
 
 
 def test_replay_keeps_its_frames_at_the_network_size_and_trains_alike(one_thread):
-    """What the continual policy's replay stores of an earlier frame (at_size): the image at the
-    network's input size, pixels moved so that they sample the same points of any depth map;
-    refining with it replayed is refining with the full-size frame (up to uint8 rounding)."""
+    """What the continual policy's replay stores of an earlier frame (at_network_size): the
+    image at the network's input size, pixels moved so that they sample the same points of any
+    depth map; refining with it replayed is refining with the full-size frame (up to uint8
+    rounding)."""
     rng = np.random.default_rng(4)
     yy, xx = np.mgrid[0:64, 0:96]
     smooth = np.dstack([xx * 2, yy * 3, (xx + yy) % 256]).astype(np.uint8)
     full = FrameSupervision("old-0", smooth, np.c_[rng.uniform(0, 95, 300),
                                                   rng.uniform(0, 63, 300)],
                             np.full(300, 3.0), np.ones(300))
-    small = at_size(full, (32, 48))
+    small = at_network_size(full, small_model())  # input size 32 x 48
     assert small.image.shape == (32, 48, 3) and small.image.dtype == np.uint8
     assert full.image.shape == (64, 96, 3)  # the original is left alone
     assert torch.allclose(normalized_grid(small.pixels, 48, 32),
                           normalized_grid(full.pixels, 96, 64), atol=1e-6)
     depth = 5.0 + (np.mgrid[0:64, 0:96][1] / 95.0).astype(np.float32)
     assert frame_loss(depth, small) == pytest.approx(frame_loss(depth, full), rel=1e-6)
-    assert at_size(small, (32, 48)) is small  # never enlarged
+    assert at_network_size(small, small_model()) is small  # never enlarged
     cfg = RefinementConfig(steps=30, lr=1e-2, seed=0)
     new = supervision(12.0, 2)
     a, b = small_model(), small_model()

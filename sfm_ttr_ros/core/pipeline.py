@@ -37,7 +37,7 @@ from sfm_ttr_ros.core.serving import finite_state
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
 from sfm_ttr_ros.core.supervision import (
     FrameSupervision,
-    at_size,
+    at_network_size,
     build_supervision,
     frame_loss,
     sample_at,
@@ -517,14 +517,15 @@ class SfmTTR:
                               r.photometric_config())
 
     def _replay_frames(self, sup: list[FrameSupervision]) -> list[FrameSupervision]:
-        """A window's supervision as the replay keeps it: with a model that resizes its input
-        itself (:meth:`DepthModel.preprocess`) each image at the network's input size
-        (:func:`~sfm_ttr_ros.core.supervision.at_size`; 3 windows of 15 KITTI frames: 7 MB
-        instead of 63 MB); other models' images as they are."""
-        size = tuple(getattr(self.model, "input_size", ()))
-        if len(size) != 2 or type(self.model).preprocess is not DepthModel.preprocess:
+        """A window's supervision as the replay keeps it: with a model whose input is the image
+        resized to ``input_size`` (:meth:`DepthModel.preprocess`) each image at that size
+        (:func:`~sfm_ttr_ros.core.supervision.at_network_size`; 3 windows of 15 KITTI frames:
+        7 MB instead of 63 MB); other models' images (normalised, or sized by their own
+        processor) as they are."""
+        if (len(tuple(getattr(self.model, "input_size", ()))) != 2
+                or type(self.model).preprocess is not DepthModel.preprocess):
             return list(sup)
-        return [at_size(s, size) for s in sup]
+        return [at_network_size(s, self.model) for s in sup]
 
     @staticmethod
     def _cloud(res: WindowResult, sfm: SfmResult, reg: list[str]) -> None:

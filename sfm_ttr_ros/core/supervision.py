@@ -23,6 +23,7 @@ from sfm_ttr_ros.core.alignment_affine import (
     FrameAffineAlignment,
     affine_targets,
 )
+from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.sfm import SfmResult
 
 
@@ -42,20 +43,18 @@ class FrameSupervision:
         return int(self.target.shape[0])
 
 
-def at_size(s: FrameSupervision, size: tuple[int, int]) -> FrameSupervision:
-    """``s`` with its image resized to ``size`` (h, w) as a network's input is (float bilinear,
-    antialiased, :meth:`~sfm_ttr_ros.core.models.base.DepthModel.preprocess`) and rounded to
-    uint8, its pixels moved with it: p' = (p + ½)·w'/w − ½, so :func:`normalized_grid` gives
-    the same coordinates. What the continual policy's replay keeps of an earlier window's
-    frame: a 1242x375 KITTI image is 1.4 MB, at the default network's 416x128 0.16 MB.
-    Unchanged when the image is not larger than ``size``."""
+def at_network_size(s: FrameSupervision, model: DepthModel) -> FrameSupervision:
+    """``s`` with its image as ``model`` sees it (:meth:`DepthModel.preprocess` at
+    ``input_size``, rounded back to uint8) and its pixels moved with it: p' = (p + ½)·w'/w − ½,
+    so :func:`normalized_grid` gives the same coordinates. What the continual policy's replay
+    keeps of an earlier window's frame: a 1242x375 KITTI image is 1.4 MB, at the default
+    network's 416x128 0.16 MB. Unchanged when the image is not larger than the input."""
     h, w = s.image.shape[:2]
-    th, tw = int(size[0]), int(size[1])
+    th, tw = model.input_size
     if th >= h and tw >= w:
         return s
-    x = torch.from_numpy(np.ascontiguousarray(s.image)).permute(2, 0, 1)[None].float() / 255.0
-    x = F.interpolate(x, size=(th, tw), mode="bilinear", align_corners=False, antialias=True)
-    image = (x[0].permute(1, 2, 0) * 255.0).round().clamp(0, 255).to(torch.uint8).numpy()
+    x = model.preprocess(s.image)[0].permute(1, 2, 0)
+    image = (x * 255.0).round().clamp(0, 255).to(torch.uint8).cpu().numpy()
     pixels = np.asarray(s.pixels, np.float64).copy()
     pixels[:, 0] = (pixels[:, 0] + 0.5) * tw / w - 0.5
     pixels[:, 1] = (pixels[:, 1] + 0.5) * th / h - 0.5
