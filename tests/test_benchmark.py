@@ -504,3 +504,29 @@ def test_bad_input_is_a_clear_error(data, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
     with pytest.raises(SystemExit):
         cli(kitti_args(data, tmp_path / "o", "--modes", "sideways"))
+
+
+def test_live_frames_skipped_for_overflow_are_counted_not_lost(data, tmp_path, monkeypatch):
+    """A live frame the serving queue drops (overflow) is reported under not_published with its
+    reason, not as a frame that never came out: processed + not published = fed."""
+    import time
+
+    from sfm_ttr_ros.core.serving import ServingModel
+
+    real = ServingModel.predict
+
+    def slow(self, image):
+        time.sleep(0.03)
+        return real(self, image)
+
+    monkeypatch.setattr(ServingModel, "predict", slow)
+    out = tmp_path / "live"
+    argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "2",
+                      "--modes", "sfm_ttr_live", "--rate", "200", "--set", "live_max_queue=1")
+    assert cli(argv) == 0
+    r = json.loads((out / "results.json").read_text())["sfm_ttr_live"]
+    skipped = r["live_counters"]["skipped"].get("overflow", 0)
+    assert skipped > 0
+    assert r["not_published"] == {"live_overflow": skipped} and r["lost_frames"] == 0
+    assert r["processed_frames"] + skipped == N_FRAMES
+    assert r["warm_up_s"] > 0

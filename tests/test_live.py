@@ -461,3 +461,106 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     assert online.stream.last_window.reason_key == "check_unsupported_change"
     assert (c["version"], c["serving_reverts"]) == (0, 0)
     assert np.array_equal(online.serving.predict(IMAGE)[0], start)
+
+
+@pytest.mark.parametrize("loss", ["sfm", "hybrid"])
+def test_the_worker_warm_up_runs_the_configured_steps_on_a_copy(monkeypatch, loss):
+    """warm_up_refinement runs WARM_UP_STEPS steps of the configured objective (hybrid: with
+    photometric frames) on a throw-away copy; the model's weights and flags stay as they were."""
+    from sfm_ttr_ros.core import refinement
+
+    model = small_model(seed=0)
+    before = snapshot_encoder(model)
+    grads = [p.requires_grad for p in model.parameters()]
+    runs = []
+    real = refinement.refine_encoder
+
+    def spy(twin, frames, cfg, **kw):
+        result = real(twin, frames, cfg, **kw)
+        runs.append((twin is model, cfg.loss, len(kw.get("photometric", [])), result.steps_done))
+        return result
+
+    monkeypatch.setattr(refinement, "refine_encoder", spy)
+    seconds = refinement.warm_up_refinement(model, RefinementConfig(steps=70, loss=loss))
+    assert seconds > 0
+    assert runs == [(False, loss, 2 if loss == "hybrid" else 0, refinement.WARM_UP_STEPS)]
+    after = model.encoder.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert [p.requires_grad for p in model.parameters()] == grads
+
+
+def test_the_window_warm_up_predicts_a_batch_and_refines_a_copy(monkeypatch):
+    """SfmTTR.warm_up: one forward pass of predict_batch frames at the network's input size (not
+    cached, not counted as frames) and warm_up_refinement with the window's settings."""
+    from sfm_ttr_ros.core import pipeline
+
+    ttr = SfmTTR(small_model(seed=0), TTRConfig(predict_batch=3))
+    batches, refinements = [], []
+    real_predict = ttr.model.predict
+    monkeypatch.setattr(ttr.model, "predict",
+                        lambda images: batches.append([im.shape for im in images])
+                        or real_predict(images))
+    monkeypatch.setattr(pipeline, "warm_up_refinement",
+                        lambda model, cfg: refinements.append((model, cfg)) or 0.0)
+    try:
+        assert ttr.warm_up() > 0
+    finally:
+        ttr.close()
+    assert batches == [[(32, 48, 3)] * 3]
+    assert refinements == [(ttr.model, ttr.config.refinement)]
+    assert ttr.predictions_computed == 0
+
+
+def test_live_and_worker_warm_ups_run_in_their_own_threads_before_start_returns():
+    """OnlineRefiner.start returns only after the worker's refinement warm-up (in the worker
+    thread) and the serving warm-up (in the live-server thread): on CUDA each thread makes its own
+    library handles at its first use, which no live frame or first window should pay."""
+    from sfm_ttr_ros.core.online import OnlineRefiner
+
+    threads = []
+    ttr = SfmTTR(small_model(seed=0), TTRConfig())
+    real_window_warm_up = ttr.warm_up
+
+    def window_warm_up():
+        time.sleep(0.2)
+        real_window_warm_up()
+        threads.append(("refinement", threading.current_thread().name))
+        return 0.2
+
+    ttr.warm_up = window_warm_up
+    online = OnlineRefiner(ttr)
+    real_serving_warm_up = online.serving.warm_up
+
+    def serving_warm_up():
+        time.sleep(0.2)
+        real_serving_warm_up()
+        threads.append(("serving", threading.current_thread().name))
+
+    online.serving.warm_up = serving_warm_up
+    try:
+        online.start()
+        assert threads == [("refinement", "refiner-worker"), ("serving", "live-server")]
+        assert online.warm_up_s == 0.2
+    finally:
+        online.stop()
+        ttr.close()
+
+
+def test_a_failed_warm_up_is_logged_and_serving_goes_on(caplog):
+    model = small_model(seed=0)
+    got = []
+    server = LiveServer(ServingModel(model), got.append)
+
+    def broken():
+        raise RuntimeError("no device")
+
+    with caplog.at_level("WARNING"):
+        server.start(warm_up=broken)
+    try:
+        server.submit(Frame(0, IMAGE, name="f0"))
+        assert server.drain(timeout=10.0)
+    finally:
+        server.stop()
+    assert len(got) == 1 and server.published == 1
+    assert any("warm-up failed" in r.getMessage() and "no device" in r.getMessage()
+               for r in caplog.records)

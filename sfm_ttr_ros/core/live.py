@@ -49,6 +49,8 @@ LIVE_SKIP_REASONS = {
 }
 
 
+#: How long :meth:`LiveServer.start` (and the window worker's start) waits for a warm-up, s.
+WARM_UP_WAIT_S = 120.0
 #: How many of the newest published frames the latency figures cover.
 LATENCY_WINDOW = 100
 #: The keys of :func:`latency_figures` (also /diagnostics' ``live.<key>``).
@@ -125,9 +127,18 @@ class LiveServer:
             self._cv.notify()
 
     # -- serving --------------------------------------------------------------------------
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="live-server", daemon=True)
+    def start(self, warm_up: Callable[[], object] | None = None) -> None:
+        """Start the serving thread. ``warm_up`` (e.g. :meth:`ServingModel.warm_up`) runs first
+        IN that thread, and this returns once it is done (at most :data:`WARM_UP_WAIT_S`): on
+        CUDA each thread makes its own cuDNN / cuBLAS handles at its first prediction, which a
+        live frame should not wait for. A warm-up that fails is logged; serving starts anyway."""
+        ready = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(warm_up, ready),
+                                        name="live-server", daemon=True)
         self._thread.start()
+        if not ready.wait(WARM_UP_WAIT_S):
+            self.log.warning(f"live serving: warm-up still running after {WARM_UP_WAIT_S:.0f} s; "
+                             f"serving starts behind it")
 
     def stop(self, timeout: float = 3.0) -> None:
         """Stop serving; frames still queued are counted as skipped (``stopped``)."""
@@ -177,7 +188,17 @@ class LiveServer:
         self._warn(key, f"frame {frame.name}: {LIVE_SKIP_REASONS[key]}: "
                         f"{type(exc).__name__}: {exc}")
 
-    def _run(self) -> None:
+    def _run(self, warm_up: Callable[[], object] | None = None,
+             ready: threading.Event | None = None) -> None:
+        try:
+            if warm_up is not None:
+                warm_up()
+        except Exception as exc:  # noqa: BLE001 - a failed warm-up only costs the first frame
+            self.log.warning(f"live serving: warm-up failed ({type(exc).__name__}: {exc}); "
+                             f"the first frame pays the one-time costs")
+        finally:
+            if ready is not None:
+                ready.set()
         while True:
             with self._cv:
                 while not self._queue and not self._stop:

@@ -35,7 +35,7 @@ from collections.abc import Callable
 
 from sfm_ttr_ros.core import heap, openmp
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.live import LiveOutput, LiveServer, lower_thread_priority
+from sfm_ttr_ros.core.live import WARM_UP_WAIT_S, LiveOutput, LiveServer, lower_thread_priority
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.refinement import warm_up_optimiser
 from sfm_ttr_ros.core.serving import ServingModel
@@ -75,6 +75,7 @@ class OnlineRefiner:
         self._threads = settings.worker_threads
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
+        self.warm_up_s = float("nan")  # the worker's warm-up (SfmTTR.warm_up), s
         self.serving_updates = 0
         self.serving_update_errors = 0
         self.serving_previews = 0
@@ -93,19 +94,34 @@ class OnlineRefiner:
 
     # -- threads --------------------------------------------------------------------------------
     def start(self) -> None:
-        """Start serving and the worker, after paying the one-time costs of both paths here
-        (:func:`~sfm_ttr_ros.core.refinement.warm_up_optimiser`, the serving copy's first
-        forward pass) so that no live frame waits behind them."""
+        """Start the worker and serving, each after paying its path's one-time costs in its own
+        thread (:func:`~sfm_ttr_ros.core.refinement.warm_up_optimiser` here; then the worker's
+        :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.warm_up`, then the serving copy's first
+        forward pass), so that no live frame and no first window waits behind them. Returns when
+        both are ready (``warm_up_s`` holds the worker's seconds)."""
         warm_up_optimiser()
-        self.serving.warm_up()
-        self.live.start()
-        self._worker = threading.Thread(target=self._work, name="refiner-worker", daemon=True)
+        ready = threading.Event()
+        self._worker = threading.Thread(target=self._work, args=(ready,), name="refiner-worker",
+                                        daemon=True)
         self._worker.start()
+        if not ready.wait(WARM_UP_WAIT_S):
+            self.log.warning(f"worker: warm-up still running after {WARM_UP_WAIT_S:.0f} s")
+        self.live.start(warm_up=self.serving.warm_up)
 
-    def _work(self) -> None:
+    def _work(self, ready: threading.Event | None = None) -> None:
         lower_thread_priority(self._nice)  # before torch / pycolmap start threads from here
         if self._threads:  # this thread's own OpenMP team (core/openmp.py)
             openmp.set_thread_team(self._threads)
+        try:
+            self.warm_up_s = self.ttr.warm_up()
+        except Exception as exc:  # noqa: BLE001 - a failed warm-up only costs the first window
+            self.log.warning(f"worker: warm-up failed ({type(exc).__name__}: {exc}); the first "
+                             f"window pays the one-time costs")
+        finally:
+            if self._threads:  # again: a path's first use in a thread (oneDNN's) may reset it
+                openmp.set_thread_team(self._threads)
+            if ready is not None:
+                ready.set()
         while not self._stop.is_set():
             try:
                 self.stream.step(timeout=0.1)

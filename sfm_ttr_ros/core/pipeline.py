@@ -32,6 +32,8 @@ from sfm_ttr_ros.core.refinement import (
     refine_encoder,
     restore_encoder,
     snapshot_encoder,
+    warm_up_image,
+    warm_up_refinement,
 )
 from sfm_ttr_ros.core.serving import finite_state
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
@@ -268,6 +270,17 @@ class SfmTTR:
         self._pred_cache.clear()
         self._original_cache.clear()
         self._original_key = None  # until the next reset_model(): nothing is known original
+
+    def warm_up(self) -> float:
+        """Pay a window's one-time costs now, in the calling thread (the window worker's, before
+        its first window; on CUDA kernels load at first use and each thread makes its own
+        cuDNN / cuBLAS handles): the network's forward pass on ``predict_batch`` grey frames
+        (:meth:`_run_network`, nothing cached) and two refinement steps on a copy of the model
+        (:func:`~sfm_ttr_ros.core.refinement.warm_up_refinement`). Returns the seconds."""
+        t0 = time.perf_counter()
+        self._run_network([warm_up_image(self.model)] * max(1, self.config.predict_batch))
+        warm_up_refinement(self.model, self.config.refinement)
+        return time.perf_counter() - t0
 
     def _run_network(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
         out: list[np.ndarray] = []

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.frames import InputError, Intrinsics
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.photometric import (
     PhotometricConfig,
@@ -54,6 +54,7 @@ from sfm_ttr_ros.core.photometric import (
     ScaleOutput,
     parse_offsets,
     photometric_objective,
+    prepare_frames,
     scale_outputs,
 )
 from sfm_ttr_ros.core.supervision import (  # noqa: F401 - frame_loss: part of this stage's API
@@ -406,6 +407,53 @@ def warm_up_optimiser() -> None:
     torch.nn.functional.conv2d(torch.zeros(1, 1, 8, 8), param).sum().backward()
     optimizer.step()
     optimizer.zero_grad(set_to_none=True)
+
+
+#: Steps of :func:`warm_up_refinement`: the first loads the kernels, the second Adam's with state.
+WARM_UP_STEPS = 2
+#: (height, width) of its frames for a model that sizes its own input (``input_size`` ()).
+WARM_UP_FREE_SIZE = (256, 256)
+
+
+def warm_up_image(model: DepthModel) -> np.ndarray:
+    """A grey uint8 RGB frame at ``model``'s input size (:data:`WARM_UP_FREE_SIZE` for a model
+    that sizes its own input): what the warm-ups run through the network."""
+    size = tuple(getattr(model, "input_size", ()) or ())
+    h, w = (int(v) for v in size) if len(size) == 2 else WARM_UP_FREE_SIZE
+    return np.full((h, w, 3), 128, np.uint8)
+
+
+def warm_up_refinement(model: DepthModel, config: RefinementConfig) -> float:
+    """Pay the refinement's one-time costs on ``model``'s device in the CALLING thread, on a
+    throw-away copy of ``model``; returns the seconds it took.
+
+    On CUDA the first refinement of a process loads its kernels and each thread makes its own
+    cuDNN and cuBLAS handles: on an H200 the first window took 9.9 s against 3.1–3.5 s for the
+    next ones, and while it ran the live frames stalled for 1.5 s (BENCHMARKS.md 6h). Run by
+    the window worker before it takes frames, these costs are paid at start-up. Two frames of
+    grey at the network's input size, 1 unit apart sideways, a grid of SfM points at depth 1:
+    :data:`WARM_UP_STEPS` steps of ``config``'s objective (Eq. (5), with the photometric term
+    when ``config`` uses it). ``model`` itself is not touched."""
+    t0 = time.perf_counter()
+    twin = copy.deepcopy(model)
+    image = warm_up_image(twin)
+    h, w = image.shape[:2]
+    ys, xs = np.mgrid[h // 8:h:h // 4, w // 8:w:w // 4]
+    pixels = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+    ones = np.ones(len(pixels), np.float64)
+    frames = [FrameSupervision(name, image, pixels, ones, ones) for name in ("a", "b")]
+    poses = {"a": np.eye(4), "b": np.eye(4)}
+    poses["b"][0, 3] = -1.0
+    cfg = copy.deepcopy(config)
+    cfg.steps, cfg.min_points, cfg.early_stop_patience = WARM_UP_STEPS, 1, 0
+    photometric = (prepare_frames(twin, ["a", "b"], {"a": image, "b": image}, poses, 1.0,
+                                  Intrinsics(w, w, (w - 1) / 2, (h - 1) / 2, w, h),
+                                  cfg.photometric_config())
+                   if cfg.uses_photometric else [])
+    refine_encoder(twin, frames, cfg, photometric=photometric)
+    if twin.device.type == "cuda":
+        torch.cuda.synchronize(twin.device)
+    return time.perf_counter() - t0
 
 
 def snapshot_encoder(model: DepthModel) -> dict[str, torch.Tensor]:

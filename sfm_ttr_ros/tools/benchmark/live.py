@@ -82,6 +82,8 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         windows["windows_rolled_back"] += int(ws.reason_key == "rolled_back")
         # the stream numbers frames in arrival order: name k is the k-th frame fed
         windows["window_log"].append(window_record(ws, lambda n: indices[int(n)]))
+        for k, v in ws.timings.items():
+            run.timings[k] += float(v)
         if progress:
             what = "refined: now served" if ws.refined else f"not refined ({ws.reason})"
             progress(f"sfm_ttr_live: window {ws.index} {what}")
@@ -113,6 +115,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.seconds = fed_s
     lat = np.asarray(latencies, np.float64)
     c = online.counters()
+    run.not_published.update({f"live_{k}": v for k, v in c["live"]["skipped"].items()})
     run.extra.update(windows)
     run.extra.update({
         "policy": cfg.weight_policy,
@@ -123,6 +126,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         "latency_p95_s": float(np.percentile(lat, 95)) if lat.size else float("nan"),
         "latency_max_s": float(lat.max()) if lat.size else float("nan"),
         "forward_s": forward,
+        "warm_up_s": online.warm_up_s,
         "live_counters": c["live"],
         "stream_counters": {k: v for k, v in c.items() if k != "live"},
         "served_versions": sorted(set(versions)),

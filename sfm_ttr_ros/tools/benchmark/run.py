@@ -137,6 +137,9 @@ def run_benchmark(
         s = run.summary(len(indices))
         if s["lost_frames"]:
             log.error("%s: %d frame(s) never came out", mode, s["lost_frames"])
+        if s["not_published"]:
+            log.warning("%s: %d frame(s) skipped and counted: %s", mode,
+                        sum(s["not_published"].values()), s["not_published"])
         if progress:
             progress(f"{mode}: done in {time.perf_counter() - t0:.1f} s "
                      f"({s['seconds_per_frame']:.2f} s/frame), abs rel {s['abs_rel']:.4f}, "

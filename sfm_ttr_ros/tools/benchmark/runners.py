@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -67,6 +67,9 @@ class ModeRun:
         self.seconds = 0.0
         self.timings: dict[str, float] = defaultdict(float)
         self.extra: dict[str, Any] = {}
+        #: Frames the mode itself skipped and counted by reason (the live server's queue
+        #: overflow, ...): not published, so not evaluated, but not lost either.
+        self.not_published: Counter[str] = Counter()
         if depth_dir is not None:
             depth_dir.mkdir(parents=True, exist_ok=True)
 
@@ -102,7 +105,8 @@ class ModeRun:
         out["refined_frames"] = self.refined
         out["unrefined_frames"] = dict(self.reasons)
         out["processed_frames"] = len(self.seen)
-        out["lost_frames"] = len(self.expected - self.seen)
+        out["not_published"] = dict(self.not_published)
+        out["lost_frames"] = len(self.expected - self.seen) - sum(self.not_published.values())
         out["skipped"] = s["skipped"]
         out["skipped_frames"] = s["skipped_frames"]
         out["invalid_pred"] = s["invalid_pred"]
@@ -150,7 +154,8 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
     return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
             "new_frames": ws.new_frames, "refined": ws.refined, "reason_key": ws.reason_key,
             "registered": ws.registered, "points": ws.points, "scale": ws.scale,
-            "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES), "check": check}
+            "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
+            "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check}
 
 
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
