@@ -113,6 +113,8 @@ def test_results_json_has_every_mode_and_key(bench, data):
             assert r[k] > 0 and math.isfinite(r[k])
         assert 0 <= r["a1"] <= r["a2"] <= r["a3"] <= 1
         assert r["seconds_per_frame"] > 0
+        if m.endswith("_online"):  # paid before the first frame, as the node's worker does
+            assert r["warm_up_s"] > 0
     assert res["no_ttr"]["refined_frames"] == 0 and set(res["no_ttr"]["timings"]) == {"predict"}
     for m in MODES[1:]:
         assert res[m]["refined_frames"] > 0

@@ -190,6 +190,8 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 
     stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
                              on_drop=on_drop, logger=log)
+    # the node's worker pays these before its first frame (OnlineRefiner.start): not timed
+    run.extra["warm_up_s"] = ttr.warm_up()
     try:
         for i in indices:
             f = seq.frame(i)
