@@ -43,6 +43,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+#: Seconds per bucket of the report's ``rss_mib.max_per_30s``.
+RSS_BUCKET_S = 30.0
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 from fuzz_node import rss_mib  # noqa: E402
@@ -59,6 +61,17 @@ def cpu_times() -> tuple[float, float]:
 
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
+
+
+def rss_maxima(rss: list[tuple[float, float]], bucket_s: float) -> list[float]:
+    """The RSS's maximum in each ``bucket_s`` seconds of the run ((t, MiB) samples): whether
+    it keeps growing or has reached its level (BENCHMARKS.md 6f: the peak after frame 100
+    is set by the first windows; after them the maxima stay within a few per cent)."""
+    out: dict[int, float] = {}
+    for t, v in rss:
+        k = int(t // bucket_s)
+        out[k] = max(out.get(k, v), v)
+    return [out[k] for k in sorted(out)]
 
 
 def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float, float]],
@@ -389,7 +402,8 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
         "frames_sent": sent, "depth_refined_back": len(refined), "depth_live_back": len(live),
         "warm_up_s": warm, "rss_mib": {"at_warm_up": rss_at_warm, "peak_in_warm_up": peak_warm,
                                        "peak_after_warm_up": peak_after,
-                                       "final": rss[-1][1] if rss else None},
+                                       "final": rss[-1][1] if rss else None,
+                                       "max_per_30s": rss_maxima(rss, RSS_BUCKET_S)},
         "latency_p95_s": p95,
         "latency_median_s": {"refined": percentile([lat for _, lat in refined], 50),
                              "live": percentile([lat for _, lat in live], 50)},
