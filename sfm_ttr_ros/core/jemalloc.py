@@ -1,0 +1,80 @@
+"""Run the node on jemalloc when the system has it (issue 15's memory).
+
+glibc's malloc keeps the memory a window frees inside its arenas, and the freed pieces fragment:
+in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md 6f) the peak RSS was 12–23 % above its
+value at frame 100 in eight runs with glibc (1157–1290 MiB), with the heap in use nearly the
+same at both moments; with jemalloc 5.3 (Debian's and Ubuntu's ``libjemalloc2``) it was +6.1 %
+and +8.8 % (1078 and 1082 MiB) in two runs, live latency the same.
+
+The allocator of a process is chosen when it starts (``LD_PRELOAD``), so :func:`preload`
+re-executes the running command in place (``os.execve``: same PID, arguments, environment and
+open files) with jemalloc preloaded, first thing in the node's ``main``. ``SFM_TTR_MALLOC``
+chooses: ``auto`` (default: jemalloc when :data:`LIBRARY` is in the system's library
+directories), ``glibc`` (never), or the path of a jemalloc library. If the library cannot be
+preloaded after all, the second start says so and runs on glibc (no loop).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import sysconfig
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+#: The environment variable that chooses the allocator: auto, glibc or a library path.
+ENV = "SFM_TTR_MALLOC"
+#: Set in the re-executed process: the library it was started with (the loop guard).
+PRELOADED_ENV = "SFM_TTR_MALLOC_PRELOADED"
+#: jemalloc's shared library (Debian / Ubuntu: ``apt install libjemalloc2``).
+LIBRARY = "libjemalloc.so.2"
+
+
+def search_paths() -> list[Path]:
+    """Where :func:`find` looks: the multiarch library directory, then the usual others."""
+    multiarch = sysconfig.get_config_var("MULTIARCH") or ""
+    dirs = ([f"/usr/lib/{multiarch}"] if multiarch else []) + ["/usr/lib64", "/usr/lib",
+                                                              "/usr/local/lib"]
+    return [Path(d) / LIBRARY for d in dirs]
+
+
+def find() -> str | None:
+    """The path of the system's jemalloc, or None."""
+    return next((str(p) for p in search_paths() if p.is_file()), None)
+
+
+def loaded() -> bool:
+    """Whether this process runs with a jemalloc mapped (Linux' /proc; elsewhere False)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            return any("libjemalloc" in line for line in maps)
+    except OSError:
+        return False
+
+
+def preload(environ: Mapping[str, str] | None = None, argv: list[str] | None = None,
+            execve: Callable[[str, list[str], dict[str, str]], object] = os.execve) -> str:
+    """Re-execute this process with jemalloc preloaded when ``SFM_TTR_MALLOC`` allows it and a
+    jemalloc is found (then it does not return); else a one-line note of the allocator in use,
+    for the node's log. ``argv`` defaults to the command line that started this process."""
+    env = dict(os.environ if environ is None else environ)
+    choice = env.get(ENV, "auto").strip() or "auto"
+    if loaded():
+        return f"malloc: jemalloc ({env.get(PRELOADED_ENV) or 'preloaded'})"
+    if choice == "glibc":
+        return f"malloc: glibc ({ENV}=glibc)"
+    if env.get(PRELOADED_ENV):
+        return f"malloc: glibc ({env[PRELOADED_ENV]} could not be preloaded)"
+    path = find() if choice == "auto" else choice
+    if path is None:
+        return (f"malloc: glibc (no {LIBRARY}: `apt install libjemalloc2` keeps the node's "
+                f"memory flatter, BENCHMARKS.md 6f)")
+    if not Path(path).is_file():
+        return f"malloc: glibc ({ENV}={choice}: no such file)"
+    env["LD_PRELOAD"] = " ".join(p for p in (path, env.get("LD_PRELOAD", "")) if p)
+    env[PRELOADED_ENV] = path
+    execve(sys.executable, list(sys.orig_argv if argv is None else argv), env)
+    return f"malloc: jemalloc ({path}, re-executed)"  # only when execve returns (tests)
+
+
+__all__ = ["ENV", "LIBRARY", "PRELOADED_ENV", "find", "loaded", "preload", "search_paths"]
