@@ -1,16 +1,18 @@
-"""Run the node on jemalloc when the system has it (issue 15's memory).
+"""Run the node on jemalloc, on request (issue 15's memory).
 
 glibc's malloc keeps the memory a window frees inside its arenas, and the freed pieces fragment:
 in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md 6f) the peak RSS was 12–23 % above its
 value at frame 100 in eight runs with glibc (1157–1290 MiB), with the heap in use nearly the
-same at both moments; with jemalloc 5.3 (Debian's and Ubuntu's ``libjemalloc2``) it was +6.1 %
-and +8.8 % (1078 and 1082 MiB) in two runs, live latency the same.
+same at both moments; with jemalloc 5.3 (Debian's and Ubuntu's ``libjemalloc2``) it was 6–9 %
+(1071–1082 MiB) in five runs, live latency the same. The price: a window takes 13–14 % longer
+(jemalloc gives freed pages back and faults them in again; with that switched off its RSS grew
+without bound), so fewer windows keep up at 10 Hz. Hence not the default: ``SFM_TTR_MALLOC``
+chooses ``glibc`` (default), ``jemalloc`` (the system's :data:`LIBRARY`, from its library
+directories) or the path of a jemalloc library.
 
 The allocator of a process is chosen when it starts (``LD_PRELOAD``), so :func:`preload`
 re-executes the running command in place (``os.execve``: same PID, arguments, environment and
-open files) with jemalloc preloaded, first thing in the node's ``main``. ``SFM_TTR_MALLOC``
-chooses: ``auto`` (default: jemalloc when :data:`LIBRARY` is in the system's library
-directories), ``glibc`` (never), or the path of a jemalloc library. If the library cannot be
+open files) with the library preloaded, first thing in the node's ``main``. If it cannot be
 preloaded after all, the second start says so and runs on glibc (no loop).
 """
 
@@ -22,7 +24,7 @@ import sysconfig
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-#: The environment variable that chooses the allocator: auto, glibc or a library path.
+#: The environment variable that chooses the allocator: glibc (default), jemalloc or a path.
 ENV = "SFM_TTR_MALLOC"
 #: Set in the re-executed process: the library it was started with (the loop guard).
 PRELOADED_ENV = "SFM_TTR_MALLOC_PRELOADED"
@@ -54,21 +56,20 @@ def loaded() -> bool:
 
 def preload(environ: Mapping[str, str] | None = None, argv: list[str] | None = None,
             execve: Callable[[str, list[str], dict[str, str]], object] = os.execve) -> str:
-    """Re-execute this process with jemalloc preloaded when ``SFM_TTR_MALLOC`` allows it and a
-    jemalloc is found (then it does not return); else a one-line note of the allocator in use,
-    for the node's log. ``argv`` defaults to the command line that started this process."""
+    """Re-execute this process with jemalloc preloaded when ``SFM_TTR_MALLOC`` asks for it and
+    the library is there (then it does not return); else a one-line note of the allocator in
+    use, for the node's log. ``argv`` defaults to the command line that started this process."""
     env = dict(os.environ if environ is None else environ)
-    choice = env.get(ENV, "auto").strip() or "auto"
+    choice = env.get(ENV, "glibc").strip() or "glibc"
     if loaded():
         return f"malloc: jemalloc ({env.get(PRELOADED_ENV) or 'preloaded'})"
     if choice == "glibc":
-        return f"malloc: glibc ({ENV}=glibc)"
+        return f"malloc: glibc ({ENV}=jemalloc: flatter memory, slower windows; core/jemalloc.py)"
     if env.get(PRELOADED_ENV):
         return f"malloc: glibc ({env[PRELOADED_ENV]} could not be preloaded)"
-    path = find() if choice == "auto" else choice
+    path = find() if choice == "jemalloc" else choice
     if path is None:
-        return (f"malloc: glibc (no {LIBRARY}: `apt install libjemalloc2` keeps the node's "
-                f"memory flatter, BENCHMARKS.md 6f)")
+        return f"malloc: glibc ({ENV}=jemalloc but no {LIBRARY}: apt install libjemalloc2)"
     if not Path(path).is_file():
         return f"malloc: glibc ({ENV}={choice}: no such file)"
     env["LD_PRELOAD"] = " ".join(p for p in (path, env.get("LD_PRELOAD", "")) if p)

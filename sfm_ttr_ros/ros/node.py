@@ -446,7 +446,7 @@ class RefinerNode(Node):
 
 def main(args=None) -> int:
     """Entry point of ``ros2 run sfm_ttr_ros refiner``."""
-    malloc_note = jemalloc.preload()  # may re-execute this process on jemalloc (core/jemalloc.py)
+    malloc_note = jemalloc.preload()  # SFM_TTR_MALLOC=jemalloc: re-executes (core/jemalloc.py)
     heap.limit_arenas()  # before any thread starts (core/heap.py)
     dds_note = dds.apply_profile()  # before rclpy.init: Fast DDS reads it when it starts
     # Our own signal handling: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread, so the
