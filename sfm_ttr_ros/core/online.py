@@ -110,15 +110,15 @@ class OnlineRefiner:
 
     def _work(self, ready: threading.Event | None = None) -> None:
         lower_thread_priority(self._nice)  # before torch / pycolmap start threads from here
-        if self._threads:  # this thread's own OpenMP team (core/openmp.py)
-            openmp.set_thread_team(self._threads)
         try:
             self.warm_up_s = self.ttr.warm_up()
         except Exception as exc:  # noqa: BLE001 - a failed warm-up only costs the first window
             self.log.warning(f"worker: warm-up failed ({type(exc).__name__}: {exc}); the first "
                              f"window pays the one-time costs")
         finally:
-            if self._threads:  # again: a path's first use in a thread (oneDNN's) may reset it
+            # this thread's own OpenMP team (core/openmp.py), set after the warm-up: a path's
+            # first use in a thread (oneDNN's convolution) resets the team to torch's count
+            if self._threads:
                 openmp.set_thread_team(self._threads)
             if ready is not None:
                 ready.set()

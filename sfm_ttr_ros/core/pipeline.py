@@ -23,7 +23,7 @@ from sfm_ttr_ros.core.alignment_affine import (
     is_affine_output,
 )
 from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
-from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.photometric import PhotometricFrame, prepare_frames
 from sfm_ttr_ros.core.refinement import (
     RefinementConfig,
@@ -32,7 +32,6 @@ from sfm_ttr_ros.core.refinement import (
     refine_encoder,
     restore_encoder,
     snapshot_encoder,
-    warm_up_image,
     warm_up_refinement,
 )
 from sfm_ttr_ros.core.serving import finite_state

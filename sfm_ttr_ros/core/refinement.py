@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from sfm_ttr_ros.core.frames import InputError, Intrinsics
-from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.photometric import (
     PhotometricConfig,
     PhotometricFrame,
@@ -411,17 +411,6 @@ def warm_up_optimiser() -> None:
 
 #: Steps of :func:`warm_up_refinement`: the first loads the kernels, the second Adam's with state.
 WARM_UP_STEPS = 2
-#: (height, width) of its frames for a model that sizes its own input (``input_size`` ()).
-WARM_UP_FREE_SIZE = (256, 256)
-
-
-def warm_up_image(model: DepthModel) -> np.ndarray:
-    """A grey uint8 RGB frame at ``model``'s input size (:data:`WARM_UP_FREE_SIZE` for a model
-    that sizes its own input): what the warm-ups run through the network."""
-    size = tuple(getattr(model, "input_size", ()) or ())
-    h, w = (int(v) for v in size) if len(size) == 2 else WARM_UP_FREE_SIZE
-    return np.full((h, w, 3), 128, np.uint8)
-
 
 def warm_up_refinement(model: DepthModel, config: RefinementConfig) -> float:
     """Pay the refinement's one-time costs on ``model``'s device in the CALLING thread, on a

@@ -26,7 +26,7 @@ import time
 import numpy as np
 import torch
 
-from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 
 
 def finite_state(state: dict[str, torch.Tensor]) -> bool:
@@ -109,9 +109,8 @@ class ServingModel:
     def warm_up(self) -> None:
         """One prediction on a grey image at the network's input size, not counted: the first
         forward pass pays for allocations and kernel set-up, a frame should not."""
-        h, w = self._model.input_size
         with self._lock, torch.inference_mode():
-            self._model.predict([np.full((h, w, 3), 128, np.uint8)])
+            self._model.predict([warm_up_image(self._model)])
 
     def predict(self, image: np.ndarray) -> tuple[np.ndarray, int]:
         """(depth H x W float32 at the image's size, version of the weights that made it)."""

@@ -107,6 +107,18 @@ class DepthModel(nn.Module):
             self.train(was_training)
 
 
+#: (height, width) of :func:`warm_up_image` for a model that sizes its own input (``()``).
+WARM_UP_FREE_SIZE = (256, 256)
+
+
+def warm_up_image(model: DepthModel) -> np.ndarray:
+    """A grey uint8 RGB frame at ``model``'s input size (:data:`WARM_UP_FREE_SIZE` for a model
+    that sizes its own input): what the warm-ups (serving, window worker) run through it."""
+    size = tuple(getattr(model, "input_size", ()) or ())
+    h, w = (int(v) for v in size) if len(size) == 2 else WARM_UP_FREE_SIZE
+    return np.full((h, w, 3), 128, np.uint8)
+
+
 class EncoderDecoder(DepthModel):
     """Any encoder and decoder whose decoder outputs Monodepth2-style sigmoid disparity.
 
