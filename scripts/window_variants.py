@@ -102,7 +102,10 @@ def main() -> int:
                    "reprojection_error": c.reprojection_error if c else None,
                    "scale_spread": c.scale_spread if c else None,
                    "inlier_ratio": c.inlier_ratio if c else None,
-                   "unsupported_change": c.unsupported_change if c else None}
+                   "unsupported_change": c.unsupported_change if c else None,
+                   "sfm_attempts": [{k: a[k] for k in ("seed", "registered", "points",
+                                                          "reprojection_error", "kept")}
+                                    for a in (res.sfm.attempts if res.sfm else [])]}
             if res.sfm is not None and res.alignment is not None:
                 row.update(photometric_stats(model, frames, res, seq.intrinsics))
             print(json.dumps(row), flush=True)

@@ -17,7 +17,7 @@ FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_d
 INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_monotonic_stamps",
                          "qos_incompatible", "windows_ok", "windows_failed",
                          "windows_skipped_overload", "windows_disabled",
-                         "windows_rejected_by_check", "faults"]
+                         "windows_rejected_by_check", "windows_remapped", "faults"]
 
 
 def frame(i: int) -> Frame:
@@ -86,6 +86,7 @@ def test_the_last_window_is_reported_with_its_timings(stream):
     stream.windows.append(WindowStats(
         index=4, names=["a", "b", "c"], new_frames=3, refined=False, reason_key="sfm_failed",
         reason="SfM failed: too few matches", registered=1, points=0, steps=5,
+        mapping_attempts=2, reprojection_error=0.25,
         timings={"sfm": 1.25, "predict_before": 0.5}))
     status = diag.status()
     assert status.level == "warn"
@@ -94,6 +95,7 @@ def test_the_last_window_is_reported_with_its_timings(stream):
     assert (v["last_window.index"], v["last_window.frames"], v["last_window.refined"]) == \
         (4, 3, False)
     assert (v["last_window.steps"], v["last_window.steps_done"]) == (5, 0)
+    assert (v["last_window.mapping_attempts"], v["last_window.reprojection_error_px"]) == (2, 0.25)
     assert v["last_window.time.sfm_s"] == 1.25 and v["last_window.time.predict_before_s"] == 0.5
     assert list(v)[-2:] == ["last_window.time.sfm_s", "last_window.time.predict_before_s"]
     stream.windows.append(WindowStats(index=5, names=["c", "d"], new_frames=1, refined=True))

@@ -220,6 +220,9 @@ class _FakeSfm:
                                                np.zeros(300), np.arange(300), np.eye(4))
         self.num_registered, self.num_points = len(names), 300
         self.points_error = np.zeros(300, np.float32)
+        self.reprojection_error = 0.0
+        self.attempts = [{"seed": 0, "registered": len(names), "points": 300,
+                          "reprojection_error": 0.0, "seconds": 0.0, "kept": True}]
 
     def points_in_frame(self, name):
         return np.zeros((300, 3))

@@ -230,6 +230,78 @@ def test_unrelated_frames_fail_with_a_reason(street):
     failed(res, 3, "no frame pair of the window could be matched")
 
 
+# ------------------------------------------------------------------ mapping attempts
+def test_every_mapping_attempt_is_recorded_and_the_best_one_kept(street):
+    """retry_above_error 0: all three seeds run on the same matches; the kept reconstruction is
+    the one with the most registered frames, then the lowest mean reprojection error."""
+    with SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=0.0)) as rec:
+        res = rec.reconstruct(street.frames[0:8], street.intr)
+    assert res.ok and [a["seed"] for a in res.attempts] == [0, 1, 2]
+    assert [a["kept"] for a in res.attempts].count(True) == 1
+    kept = next(a for a in res.attempts if a["kept"])
+    best = max(res.attempts, key=lambda a: (a["registered"], -a["reprojection_error"]))
+    assert kept["reprojection_error"] == best["reprojection_error"] == res.reprojection_error
+    assert kept["registered"] == res.num_registered and kept["points"] == res.num_points
+    assert res.timings["map"] >= sum(a["seconds"] for a in res.attempts) > 0
+    assert len(res.points_rgb) == res.num_points  # colours of the kept reconstruction
+    # a well-fitting first reconstruction is not mapped again
+    with SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=50.0)) as rec:
+        once = rec.reconstruct(street.frames[0:8], street.intr)
+    assert [a["seed"] for a in once.attempts] == [0] and once.attempts[0]["kept"]
+
+
+def fake_result(registered: int, error: float, ok: bool = True) -> SfmResult:
+    from sfm_ttr_ros.core.sfm import FrameObservations
+
+    obs = {str(i): FrameObservations(str(i), np.zeros((4, 2), np.float32), np.ones(4),
+                                     np.full(4, error), np.full(4, error),
+                                     np.arange(4), np.eye(4)) for i in range(registered)}
+    return SfmResult(ok, "" if ok else "failed", 5, frames=obs)
+
+
+@pytest.mark.parametrize("runs, threshold, seeds, kept_seed", [
+    # the second run fits better and falls under the threshold: no third run
+    ([(5, 1.1), (5, 0.6), (5, 0.5)], 0.8, [7, 8], 8),
+    # every run above it: all run, the lowest error kept
+    ([(5, 1.1), (5, 0.9), (5, 1.0)], 0.8, [7, 8, 9], 8),
+    # more registered frames win over a lower error
+    ([(5, 1.1), (4, 0.5), (3, 0.4)], 0.8, [7, 8, 9], 7),
+    # a run that failed with a model (too few points) is tried again; success wins
+    ([(2, 0.01, False), (5, 0.9), (5, 0.7)], 0.8, [7, 8, 9], 9),
+])
+def test_the_mapper_runs_again_only_while_the_best_error_is_high(monkeypatch, runs, threshold,
+                                                                seeds, kept_seed):
+    rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=threshold, seed=7))
+    results = iter([fake_result(*r) for r in runs])
+    calls = []
+    monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
+    monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: next(results))
+    res = rec._map_best([], [], {}, pycolmap.CancellationToken())
+    rec.close()
+    assert calls == seeds == [a["seed"] for a in res.attempts]
+    assert [a["seed"] for a in res.attempts if a["kept"]] == [kept_seed]
+
+
+def test_a_mapping_without_a_model_is_not_repeated(monkeypatch):
+    rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=0.0))
+    calls = []
+    monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
+    monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: fake_result(0, 0, False))
+    res = rec._map_best([], [], {}, pycolmap.CancellationToken())
+    rec.close()
+    assert calls == [0] and not res.ok and res.attempts[0]["kept"]
+
+
+@pytest.mark.parametrize("field, value", [("mapping_attempts", 0),
+                                          ("retry_above_error", -1.0),
+                                          ("retry_above_error", float("nan"))])
+def test_bad_mapping_attempt_options_are_refused(field, value):
+    from sfm_ttr_ros.core.frames import InputError
+
+    with pytest.raises(InputError, match=f"sfm.{field}"):
+        SfmConfig(**{field: value})
+
+
 # -------------------------------------------------------------------------- real data
 @pytest.mark.slow
 def test_real_hololens_window(shared_data):

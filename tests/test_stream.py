@@ -32,7 +32,8 @@ INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)
 class ScriptedTTR:
     """Stand-in for SfmTTR: ``outcomes`` says what each window does (``"ok"``, ``"sfm"`` =
     SfM failed, ``"few"`` = too few points, ``"raise"``, ``"rejected"`` = refused by the
-    held-out check); depth 2 = refined, 1 = not."""
+    held-out check, ``"remapped"`` = refined after a second run of the mapper); depth 2 =
+    refined, 1 = not."""
 
     def __init__(self, outcomes=("ok",), delay: float = 0.0):
         self.outcomes = list(outcomes)
@@ -62,9 +63,13 @@ class ScriptedTTR:
         names = [f.name for f in frames]
         before = {n: np.ones((H, W), np.float32) for n in names}
         res = WindowResult(names, dict(before), before, refined=outcome == "ok")
-        if outcome == "ok":
+        if outcome in ("ok", "remapped"):
+            res.refined = True
             res.depths = {n: np.full((H, W), 2.0, np.float32) for n in names}
             res.sfm = SfmResult(True, "", len(names))
+            if outcome == "remapped":  # the mapper's second run kept (sfm.mapping_attempts)
+                res.sfm.attempts = [{"seed": 0, "reprojection_error": 1.1, "kept": False},
+                                    {"seed": 1, "reprojection_error": 0.6, "kept": True}]
         elif outcome == "sfm":
             res.reason = "SfM failed: too little motion"
         elif outcome == "rejected":
@@ -164,6 +169,17 @@ def test_a_window_refused_by_its_check_is_counted_with_its_check_errors():
     assert (w.check_error_before, w.check_error_after) == (0.1, 0.2)
     assert w.unsupported_change == 0.03
     assert np.isnan(seen_windows[0].check_error_before)
+
+
+def test_windows_mapped_more_than_once_are_counted():
+    ttr = ScriptedTTR(outcomes=("ok", "remapped", "sfm"))
+    seen_windows = []
+    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2),
+                             on_window=seen_windows.append)
+    outs = run(stream, frames(6))
+    c = check_accounting(stream, outs, 6)
+    assert (c["windows_ok"], c["windows_failed"], c["windows_remapped"]) == (2, 1, 1)
+    assert [w.mapping_attempts for w in seen_windows] == [0, 2, 0]
 
 
 def test_overflow_drops_the_oldest_pending_frame():

@@ -112,6 +112,7 @@ class StreamDiagnostics:
             "windows_skipped_overload": c["windows_skipped"],
             "windows_disabled": c["windows_disabled"],
             "windows_rejected_by_check": c["windows_rejected"],
+            "windows_remapped": c["windows_remapped"],
             "faults": sum(self.faults.values()),
         })
         v.update({f"faults.{k}": n for k, n in sorted(self.faults.items())})
@@ -136,6 +137,8 @@ class StreamDiagnostics:
                 "last_window.reason": w.reason,
                 "last_window.registered_frames": w.registered,
                 "last_window.points_3d": w.points,
+                "last_window.mapping_attempts": w.mapping_attempts,
+                "last_window.reprojection_error_px": w.reprojection_error,
                 "last_window.inlier_ratio": w.inlier_ratio,
                 "last_window.scale": w.scale,
                 "last_window.loss_before": w.loss_before,

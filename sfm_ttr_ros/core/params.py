@@ -173,6 +173,16 @@ PARAMS: tuple[Param, ...] = (
        constraints="> 0"),
     _p("sfm.refine_intrinsics", "sfm.refine_intrinsics", "Refine the focal length in bundle "
        "adjustment (the paper holds the known intrinsics fixed)."),
+    _p("sfm.mapping_attempts", "sfm.mapping_attempts", "Runs of the incremental mapper per "
+       "window, each with the next random seed, while the best reconstruction so far has a mean "
+       "reprojection error above sfm.retry_above_error; the one with the most registered "
+       "frames, then the lowest error, is kept. From the same matches the mapper now and then "
+       "settles on a wrong reconstruction with ~2x the error that another seed gets right "
+       "(BENCHMARKS.md section 9). A run takes 0.1-0.6 s (3-10 % of a window); 1 = the mapper "
+       "once.", 1, 100),
+    _p("sfm.retry_above_error", "sfm.retry_above_error", "Mean reprojection error (px) above "
+       "which the mapper runs again (sfm.mapping_attempts); a retry that is not needed costs "
+       "only its time. 0 = every attempt runs.", 0.0, 1000.0),
     _p("sfm.min_points", "sfm.min_points", "Fewer 3D points than this: the window's SfM "
        "failed.", 1, 1_000_000),
     # -- alignment (live) -------------------------------------------------------------------

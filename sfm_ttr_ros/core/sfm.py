@@ -13,7 +13,9 @@ defaults reject it; see ``../shared/notes/pycolmap-on-these-machines.md``).
 
 Features are extracted once per frame and pairs matched once: a :class:`SfmReconstructor`
 keeps one COLMAP database across the windows of a stream, so overlapping windows only pay for
-their new frames.
+their new frames. The mapper, which from the same matches now and then settles on a wrong
+reconstruction, runs again with another seed while the window's mean reprojection error is
+high, and the best-fitting reconstruction is kept (``SfmConfig.mapping_attempts``).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import shutil
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,6 +70,11 @@ class SfmConfig:
     min_registered: int = 2  # fewer registered frames than this: the window failed
     min_points: int = 20  # fewer 3D points than this: the window failed
     min_parallax_px: float = 1.0  # cheap pre-check on matched keypoint motion (full-res px)
+    # The mapper, run again with the next seed while the best reconstruction so far has a mean
+    # reprojection error above retry_above_error px (0: every attempt runs), keeps the best
+    # (most frames registered, then the lowest error): see SfmReconstructor.reconstruct.
+    mapping_attempts: int = 2
+    retry_above_error: float = 0.8
     seed: int = 0
     verbose: bool = False
 
@@ -82,6 +89,11 @@ class SfmConfig:
         if not float(self.init_min_tri_angle) > 0:
             raise InputError(f"sfm.init_min_tri_angle must be > 0, got "
                              f"{self.init_min_tri_angle}")
+        if int(self.mapping_attempts) < 1:
+            raise InputError(f"sfm.mapping_attempts must be >= 1, got {self.mapping_attempts}")
+        if not float(self.retry_above_error) >= 0:
+            raise InputError(f"sfm.retry_above_error must be >= 0, got "
+                             f"{self.retry_above_error}")
 
 
 @dataclass
@@ -114,10 +126,17 @@ class SfmResult:
     points_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
     timings: dict[str, float] = field(default_factory=dict)
     intrinsics: Intrinsics | None = None  # as used (refined when refine_intrinsics is on)
+    # one entry per mapper run (seed, registered, points, reprojection_error, seconds, kept)
+    attempts: list[dict] = field(default_factory=list)
 
     @property
     def num_registered(self) -> int:
         return len(self.frames)
+
+    @property
+    def reprojection_error(self) -> float:
+        """Mean reprojection error (px) over every observation of the registered frames."""
+        return mean_reprojection_error(self.frames.values())
 
     @property
     def num_points(self) -> int:
@@ -243,13 +262,48 @@ class SfmReconstructor:
                 return SfmResult(False, reason, len(frames), timings=timings)
 
             t0 = time.perf_counter()
-            recs = self._map(names, token)
+            result = self._map_best(names, frames, timings, token)
             timings["map"] = time.perf_counter() - t0
-            self._check_cancel(token)
         finally:
             with self._lock:
                 self._token = None
-        return self._collect(recs, names, frames, timings)
+        if result.num_points:
+            result.points_rgb = _point_colours(result, {f.name: f.image for f in frames})
+        return result
+
+    def _map_best(self, names: list[str], frames: Sequence[Frame], timings: dict[str, float],
+                  token) -> SfmResult:
+        """Run the mapper up to ``mapping_attempts`` times (seeds ``seed``, ``seed`` + 1, ...)
+        and keep the reconstruction with the most registered frames, then the lowest mean
+        reprojection error. A further run happens only while the best so far has a mean error
+        above ``retry_above_error``, or failed with a model (too few points or frames): from the
+        same matches pycolmap's incremental mapper now and then settles on a wrong
+        reconstruction of a window that another seed reconstructs right, with about twice the
+        reprojection error (hololens_000 windows 1 and 3: 0.98-1.07 px against 0.60-0.65 px,
+        refinement then made them worse), or on a few frames and points (BENCHMARKS.md section
+        9). A run that found no model at all is not repeated (it can take seconds)."""
+        cfg = self.config
+        best: SfmResult | None = None
+        attempts: list[dict] = []
+        kept = 0
+        for attempt in range(max(1, int(cfg.mapping_attempts))):
+            t0 = time.perf_counter()
+            recs = self._map(names, token, cfg.seed + attempt)
+            self._check_cancel(token)
+            result = self._collect(recs, names, timings)
+            attempts.append({"seed": cfg.seed + attempt, "registered": result.num_registered,
+                             "points": result.num_points,
+                             "reprojection_error": result.reprojection_error,
+                             "seconds": time.perf_counter() - t0, "kept": False})
+            if best is None or (result.ok, result.num_registered, -result.reprojection_error) \
+                    > (best.ok, best.num_registered, -best.reprojection_error):
+                best, kept = result, attempt
+            if not (best.reprojection_error > cfg.retry_above_error if best.ok
+                    else best.num_registered > 0):
+                break
+        attempts[kept]["kept"] = True
+        best.attempts = attempts
+        return best
 
     def _check_cancel(self, token) -> None:
         if self._cancelled or token.is_cancelled:
@@ -335,7 +389,7 @@ class SfmReconstructor:
                     f"{self.config.min_parallax_px} px")
         return ""
 
-    def _mapper_options(self, names: list[str]):
+    def _mapper_options(self, names: list[str], seed: int):
         import pycolmap
 
         cfg = self.config
@@ -344,7 +398,7 @@ class SfmReconstructor:
         opts.multiple_models = False
         opts.min_model_size = 2
         opts.num_threads = cfg.num_threads
-        opts.random_seed = cfg.seed
+        opts.random_seed = seed
         opts.extract_colors = False  # images are deleted after extraction; colours come later
         opts.ba_refine_focal_length = cfg.refine_intrinsics
         opts.ba_refine_principal_point = False
@@ -358,22 +412,21 @@ class SfmReconstructor:
         m.filter_max_reproj_error = cfg.max_reproj_error
         m.filter_min_tri_angle = cfg.min_tri_angle
         m.num_threads = cfg.num_threads
-        m.random_seed = cfg.seed
+        m.random_seed = seed
         opts.triangulation.min_angle = cfg.min_tri_angle
         return opts
 
-    def _map(self, names: list[str], token):
+    def _map(self, names: list[str], token, seed: int):
         import pycolmap
 
         out = self.workspace / "sparse"
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
         return pycolmap.incremental_mapping(self.database_path, self.image_dir, out,
-                                            options=self._mapper_options(names),
+                                            options=self._mapper_options(names, seed),
                                             cancellation_token=token)
 
-    def _collect(self, recs, names: list[str], frames: Sequence[Frame],
-                 timings: dict[str, float]) -> SfmResult:
+    def _collect(self, recs, names: list[str], timings: dict[str, float]) -> SfmResult:
         if not recs:
             return SfmResult(False, "mapping found no initial pair / produced no model",
                              len(names), timings=timings)
@@ -412,7 +465,6 @@ class SfmReconstructor:
         result.point_ids = pids
         result.points_xyz = np.array([rec.points3D[int(i)].xyz for i in pids]).reshape(-1, 3)
         result.points_error = np.array([rec.points3D[int(i)].error for i in pids])
-        result.points_rgb = _point_colours(result, {f.name: f.image for f in frames})
         cfg = self.config
         if result.num_registered < cfg.min_registered:
             result.ok = False
@@ -427,6 +479,13 @@ class SfmReconstructor:
         """Bound the database: past ``max_cached_frames`` cached frames, start a fresh one."""
         if len(self._names) > self.max_cached_frames and not keep.issuperset(self._names):
             self.reset()
+
+
+def mean_reprojection_error(frames: Iterable[FrameObservations]) -> float:
+    """Mean of r_lj over every observation of ``frames`` (px); NaN without observations.
+    (COLMAP's own mean averages per 3D point, not per observation.)"""
+    errs = [f.reproj_errors for f in frames]
+    return float(np.concatenate(errs).mean()) if sum(len(e) for e in errs) else float("nan")
 
 
 def image_digest(image: np.ndarray) -> bytes:

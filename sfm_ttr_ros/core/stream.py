@@ -180,6 +180,8 @@ class WindowStats:
     reason: str = ""
     registered: int = 0
     points: int = 0
+    mapping_attempts: int = 0  # runs of the incremental mapper (sfm.mapping_attempts)
+    reprojection_error: float = float("nan")  # mean, px, of the reconstruction kept
     inlier_ratio: float = float("nan")
     selected_points: int = 0
     scale: float = float("nan")
@@ -299,6 +301,7 @@ class StreamProcessor:
         self._windows_skipped = 0
         self._windows_disabled = 0
         self._windows_rejected = 0  # refused by a window check (issue 19), among the failed
+        self._windows_remapped = 0  # whose mapper ran more than once (sfm.mapping_attempts)
         self._non_monotonic = 0
         self._live_only = 0  # unrefined frames not predicted again: served live only
         self._released = 0  # queued frames whose image the backlog bound released
@@ -443,6 +446,7 @@ class StreamProcessor:
                 "windows_skipped": self._windows_skipped,
                 "windows_disabled": self._windows_disabled,
                 "windows_rejected": self._windows_rejected,
+                "windows_remapped": self._windows_remapped,
                 "non_monotonic_stamps": self._non_monotonic,
             }
 
@@ -615,6 +619,7 @@ class StreamProcessor:
             else:
                 self._windows_failed += 1
                 self._windows_rejected += stats.reason_key in CHECK_REASONS
+            self._windows_remapped += stats.mapping_attempts > 1
         if not stats.refined and stats.reason_key != "disabled":
             self._warn(f"window:{stats.reason_key}",
                        f"window {index} not refined ({stats.reason}): {len(new)} frame(s) "
@@ -637,6 +642,8 @@ class StreamProcessor:
             stats.reason_key, stats.reason = reason_key_of(res), res.reason
         if res.sfm is not None:
             stats.registered, stats.points = res.sfm.num_registered, res.sfm.num_points
+            stats.mapping_attempts = len(res.sfm.attempts)
+            stats.reprojection_error = res.sfm.reprojection_error
         if res.alignment is not None and res.alignment.ransac_inliers.size:
             stats.inlier_ratio = float(np.mean(res.alignment.ransac_inliers))
             stats.selected_points = int(res.alignment.selected.sum())

@@ -87,7 +87,7 @@ import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.sfm import SfmResult
+from sfm_ttr_ros.core.sfm import SfmResult, mean_reprojection_error
 from sfm_ttr_ros.core.supervision import FrameSupervision, sample_at
 
 #: Reason keys of windows the checks refuse (frames published unrefined with that key).
@@ -272,9 +272,7 @@ def parallax(sfm: SfmResult, registered: Sequence[str]) -> float:
 
 def reprojection_error(sfm: SfmResult, registered: Sequence[str]) -> float:
     """Mean reprojection error (px) over the window's observations."""
-    errs = [sfm.frames[n].reproj_errors for n in registered]
-    n = sum(len(e) for e in errs)
-    return float(np.concatenate(errs).mean()) if n else float("nan")
+    return mean_reprojection_error(sfm.frames[n] for n in registered)
 
 
 def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:

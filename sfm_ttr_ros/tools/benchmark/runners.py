@@ -154,6 +154,7 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
     return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
             "new_frames": ws.new_frames, "refined": ws.refined, "reason_key": ws.reason_key,
             "registered": ws.registered, "points": ws.points, "scale": ws.scale,
+            "sfm_attempts": list(res.sfm.attempts) if res is not None and res.sfm else [],
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
             "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check}
 
