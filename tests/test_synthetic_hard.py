@@ -423,6 +423,24 @@ def test_cli_generate_hard_and_street(tmp_path, capsys):
     assert labels == [s.kind for s in DEFAULT_HARD_SEGMENTS for _ in range(s.frames)]
     assert [drive.gt_path(i) is not None for i in range(n)] == [5 <= i < n - 5 for i in range(n)]
     assert "segments.txt" in capsys.readouterr().out
+    # --replace: the counterfactual drive, equal frame for frame outside the replaced segment
+    raw2, gt2 = tmp_path / "raw_nt", tmp_path / "gt_nt"
+    assert cli_main(["generate", "--scenario", "hard", "--domain", "B", "--seed", "1",
+                     "--replace", "truck=drive", "--kitti-raw", str(raw2), "--kitti-gt",
+                     str(gt2), "--width", "160", "--height", "48"]) == 0
+    other = KittiDrive(raw2, DRIVE, gt2)
+    truck = [k == "truck" for k in labels]
+    assert read_segments(other.drive_dir / "image_02" / SEGMENTS_FILE) == \
+        ["drive" if t else k for k, t in zip(labels, truck, strict=True)]
+    changed = [not np.array_equal(drive.load_image(i), other.load_image(i)) for i in range(n)]
+    assert changed == truck
+    for bad in (["--replace", "truck"], ["--replace", "truck=bus"]):
+        assert cli_main(["generate", "--scenario", "hard", *bad, "--drive-number", "3",
+                         *common]) == 2
+        assert "truck" in capsys.readouterr().err
+    assert cli_main(["generate", "--replace", "truck=drive", "--drive-number", "4",
+                     *common]) == 2
+    assert "--replace" in capsys.readouterr().err
     # --frames belongs to the street scenario
     assert cli_main(["generate", "--scenario", "hard", "--frames", "10", "--drive-number", "2",
                      *common]) == 2
@@ -438,3 +456,19 @@ def test_cli_generate_hard_and_street(tmp_path, capsys):
         np.testing.assert_array_equal(street.load_image(i), ref.images[i])
     assert not (street.drive_dir / "image_02" / SEGMENTS_FILE).exists()
     assert cv2.imread(str(street.image_path(0))) is not None
+
+
+def test_replace_segments_keeps_lengths_and_order():
+    from sfm_ttr_ros.data.synthetic import Segment, replace_segments
+
+    segs = (Segment("drive", 5), Segment("exposure", 4, 2.0), Segment("truck", 3),
+            ("exposure", 2))
+    out = replace_segments(segs, "exposure", "drive")
+    assert out == (Segment("drive", 5), Segment("drive", 4), Segment("truck", 3),
+                   Segment("drive", 2))
+    assert replace_segments(segs, "truck", "exposure")[2] == Segment("exposure", 3)
+    assert replace_segments(segs, "static", "drive") == tuple(
+        s if isinstance(s, Segment) else Segment(*s) for s in segs)
+    for old, new in (("bus", "drive"), ("truck", "bus")):
+        with pytest.raises(InputError, match="bus"):
+            replace_segments(segs, old, new)

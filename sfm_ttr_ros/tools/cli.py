@@ -99,15 +99,28 @@ STREET_FRAMES = 30  # `generate --frames` default (street scenario)
 def cmd_generate(args: argparse.Namespace) -> int:
     """Write a synthetic KITTI-format drive (raw layout + improved-GT PNGs)."""
     from sfm_ttr_ros.data.kitti import SEGMENTS_FILE, write_kitti_drive
-    from sfm_ttr_ros.data.synthetic import make_hard_sequence, make_sequence
+    from sfm_ttr_ros.data.synthetic import (
+        DEFAULT_HARD_SEGMENTS,
+        make_hard_sequence,
+        make_sequence,
+        replace_segments,
+    )
 
     if args.scenario == "hard":
         if args.frames is not None:
             raise InputError("--frames does not apply to --scenario hard: its length is its "
                              "segment list")
+        segments = DEFAULT_HARD_SEGMENTS
+        for item in args.replace:
+            old, sep, new = item.partition("=")
+            if not sep:
+                raise InputError(f"--replace takes OLD=NEW segment kinds, got {item!r}")
+            segments = replace_segments(segments, old.strip(), new.strip())
         seq = make_hard_sequence(seed=args.seed, domain=args.domain, width=args.width,
-                                 height=args.height)
+                                 height=args.height, segments=segments)
     else:
+        if args.replace:
+            raise InputError("--replace applies to --scenario hard only")
         frames = STREET_FRAMES if args.frames is None else args.frames
         seq = make_sequence(seed=args.seed, domain=args.domain, num_frames=frames,
                             width=args.width, height=args.height)
@@ -144,6 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--frames", type=int, default=None,
                    help=f"frames of the street scenario (default {STREET_FRAMES}); an error "
                    "with --scenario hard")
+    g.add_argument("--replace", action="append", default=[], metavar="OLD=NEW",
+                   help="--scenario hard: make every OLD segment a NEW one of the same length "
+                   "(repeatable), e.g. truck=drive: the same scene and camera path without the "
+                   "truck, frame for frame (a counterfactual drive)")
     g.add_argument("--width", type=int, default=1242)
     g.add_argument("--height", type=int, default=375)
     g.add_argument("--domain", default="B", help="A (training domain) or B (held out)")

@@ -63,6 +63,7 @@ from sfm_ttr_ros.data.synthetic.scenario import (
     make_hard_sequence,
     plan_drive,
     render_hard_drive,
+    replace_segments,
 )
 from sfm_ttr_ros.data.synthetic.scene import (
     DOMAINS,
@@ -98,6 +99,7 @@ __all__ = [
     "plan_drive",
     "render_frames",
     "render_hard_drive",
+    "replace_segments",
     "render_sequence",
     "sample_scene_params",
     "scene_intrinsics",

@@ -195,6 +195,20 @@ def as_segments(segments: Sequence[Segment | tuple]) -> tuple[Segment, ...]:
     return tuple(out)
 
 
+def replace_segments(segments: Sequence[Segment | tuple], old: str, new: str
+                     ) -> tuple[Segment, ...]:
+    """``segments`` with every ``old`` segment made a ``new`` one of the same length (an
+    exposure segment's factor dropped). Every segment keeps its index, and with it its random
+    draws: replacing a kind whose camera advances as in ``drive`` (``crossing``, ``lead``,
+    ``exposure``, ``truck``) by ``drive`` gives the same scene and camera path without that
+    segment's event, frame for frame - the counterfactual of a bad segment."""
+    for kind in (old, new):
+        if kind not in SEGMENT_KINDS:
+            raise InputError(f"unknown segment kind {kind!r}; expected one of {SEGMENT_KINDS}")
+    return tuple(Segment(new, s.frames, s.factor if new == "exposure" else None)
+                 if s.kind == old else s for s in as_segments(segments))
+
+
 def _sweep(s: float) -> float:
     """Triangle wave 0 -> 1 -> -1 -> 0 for ``s`` in [0, 1]."""
     return 4 * s if s < 0.25 else (2 - 4 * s if s < 0.75 else 4 * s - 4)
