@@ -137,12 +137,18 @@ def test_names_come_from_a_running_counter():
     assert [o.frame.index for o in outs] == [0, 1, 2, 3]  # the caller's index is kept
 
 
-def test_failed_windows_publish_unrefined_with_reason():
-    ttr = ScriptedTTR(outcomes=("sfm", "few", "raise", "ok"))
+def scripted_run(outcomes, n: int):
+    """``n`` frames through windows of 2 whose outcomes ``ScriptedTTR`` scripts: (stream,
+    outputs, the windows reported to ``on_window``)."""
     seen_windows = []
-    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2),
+    stream = StreamProcessor(ScriptedTTR(outcomes=outcomes),
+                             StreamSettings(window_size=2, window_stride=2),
                              on_window=seen_windows.append)
-    outs = run(stream, frames(8))
+    return stream, run(stream, frames(n)), seen_windows
+
+
+def test_failed_windows_publish_unrefined_with_reason():
+    stream, outs, seen_windows = scripted_run(("sfm", "few", "raise", "ok"), 8)
     keys = [o.reason_key for o in outs]
     assert keys == ["sfm_failed"] * 2 + ["too_few_points"] * 2 + ["window_error"] * 2 + [""] * 2
     assert outs[0].reason.startswith("SfM failed: too little motion")
@@ -154,11 +160,7 @@ def test_failed_windows_publish_unrefined_with_reason():
 
 
 def test_a_window_refused_by_its_check_is_counted_with_its_check_errors():
-    ttr = ScriptedTTR(outcomes=("ok", "rejected", "ok"))
-    seen_windows = []
-    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2),
-                             on_window=seen_windows.append)
-    outs = run(stream, frames(6))
+    stream, outs, seen_windows = scripted_run(("ok", "rejected", "ok"), 6)
     assert [o.reason_key for o in outs] == ["", "", "rejected_by_check", "rejected_by_check",
                                             "", ""]
     assert all(float(o.depth.mean()) == 1.0 for o in outs[2:4])  # the weights before it
@@ -172,11 +174,7 @@ def test_a_window_refused_by_its_check_is_counted_with_its_check_errors():
 
 
 def test_windows_mapped_more_than_once_are_counted():
-    ttr = ScriptedTTR(outcomes=("ok", "remapped", "sfm"))
-    seen_windows = []
-    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2),
-                             on_window=seen_windows.append)
-    outs = run(stream, frames(6))
+    stream, outs, seen_windows = scripted_run(("ok", "remapped", "sfm"), 6)
     c = check_accounting(stream, outs, 6)
     assert (c["windows_ok"], c["windows_failed"], c["windows_remapped"]) == (2, 1, 1)
     assert [w.mapping_attempts for w in seen_windows] == [0, 2, 0]
