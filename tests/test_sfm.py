@@ -282,6 +282,28 @@ def test_the_mapper_runs_again_only_while_the_best_error_is_high(monkeypatch, ru
     assert [a["seed"] for a in res.attempts if a["kept"]] == [kept_seed]
 
 
+@pytest.mark.parametrize("ratio, seeds", [(1.3, [0, 1]), (0.0, [0])])
+def test_the_mapper_runs_again_above_the_streams_usual_error(monkeypatch, ratio, seeds):
+    """A camera whose reconstructions fit to 0.3 px: 0.5 px is far under retry_above_error
+    but 1.7x the stream's median, so with retry_above_ratio 1.3 the mapper runs again."""
+    rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_ratio=ratio))
+    results = iter([fake_result(5, e) for e in (0.3, 0.31, 0.29, 0.5, 0.32, 0.3)])
+    calls = []
+    monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
+    monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: next(results))
+    for _ in range(3):  # the stream's first windows: one run each (no history, then < 1.3x)
+        rec._map_best([], [], {}, pycolmap.CancellationToken())
+    assert calls == [0, 0, 0]
+    calls.clear()
+    res = rec._map_best([], [], {}, pycolmap.CancellationToken())
+    assert calls == seeds and res.reprojection_error == pytest.approx(0.32 if ratio else 0.5)
+    rec.reset()  # a new stream forgets the errors: 0.5 px is no reason to map again
+    calls.clear()
+    rec._map_best([], [], {}, pycolmap.CancellationToken())
+    assert calls == [0]
+    rec.close()
+
+
 def test_a_mapping_without_a_model_is_not_repeated(monkeypatch):
     rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=0.0))
     calls = []
@@ -294,6 +316,7 @@ def test_a_mapping_without_a_model_is_not_repeated(monkeypatch):
 
 @pytest.mark.parametrize("field, value", [("mapping_attempts", 0),
                                           ("retry_above_error", -1.0),
+                                          ("retry_above_ratio", -0.1),
                                           ("retry_above_error", float("nan"))])
 def test_bad_mapping_attempt_options_are_refused(field, value):
     from sfm_ttr_ros.core.frames import InputError

@@ -183,6 +183,11 @@ PARAMS: tuple[Param, ...] = (
     _p("sfm.retry_above_error", "sfm.retry_above_error", "Mean reprojection error (px) above "
        "which the mapper runs again (sfm.mapping_attempts); a retry that is not needed costs "
        "only its time. 0 = every attempt runs.", 0.0, 1000.0),
+    _p("sfm.retry_above_ratio", "sfm.retry_above_ratio", "The mapper also runs again when the "
+       "error is above this many times the median of the stream's last 10 reconstructions (a "
+       "camera whose reconstructions fit far better than sfm.retry_above_error): wrong "
+       "reconstructions measured 1.43-1.55x, right ones of driving <= 1.19x. 0 = off.",
+       0.0, 1000.0),
     _p("sfm.min_points", "sfm.min_points", "Fewer 3D points than this: the window's SfM "
        "failed.", 1, 1_000_000),
     # -- alignment (live) -------------------------------------------------------------------

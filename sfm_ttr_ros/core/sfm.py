@@ -26,6 +26,7 @@ import shutil
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 
 _PYCOLMAP_LOGGING_SET = False
 MIN_MAX_IMAGE_SIZE = 16  # smallest SIFT downscale accepted (1 crashes pycolmap 4.2.1)
+RETRY_HISTORY = 10  # reconstructions of the stream whose median error sfm.retry_above_ratio scales
 
 
 def quiet_pycolmap(verbose: bool = False) -> None:
@@ -75,6 +77,9 @@ class SfmConfig:
     # (most frames registered, then the lowest error): see SfmReconstructor.reconstruct.
     mapping_attempts: int = 2
     retry_above_error: float = 0.8
+    # ... or above this many times the median error of the stream's last RETRY_HISTORY
+    # reconstructions (a camera whose reconstructions fit better than 0.8 px); 0: off
+    retry_above_ratio: float = 1.3
     seed: int = 0
     verbose: bool = False
 
@@ -91,9 +96,9 @@ class SfmConfig:
                              f"{self.init_min_tri_angle}")
         if int(self.mapping_attempts) < 1:
             raise InputError(f"sfm.mapping_attempts must be >= 1, got {self.mapping_attempts}")
-        if not float(self.retry_above_error) >= 0:
-            raise InputError(f"sfm.retry_above_error must be >= 0, got "
-                             f"{self.retry_above_error}")
+        for name in ("retry_above_error", "retry_above_ratio"):
+            if not float(getattr(self, name)) >= 0:
+                raise InputError(f"sfm.{name} must be >= 0, got {getattr(self, name)}")
 
 
 @dataclass
@@ -171,6 +176,8 @@ class SfmReconstructor:
         self._intrinsics: Intrinsics | None = None
         self._camera_id: int | None = None
         self._names: list[str] = []  # frames in the database, in insertion order
+        # mean reprojection errors of the stream's last reconstructions (sfm.retry_above_ratio)
+        self._errors: deque[float] = deque(maxlen=RETRY_HISTORY)
         self._digests: dict[str, bytes] = {}  # name -> digest of the pixels it was extracted from
         self.frames_extracted = 0
         self._generation = 0
@@ -199,6 +206,7 @@ class SfmReconstructor:
         self._names = []
         self._digests = {}
         self._camera_id = None
+        self._errors.clear()
 
     def close(self) -> None:
         if self._own_workspace:
@@ -276,13 +284,18 @@ class SfmReconstructor:
         """Run the mapper up to ``mapping_attempts`` times (seeds ``seed``, ``seed`` + 1, ...)
         and keep the reconstruction with the most registered frames, then the lowest mean
         reprojection error. A further run happens only while the best so far has a mean error
-        above ``retry_above_error``, or failed with a model (too few points or frames): from the
+        above ``retry_above_error`` or above ``retry_above_ratio`` times the median of the
+        stream's last :data:`RETRY_HISTORY` reconstructions, or failed with a model (too few
+        points or frames): from the
         same matches pycolmap's incremental mapper now and then settles on a wrong
         reconstruction of a window that another seed reconstructs right, with about twice the
         reprojection error (hololens_000 windows 1 and 3: 0.98-1.07 px against 0.60-0.65 px,
         refinement then made them worse), or on a few frames and points (BENCHMARKS.md section
         9). A run that found no model at all is not repeated (it can take seconds)."""
         cfg = self.config
+        limit = float(cfg.retry_above_error)
+        if cfg.retry_above_ratio > 0 and self._errors:
+            limit = min(limit, cfg.retry_above_ratio * float(np.median(self._errors)))
         best: SfmResult | None = None
         attempts: list[dict] = []
         kept = 0
@@ -298,11 +311,12 @@ class SfmReconstructor:
             if best is None or (result.ok, result.num_registered, -result.reprojection_error) \
                     > (best.ok, best.num_registered, -best.reprojection_error):
                 best, kept = result, attempt
-            if not (best.reprojection_error > cfg.retry_above_error if best.ok
-                    else best.num_registered > 0):
+            if not (best.reprojection_error > limit if best.ok else best.num_registered > 0):
                 break
         attempts[kept]["kept"] = True
         best.attempts = attempts
+        if best.ok:
+            self._errors.append(best.reprojection_error)
         return best
 
     def _check_cancel(self, token) -> None:
