@@ -276,7 +276,7 @@ def test_the_mapper_runs_again_only_while_the_best_error_is_high(monkeypatch, ru
     calls = []
     monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
     monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: next(results))
-    res = rec._map_best([], [], {}, pycolmap.CancellationToken())
+    res = rec._map_best([], {}, pycolmap.CancellationToken())
     rec.close()
     assert calls == seeds == [a["seed"] for a in res.attempts]
     assert [a["seed"] for a in res.attempts if a["kept"]] == [kept_seed]
@@ -292,14 +292,14 @@ def test_the_mapper_runs_again_above_the_streams_usual_error(monkeypatch, ratio,
     monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
     monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: next(results))
     for _ in range(3):  # the stream's first windows: one run each (no history, then < 1.3x)
-        rec._map_best([], [], {}, pycolmap.CancellationToken())
+        rec._map_best([], {}, pycolmap.CancellationToken())
     assert calls == [0, 0, 0]
     calls.clear()
-    res = rec._map_best([], [], {}, pycolmap.CancellationToken())
+    res = rec._map_best([], {}, pycolmap.CancellationToken())
     assert calls == seeds and res.reprojection_error == pytest.approx(0.32 if ratio else 0.5)
     rec.reset()  # a new stream forgets the errors: 0.5 px is no reason to map again
     calls.clear()
-    rec._map_best([], [], {}, pycolmap.CancellationToken())
+    rec._map_best([], {}, pycolmap.CancellationToken())
     assert calls == [0]
     rec.close()
 
@@ -309,7 +309,7 @@ def test_a_mapping_without_a_model_is_not_repeated(monkeypatch):
     calls = []
     monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
     monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: fake_result(0, 0, False))
-    res = rec._map_best([], [], {}, pycolmap.CancellationToken())
+    res = rec._map_best([], {}, pycolmap.CancellationToken())
     rec.close()
     assert calls == [0] and not res.ok and res.attempts[0]["kept"]
 

@@ -55,7 +55,6 @@ from sfm_ttr_ros.core.verification import (
     parallax,
     path_reference,
     probe_frames,
-    reprojection_error,
     sanity_check,
     scale_jump,
     split_supervision,
@@ -486,7 +485,7 @@ class SfmTTR:
                 align: AlignmentResult, previous: PathReference | None) -> WindowCheck:
         """The window's statistics and the verdict of the cheap checks
         (:func:`~sfm_ttr_ros.core.verification.sanity_check`)."""
-        c = WindowCheck(reprojection_error=reprojection_error(sfm, reg),
+        c = WindowCheck(reprojection_error=sfm.reprojection_error,
                         track_length=track_length(sfm, reg), parallax=parallax(sfm, reg))
         if align.ransac_inliers.size:
             valid = np.isfinite(d_sfm) & np.isfinite(d_nn) & (d_sfm > 0) & (d_nn > 0)

@@ -27,7 +27,7 @@ import tempfile
 import threading
 import time
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -140,8 +140,10 @@ class SfmResult:
 
     @property
     def reprojection_error(self) -> float:
-        """Mean reprojection error (px) over every observation of the registered frames."""
-        return mean_reprojection_error(self.frames.values())
+        """Mean of r_lj (px) over every observation of the registered frames; NaN without
+        any. (COLMAP's own mean averages per 3D point, not per observation.)"""
+        errs = [f.reproj_errors for f in self.frames.values()]
+        return float(np.concatenate(errs).mean()) if sum(map(len, errs)) else float("nan")
 
     @property
     def num_points(self) -> int:
@@ -270,7 +272,7 @@ class SfmReconstructor:
                 return SfmResult(False, reason, len(frames), timings=timings)
 
             t0 = time.perf_counter()
-            result = self._map_best(names, frames, timings, token)
+            result = self._map_best(names, timings, token)
             timings["map"] = time.perf_counter() - t0
         finally:
             with self._lock:
@@ -279,8 +281,7 @@ class SfmReconstructor:
             result.points_rgb = _point_colours(result, {f.name: f.image for f in frames})
         return result
 
-    def _map_best(self, names: list[str], frames: Sequence[Frame], timings: dict[str, float],
-                  token) -> SfmResult:
+    def _map_best(self, names: list[str], timings: dict[str, float], token) -> SfmResult:
         """Run the mapper up to ``mapping_attempts`` times (seeds ``seed``, ``seed`` + 1, ...)
         and keep the reconstruction with the most registered frames, then the lowest mean
         reprojection error. A further run happens only while the best so far has a mean error
@@ -297,26 +298,26 @@ class SfmReconstructor:
         if cfg.retry_above_ratio > 0 and self._errors:
             limit = min(limit, cfg.retry_above_ratio * float(np.median(self._errors)))
         best: SfmResult | None = None
+        best_key: tuple = ()
         attempts: list[dict] = []
-        kept = 0
-        for attempt in range(max(1, int(cfg.mapping_attempts))):
+        for attempt in range(cfg.mapping_attempts):
             t0 = time.perf_counter()
             recs = self._map(names, token, cfg.seed + attempt)
             self._check_cancel(token)
             result = self._collect(recs, names, timings)
+            error = result.reprojection_error
             attempts.append({"seed": cfg.seed + attempt, "registered": result.num_registered,
-                             "points": result.num_points,
-                             "reprojection_error": result.reprojection_error,
+                             "points": result.num_points, "reprojection_error": error,
                              "seconds": time.perf_counter() - t0, "kept": False})
-            if best is None or (result.ok, result.num_registered, -result.reprojection_error) \
-                    > (best.ok, best.num_registered, -best.reprojection_error):
-                best, kept = result, attempt
-            if not (best.reprojection_error > limit if best.ok else best.num_registered > 0):
+            key = (result.ok, result.num_registered, -error)  # more is better
+            if best is None or key > best_key:
+                best, best_key, kept = result, key, attempts[-1]
+            if not (kept["reprojection_error"] > limit if best.ok else best.num_registered > 0):
                 break
-        attempts[kept]["kept"] = True
+        kept["kept"] = True
         best.attempts = attempts
         if best.ok:
-            self._errors.append(best.reprojection_error)
+            self._errors.append(kept["reprojection_error"])
         return best
 
     def _check_cancel(self, token) -> None:
@@ -493,13 +494,6 @@ class SfmReconstructor:
         """Bound the database: past ``max_cached_frames`` cached frames, start a fresh one."""
         if len(self._names) > self.max_cached_frames and not keep.issuperset(self._names):
             self.reset()
-
-
-def mean_reprojection_error(frames: Iterable[FrameObservations]) -> float:
-    """Mean of r_lj over every observation of ``frames`` (px); NaN without observations.
-    (COLMAP's own mean averages per 3D point, not per observation.)"""
-    errs = [f.reproj_errors for f in frames]
-    return float(np.concatenate(errs).mean()) if sum(len(e) for e in errs) else float("nan")
 
 
 def image_digest(image: np.ndarray) -> bytes:

@@ -87,7 +87,7 @@ import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.sfm import SfmResult, mean_reprojection_error
+from sfm_ttr_ros.core.sfm import SfmResult
 from sfm_ttr_ros.core.supervision import FrameSupervision, sample_at
 
 #: Reason keys of windows the checks refuse (frames published unrefined with that key).
@@ -268,11 +268,6 @@ def parallax(sfm: SfmResult, registered: Sequence[str]) -> float:
     depths = np.concatenate([sfm.frames[n].depths for n in registered])
     depths = depths[np.isfinite(depths) & (depths > 0)]
     return diameter / float(np.median(depths)) if depths.size else float("nan")
-
-
-def reprojection_error(sfm: SfmResult, registered: Sequence[str]) -> float:
-    """Mean reprojection error (px) over the window's observations."""
-    return mean_reprojection_error(sfm.frames[n] for n in registered)
 
 
 def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:
