@@ -7,7 +7,9 @@ window's peak and creeps up as the arenas fragment. ``malloc_trim(0)`` returns e
 can (also from the middle of the arenas), at ~15-40 ms in the window worker after each window
 that ran SfM (a window skipped for overload frees next to nothing);
 in a 2.5-min soak of the node at 10 Hz the RSS between windows fell from ~1.6 GB to ~1.0 GB and
-the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). Not glibc (musl, macOS): a no-op.
+the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). On jemalloc (core/jemalloc.py)
+the same call purges every arena's free pages (``mallctl("arena.<all>.purge")``; glibc's
+``malloc_trim`` would find an empty glibc heap there). Another C library (musl, macOS): a no-op.
 
 :func:`limit_arenas` caps glibc's per-thread arenas (``mallopt(M_ARENA_MAX)``, by default up to
 8 per core): the node's threads (executor, live server, worker, DDS, OpenMP) each fragment an
@@ -36,6 +38,8 @@ NODE_ARENAS = 2
 #: Arrays at least this large get a mapping of their own (:func:`in_own_mapping`); a mapping
 #: costs a system call and its page faults, so small frames stay in the heap.
 OWN_MAPPING_MIN_BYTES = 256 * 1024
+#: jemalloc's control name that purges the dirty pages of all arenas (MALLCTL_ARENAS_ALL = 4096).
+JEMALLOC_PURGE_ALL = b"arena.4096.purge"
 
 
 @functools.cache
@@ -70,9 +74,26 @@ def limit_arenas(arenas: int = NODE_ARENAS) -> bool:
     return bool(mallopt(M_ARENA_MAX, int(arenas)))
 
 
+@functools.cache
+def _jemalloc_mallctl():
+    """jemalloc's ``mallctl`` when this process runs on jemalloc (core/jemalloc.py), else None."""
+    try:
+        mallctl = ctypes.CDLL(None).mallctl
+    except (OSError, AttributeError):
+        return None
+    mallctl.argtypes = [ctypes.c_char_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                        ctypes.c_size_t]
+    mallctl.restype = ctypes.c_int
+    return mallctl
+
+
 def release_free_heap() -> bool:
-    """``malloc_trim(0)``: True when memory was returned, False when none could be (or the C
-    library has no malloc_trim)."""
+    """The free heap back to the operating system: on jemalloc every arena's dirty pages
+    (``mallctl("arena.<MALLCTL_ARENAS_ALL>.purge")``, True when done), on glibc
+    ``malloc_trim(0)`` (True when memory was returned); False when neither applies."""
+    mallctl = _jemalloc_mallctl()
+    if mallctl is not None:
+        return mallctl(JEMALLOC_PURGE_ALL, None, None, None, 0) == 0
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
 

@@ -5,8 +5,10 @@ in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md 6f) the peak RSS was 12–2
 value at frame 100 in eight runs with glibc (1157–1290 MiB), with the heap in use nearly the
 same at both moments; with jemalloc 5.3 (Debian's and Ubuntu's ``libjemalloc2``) it was 6–9 %
 (1071–1082 MiB) in five runs, live latency the same. The price: a window takes 13–14 % longer
-(jemalloc gives freed pages back and faults them in again; with that switched off its RSS grew
-without bound), so fewer windows keep up at 10 Hz. Hence not the default: ``SFM_TTR_MALLOC``
+(jemalloc's timed purge, ``dirty_decay_ms``, gives freed pages back ~10 s after they are freed
+and they are faulted in again; switched off, windows are as fast as on glibc but the RSS holds
+each window's high-water mark until the purge after the window, so the peak is glibc's again:
+BENCHMARKS.md 6i), so fewer windows keep up at 10 Hz. Hence not the default: ``SFM_TTR_MALLOC``
 chooses ``glibc`` (default), ``jemalloc`` (the system's :data:`LIBRARY`, from its library
 directories) or the path of a jemalloc library.
 
