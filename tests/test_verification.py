@@ -14,6 +14,7 @@ from sfm_ttr_ros.core.params import build, validate
 from sfm_ttr_ros.core.supervision import FrameSupervision
 from sfm_ttr_ros.core.verification import (
     CHECK_REASONS,
+    UNSUPPORTED_MIN_HISTORY,
     CheckConfig,
     PathReference,
     WindowCheck,
@@ -251,6 +252,11 @@ def test_the_unsupported_change_ratio_judges_a_window_against_the_streams_accept
     assert unsupported_refusal(cfg, 1.0, indoor) == ""  # 1.0 <= 5 x 0.32
     assert unsupported_refusal(cfg, 0.5, []) == ""  # no accepted window yet: no reference
     assert unsupported_refusal(cfg, 0.5, [float("nan")]) == ""
+    # one or two accepted windows are no reference yet (the demo drive's second window)
+    assert UNSUPPORTED_MIN_HISTORY == 3
+    assert unsupported_refusal(cfg, 0.046, [0.0046]) == ""
+    assert unsupported_refusal(cfg, 0.046, [0.0046, 0.005, float("nan")]) == ""
+    assert "the last 3 accepted" in unsupported_refusal(cfg, 0.046, [0.0046, 0.005, 0.004])
     plain = CheckConfig(max_unsupported_change=0.025)  # ratio 0: the absolute threshold
     assert unsupported_refusal(plain, 0.3, indoor) and unsupported_refusal(plain, 0.05, [])
     assert validate({"check.unsupported_change_ratio": 0.5})  # a factor >= 1 or 0

@@ -302,8 +302,8 @@ PARAMS: tuple[Param, ...] = (
        "check.max_unsupported_change > 0: refuse only when the unsupported change is also above "
        "this factor times its median over the stream's last 10 accepted windows (how far depth "
        "may move without SfM points depends on the scene: indoors, with the network far off, "
-       "whole walls rightly move); a window with no accepted one before it is not refused by "
-       "it. 0 = the absolute threshold alone.", 0.0, 1000.0, constraints="0 or >= 1"),
+       "whole walls rightly move); a window with fewer than 3 accepted ones before it is not "
+       "refused by it. 0 = the absolute threshold alone.", 0.0, 1000.0, constraints="0 or >= 1"),
     _p("seed", "sfm.seed,alignment.seed,refinement.seed,check.seed", "Random seed of SfM, "
        "RANSAC, refinement and the held-out split.", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------

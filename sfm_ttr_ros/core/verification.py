@@ -55,7 +55,8 @@ served or kept. Not in the paper.
 
        U > max(max_unsupported_change, k · median U of the last UNSUPPORTED_HISTORY accepted)
 
-   and a window with no accepted predecessor (no reference yet) is not refused by U. While a
+   and a window with fewer than UNSUPPORTED_MIN_HISTORY accepted predecessors (no reference
+   yet: the median of one or two windows is one window's accident) is not refused by U. While a
    window refines, interim weights (``serve_every_steps``) are checked the same way on
    INTERIM_PROBE_FRAMES of its registered frames before they are served
    (:func:`probe_frames`).
@@ -109,6 +110,10 @@ UNSUPPORTED_FACTOR = 1.5
 UNSUPPORTED_STEP = 4
 #: accepted windows whose U forms the reference of ``unsupported_change_ratio``
 UNSUPPORTED_HISTORY = 10
+#: accepted windows the ratio needs before it refuses any (measured: a helpful second window of
+#: the demo drive moved 4-10x the first's U, 0.025-0.046 against 0.0046-0.0063, and was refused
+#: when the reference was that one window; BENCHMARKS.md section 9, end)
+UNSUPPORTED_MIN_HISTORY = 3
 #: registered frames on which interim weights are checked before they are served (one network
 #: forward each per preview: 2 x 7 previews x ~45 ms on one core, ~6 % of a KITTI window)
 INTERIM_PROBE_FRAMES = 2
@@ -404,7 +409,7 @@ def unsupported_refusal(config: CheckConfig, value: float,
     """Why the window's unsupported change ``value`` refuses it ("" = accepted; a NaN value or
     ``max_unsupported_change`` 0 accepts). ``history``: U of this stream's last accepted
     windows, the reference of ``unsupported_change_ratio`` (module docstring, 3.); with a ratio
-    and no history nothing is refused."""
+    and fewer than UNSUPPORTED_MIN_HISTORY of them nothing is refused."""
     t = config.max_unsupported_change
     if t <= 0 or not math.isfinite(value) or value <= t:
         return ""
@@ -414,7 +419,7 @@ def unsupported_refusal(config: CheckConfig, value: float,
     if k <= 0:
         return why
     past = [v for v in history if math.isfinite(v)]
-    if not past:
+    if len(past) < UNSUPPORTED_MIN_HISTORY:
         return ""
     reference = float(np.median(past))
     if value <= k * reference:
