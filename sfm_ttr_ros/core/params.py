@@ -49,7 +49,7 @@ from sfm_ttr_ros.core.refinement import BN_MODES, LOSSES, WEIGHTINGS, Refinement
 from sfm_ttr_ros.core.sfm import SfmConfig
 from sfm_ttr_ros.core.stream import StreamSettings
 from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
-from sfm_ttr_ros.core.verification import CheckConfig
+from sfm_ttr_ros.core.verification import UNSUPPORTED_HISTORY, UNSUPPORTED_MIN_HISTORY, CheckConfig
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in
@@ -300,10 +300,11 @@ PARAMS: tuple[Param, ...] = (
        "vehicle moving with the camera ('check_unsupported_change'); 0 = off.", 0.0, 1.0),
     _p("check.unsupported_change_ratio", "check.unsupported_change_ratio", "With "
        "check.max_unsupported_change > 0: refuse only when the unsupported change is also above "
-       "this factor times its median over the stream's last 10 accepted windows (how far depth "
-       "may move without SfM points depends on the scene: indoors, with the network far off, "
-       "whole walls rightly move); a window with fewer than 3 accepted ones before it is not "
-       "refused by it. 0 = the absolute threshold alone.", 0.0, 1000.0, constraints="0 or >= 1"),
+       f"this factor times its median over the stream's last {UNSUPPORTED_HISTORY} accepted "
+       "windows (how far depth may move without SfM points depends on the scene: indoors, with "
+       "the network far off, whole walls rightly move); a window with fewer than "
+       f"{UNSUPPORTED_MIN_HISTORY} accepted ones before it is not refused by it. 0 = the "
+       "absolute threshold alone.", 0.0, 1000.0, constraints="0 or >= 1"),
     _p("seed", "sfm.seed,alignment.seed,refinement.seed,check.seed", "Random seed of SfM, "
        "RANSAC, refinement and the held-out split.", 0, INT_MAX),
     # -- model (start-up) -------------------------------------------------------------------
