@@ -46,7 +46,7 @@ from sfm_ttr_ros.core.node_settings import (
 )
 from sfm_ttr_ros.core.pipeline import WEIGHT_POLICIES, TTRConfig
 from sfm_ttr_ros.core.refinement import BN_MODES, LOSSES, WEIGHTINGS, RefinementConfig
-from sfm_ttr_ros.core.sfm import SfmConfig
+from sfm_ttr_ros.core.sfm import RETRY_HISTORY, SfmConfig
 from sfm_ttr_ros.core.stream import StreamSettings
 from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
 from sfm_ttr_ros.core.verification import UNSUPPORTED_HISTORY, UNSUPPORTED_MIN_HISTORY, CheckConfig
@@ -184,9 +184,10 @@ PARAMS: tuple[Param, ...] = (
        "which the mapper runs again (sfm.mapping_attempts); a retry that is not needed costs "
        "only its time. 0 = every attempt runs.", 0.0, 1000.0),
     _p("sfm.retry_above_ratio", "sfm.retry_above_ratio", "The mapper also runs again when the "
-       "error is above this many times the median of the stream's last 10 reconstructions (a "
-       "camera whose reconstructions fit far better than sfm.retry_above_error): wrong "
-       "reconstructions measured 1.43-1.55x, right ones of driving <= 1.19x. 0 = off.",
+       f"error is above this many times the median of the stream's last {RETRY_HISTORY} "
+       "reconstructions (a camera whose reconstructions fit far better than "
+       "sfm.retry_above_error): wrong reconstructions measured 1.43-1.55x, right ones of "
+       "driving <= 1.19x. 0 = off.",
        0.0, 1000.0),
     _p("sfm.min_points", "sfm.min_points", "Fewer 3D points than this: the window's SfM "
        "failed.", 1, 1_000_000),
