@@ -18,37 +18,26 @@ takes the road's own difficulty out of "back to its level before".
 from __future__ import annotations
 
 import argparse
-import csv
 import json
+import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "scripts"))
+from policy_curve import read_curve  # noqa: E402
+
+from sfm_ttr_ros.core.frames import InputError  # noqa: E402
+from sfm_ttr_ros.data.kitti import read_segments  # noqa: E402
+
 
 def read_abs_rel(run: Path, mode: str) -> dict[int, float]:
-    """Frame index -> ``mode``'s abs rel for every GT frame of a run."""
-    out: dict[int, float] = {}
-    with open(run / "per_frame.csv", newline="") as fh:
-        for row in csv.DictReader(fh):
-            v = row.get(f"{mode}_abs_rel", "")
-            if v not in ("", "None", "nan"):
-                out[int(row["index"])] = float(v)
-    if not out:
-        raise SystemExit(f"{run}: no {mode}_abs_rel values in per_frame.csv")
-    return out
-
-
-def read_segments(path: Path) -> list[str]:
-    """Per-frame labels of a ``segments.txt`` (``index label`` lines, in frame order)."""
-    labels = []
-    for line in path.read_text().splitlines():
-        if line.strip():
-            idx, label = line.split(maxsplit=1)
-            if int(idx) != len(labels):
-                raise SystemExit(f"{path}: frame {idx} out of order")
-            labels.append(label.strip())
-    return labels
+    """Frame index -> ``mode``'s abs rel for every GT frame of a run (its ``per_frame.csv``)."""
+    idx, val = read_curve(run, mode)
+    return dict(zip(idx.tolist(), val.tolist(), strict=True))
 
 
 def bad_spans(labels: list[str], kinds: set[str]) -> list[tuple[str, int, int]]:
@@ -100,7 +89,10 @@ def main(argv: list[str] | None = None) -> int:
             out.append((group, Path(path)))
         return out
 
-    labels = read_segments(args.segments)
+    try:
+        labels = read_segments(args.segments)
+    except InputError as exc:
+        raise SystemExit(str(exc)) from None
     runs: dict[str, list[dict[int, float]]] = defaultdict(list)
     for group, path in pairs(args.run):
         runs[group].append(read_abs_rel(path, args.mode))

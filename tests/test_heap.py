@@ -43,9 +43,9 @@ def test_on_jemalloc_every_arena_is_purged(monkeypatch):
 
 
 def _jemalloc_library() -> str | None:
-    """The system's jemalloc, or the path SFM_TTR_MALLOC names."""
-    named = os.environ.get(jemalloc.ENV, "")
-    return named if Path(named).is_file() else jemalloc.find()
+    """The library SFM_TTR_MALLOC names (a path), else the system's jemalloc."""
+    named = jemalloc.library(os.environ.get(jemalloc.ENV, "jemalloc").strip() or "jemalloc")
+    return named if named and Path(named).is_file() else jemalloc.find()
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux") or _jemalloc_library() is None,

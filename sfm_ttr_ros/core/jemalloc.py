@@ -47,6 +47,12 @@ def find() -> str | None:
     return next((str(p) for p in search_paths() if p.is_file()), None)
 
 
+def library(choice: str) -> str | None:
+    """The library ``SFM_TTR_MALLOC=choice`` names: the system's for ``jemalloc``
+    (:func:`find`, None when absent), else ``choice`` itself (a path, not checked here)."""
+    return find() if choice == "jemalloc" else choice
+
+
 def loaded() -> bool:
     """Whether this process runs with a jemalloc mapped (Linux' /proc; elsewhere False)."""
     try:
@@ -69,7 +75,7 @@ def preload(environ: Mapping[str, str] | None = None, argv: list[str] | None = N
         return f"malloc: glibc ({ENV}=jemalloc: flatter memory, slower windows; core/jemalloc.py)"
     if env.get(PRELOADED_ENV):
         return f"malloc: glibc ({env[PRELOADED_ENV]} could not be preloaded)"
-    path = find() if choice == "jemalloc" else choice
+    path = library(choice)
     if path is None:
         return f"malloc: glibc ({ENV}=jemalloc but no {LIBRARY}: apt install libjemalloc2)"
     if not Path(path).is_file():
@@ -80,4 +86,5 @@ def preload(environ: Mapping[str, str] | None = None, argv: list[str] | None = N
     return f"malloc: jemalloc ({path}, re-executed)"  # only when execve returns (tests)
 
 
-__all__ = ["ENV", "LIBRARY", "PRELOADED_ENV", "find", "loaded", "preload", "search_paths"]
+__all__ = ["ENV", "LIBRARY", "PRELOADED_ENV", "find", "library", "loaded", "preload",
+           "search_paths"]
