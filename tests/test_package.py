@@ -80,8 +80,9 @@ def test_colcon_identifies_an_ament_python_package():
 def test_requirements_txt_lists_the_deps_without_rosdep_key():
     lines = [ln.split("#")[0].strip() for ln in
              (REPO / "requirements.txt").read_text().splitlines()]
-    names = {ln.split(">")[0].split("<")[0].split("=")[0].strip() for ln in lines if ln}
-    assert names == {"pycolmap", "rosbags"}
+    names = {ln.split(";")[0].split(">")[0].split("<")[0].split("=")[0].strip()
+             for ln in lines if ln}
+    assert names == {"pycolmap", "rosbags", "cmeel-mimalloc"}
 
 
 def _colcon() -> list[str]:

@@ -7,9 +7,10 @@ window's peak and creeps up as the arenas fragment. ``malloc_trim(0)`` returns e
 can (also from the middle of the arenas), at ~15-40 ms in the window worker after each window
 that ran SfM (a window skipped for overload frees next to nothing);
 in a 2.5-min soak of the node at 10 Hz the RSS between windows fell from ~1.6 GB to ~1.0 GB and
-the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). On jemalloc (core/jemalloc.py)
-the same call purges every arena's free pages (``mallctl("arena.<all>.purge")``; glibc's
-``malloc_trim`` would find an empty glibc heap there). Another C library (musl, macOS): a no-op.
+the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). On mimalloc and jemalloc
+(core/allocator.py) the same call collects and purges their free pages (``mi_collect(true)``,
+``mallctl("arena.<all>.purge")``; glibc's ``malloc_trim`` would find an empty glibc heap there).
+Another C library (musl, macOS): a no-op.
 
 :func:`limit_arenas` caps glibc's per-thread arenas (``mallopt(M_ARENA_MAX)``, by default up to
 8 per core): the node's threads (executor, live server, worker, DDS, OpenMP) each fragment an
@@ -74,23 +75,45 @@ def limit_arenas(arenas: int = NODE_ARENAS) -> bool:
     return bool(mallopt(M_ARENA_MAX, int(arenas)))
 
 
-@functools.cache
-def _jemalloc_mallctl():
-    """jemalloc's ``mallctl`` when this process runs on jemalloc (core/jemalloc.py), else None."""
+def _preloaded_function(name: str):
+    """A function of the process' global namespace (an allocator preloaded by
+    core/allocator.py defines its own), or None."""
     try:
-        mallctl = ctypes.CDLL(None).mallctl
+        return getattr(ctypes.CDLL(None), name)
     except (OSError, AttributeError):
         return None
-    mallctl.argtypes = [ctypes.c_char_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                        ctypes.c_size_t]
-    mallctl.restype = ctypes.c_int
+
+
+@functools.cache
+def _jemalloc_mallctl():
+    """jemalloc's ``mallctl`` when this process runs on jemalloc, else None."""
+    mallctl = _preloaded_function("mallctl")
+    if mallctl is not None:
+        mallctl.argtypes = [ctypes.c_char_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                            ctypes.c_size_t]
+        mallctl.restype = ctypes.c_int
     return mallctl
 
 
+@functools.cache
+def _mimalloc_collect():
+    """mimalloc's ``mi_collect(bool force)`` when this process runs on mimalloc, else None."""
+    collect = _preloaded_function("mi_collect")
+    if collect is not None:
+        collect.argtypes = [ctypes.c_bool]
+        collect.restype = None
+    return collect
+
+
 def release_free_heap() -> bool:
-    """The free heap back to the operating system: on jemalloc every arena's dirty pages
-    (``mallctl("arena.<MALLCTL_ARENAS_ALL>.purge")``, True when done), on glibc
-    ``malloc_trim(0)`` (True when memory was returned); False when neither applies."""
+    """The free heap back to the operating system: on mimalloc its free pages collected and
+    purged at once (``mi_collect(true)``), on jemalloc every arena's dirty pages
+    (``mallctl("arena.<MALLCTL_ARENAS_ALL>.purge")``), True when done; on glibc
+    ``malloc_trim(0)`` (True when memory was returned); False when none applies."""
+    collect = _mimalloc_collect()
+    if collect is not None:
+        collect(True)
+        return True
     mallctl = _jemalloc_mallctl()
     if mallctl is not None:
         return mallctl(JEMALLOC_PURGE_ALL, None, None, None, 0) == 0
