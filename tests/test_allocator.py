@@ -3,6 +3,7 @@ library, once; glibc when asked for or when the library is not there."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -23,7 +24,9 @@ def fake_libraries(tmp_path, monkeypatch):
     libs = {name: tmp_path / f"lib{name}.so" for name in ("jemalloc", "mimalloc")}
     for lib in libs.values():
         lib.write_bytes(b"")
-    monkeypatch.setattr(allocator, "FINDERS", {n: (lambda p=p: str(p)) for n, p in libs.items()})
+    monkeypatch.setattr(allocator, "NAMED", {
+        n: dataclasses.replace(allocator.NAMED[n], find=lambda p=p: str(p))
+        for n, p in libs.items()})
     monkeypatch.setattr(allocator, "mapped", lambda preloaded=None: None)
     return libs
 
@@ -62,8 +65,8 @@ def test_glibc_a_missing_library_or_a_bad_path_keep_glibc(tmp_path, fake_librari
     calls = []
     assert allocator.preload({allocator.ENV: "glibc"}, ["py"], fake_execve(calls)) == (
         "malloc: glibc (SFM_TTR_MALLOC=glibc)")
-    monkeypatch.setattr(allocator, "FINDERS", {"jemalloc": lambda: None,
-                                               "mimalloc": lambda: None})
+    monkeypatch.setattr(allocator, "NAMED", {
+        n: dataclasses.replace(named, find=lambda: None) for n, named in allocator.NAMED.items()})
     note = allocator.preload({allocator.ENV: "jemalloc"}, ["py"], fake_execve(calls))
     assert "not installed: apt install libjemalloc2" in note
     note = allocator.preload({}, ["py"], fake_execve(calls))

@@ -91,9 +91,11 @@ def test_on_a_real_mimalloc_the_collect_gives_freed_pages_back():
 
 
 def _jemalloc_library() -> str | None:
-    """The library SFM_TTR_MALLOC names (a path), else the system's jemalloc."""
-    named = allocator.library(os.environ.get(allocator.ENV, "jemalloc").strip() or "jemalloc")
-    return named if named and Path(named).is_file() else allocator.find_jemalloc()
+    """The jemalloc library SFM_TTR_MALLOC names (a path), else the system's jemalloc."""
+    named = os.environ.get(allocator.ENV, "").strip()
+    if allocator.kind(Path(named).name) == "jemalloc" and Path(named).is_file():
+        return named
+    return allocator.find_jemalloc()
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux") or _jemalloc_library() is None,

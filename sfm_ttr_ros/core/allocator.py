@@ -25,6 +25,7 @@ import os
 import sys
 import sysconfig
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 #: The environment variable that chooses the allocator: mimalloc, glibc, jemalloc or a path.
@@ -65,12 +66,27 @@ def find_mimalloc() -> str | None:
     return str(path) if path.is_file() else None
 
 
-#: How each named choice finds its library.
-FINDERS: dict[str, Callable[[], str | None]] = {"jemalloc": find_jemalloc,
-                                                "mimalloc": find_mimalloc}
-#: What to install when a named library is missing.
-INSTALL_HINTS = {"jemalloc": "apt install libjemalloc2",
-                 "mimalloc": f"pip install {MIMALLOC_DISTRIBUTION}"}
+@dataclass(frozen=True)
+class Named:
+    """A malloc ``SFM_TTR_MALLOC`` can name: how its library is found, what installs it, and
+    the environment options the node gets with it unless its environment sets them."""
+
+    find: Callable[[], str | None]
+    install: str
+    options: Mapping[str, str] = field(default_factory=dict)
+
+
+#: The named choices besides ``glibc``; a library file is of kind ``name`` when its file name
+#: holds ``lib<name>`` (:func:`kind`).
+NAMED: dict[str, Named] = {
+    "jemalloc": Named(find_jemalloc, "apt install libjemalloc2"),
+    "mimalloc": Named(find_mimalloc, f"pip install {MIMALLOC_DISTRIBUTION}", MIMALLOC_OPTIONS),
+}
+
+
+def kind(text: str) -> str | None:
+    """The named malloc whose ``lib<name>`` occurs in ``text`` (a file name, /proc/self/maps)."""
+    return next((name for name in NAMED if f"lib{name}" in text), None)
 
 
 def choice(environ: Mapping[str, str]) -> str:
@@ -84,8 +100,8 @@ def library(name: str) -> str | None:
     checked here)."""
     if name == "glibc":
         return None
-    finder = FINDERS.get(name)
-    return finder() if finder is not None else name
+    named = NAMED.get(name)
+    return named.find() if named is not None else name
 
 
 def mapped(preloaded: str | None = None) -> str | None:
@@ -97,7 +113,7 @@ def mapped(preloaded: str | None = None) -> str | None:
             text = maps.read()
     except OSError:
         return None
-    named = next((name for name in FINDERS if f"lib{name}" in text), None)
+    named = kind(text)
     if named is None and preloaded and Path(preloaded).name in text:
         return Path(preloaded).name
     return named
@@ -119,19 +135,18 @@ def preload(environ: Mapping[str, str] | None = None, argv: list[str] | None = N
         return f"malloc: glibc ({env[PRELOADED_ENV]} could not be preloaded)"
     path = library(name)
     if path is None:
-        return f"malloc: glibc ({ENV}={name} but it is not installed: {INSTALL_HINTS[name]})"
+        return f"malloc: glibc ({ENV}={name} but it is not installed: {NAMED[name].install})"
     if not Path(path).is_file():
         return f"malloc: glibc ({ENV}={name}: no such file)"
     env["LD_PRELOAD"] = " ".join(p for p in (path, env.get("LD_PRELOAD", "")) if p)
     env[PRELOADED_ENV] = path
-    if "mimalloc" in Path(path).name:
-        for option, value in MIMALLOC_OPTIONS.items():
-            env.setdefault(option, value)
+    library_kind = kind(Path(path).name)
+    for option, value in (NAMED[library_kind].options if library_kind else {}).items():
+        env.setdefault(option, value)
     execve(sys.executable, list(sys.orig_argv if argv is None else argv), env)
     return f"malloc: {name} ({path}, re-executed)"  # only when execve returns (tests)
 
 
-__all__ = ["DEFAULT", "ENV", "FINDERS", "INSTALL_HINTS", "JEMALLOC_LIBRARY",
-           "MIMALLOC_DISTRIBUTION", "MIMALLOC_LIBRARY", "MIMALLOC_OPTIONS", "PRELOADED_ENV",
-           "choice", "find_jemalloc", "find_mimalloc", "jemalloc_paths", "library", "mapped",
-           "preload"]
+__all__ = ["DEFAULT", "ENV", "JEMALLOC_LIBRARY", "MIMALLOC_DISTRIBUTION", "MIMALLOC_LIBRARY",
+           "MIMALLOC_OPTIONS", "NAMED", "PRELOADED_ENV", "Named", "choice", "find_jemalloc",
+           "find_mimalloc", "jemalloc_paths", "kind", "library", "mapped", "preload"]
