@@ -1,4 +1,4 @@
-"""The affine path end to end (issue 18): a network whose output is affine-invariant inverse
+"""The affine path end to end: a network whose output is affine-invariant inverse
 depth, refined through SfmTTR, ends as accurate as the paper's scale-only path on the same
 network's depth.
 

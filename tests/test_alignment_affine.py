@@ -1,4 +1,4 @@
-"""Affine (scale + shift) alignment of affine-invariant inverse depth (issue 18)."""
+"""Affine (scale + shift) alignment of affine-invariant inverse depth."""
 
 import numpy as np
 import pytest

@@ -163,7 +163,7 @@ def test_markdown_csv_and_figure(bench):
 
 @pytest.mark.slow
 def test_every_window_is_listed_with_its_checks_and_drawn(bench):
-    """Issue 19: each windowed mode lists its windows (frames, outcome, reason key, the
+    """each windowed mode lists its windows (frames, outcome, reason key, the
     checks' statistics and held-out errors); results.md tabulates them; windows.png draws them."""
     out, res = bench
     online = res["sfm_ttr_online"]
@@ -178,7 +178,7 @@ def test_every_window_is_listed_with_its_checks_and_drawn(bench):
             assert w["check"]["parallax"] >= 0.1 and w["check"]["check_points"] == 0
     assert online["refined_frames"] > 0
     md = (out / "results.md").read_text()
-    assert "Windows (issue 19" in md and "| sfm_ttr_online | 0 | 0-3 |" in md
+    assert "Windows (refused" in md and "| sfm_ttr_online | 0 | 0-3 |" in md
     fig = cv2.imread(str(out / "windows.png"))
     assert fig is not None and fig.shape[1] == 1200 and fig.std() > 10
 
@@ -274,7 +274,7 @@ def test_every_mode_has_depth_bands_and_the_error_by_depth_figure(bench, data):
 
 @pytest.fixture(scope="module")
 def loss_bench(data):
-    """The photometric and hybrid modes (issue 16) on the same drive and windows."""
+    """The photometric and hybrid modes on the same drive and windows."""
     out = data / "out_loss"
     modes = ["no_ttr", "ph_ttr_online", "hybrid_online", "ph_ttr_offline", "hybrid_offline"]
     argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "5",
@@ -532,3 +532,40 @@ def test_live_frames_skipped_for_overflow_are_counted_not_lost(data, tmp_path, m
     assert r["not_published"] == {"live_overflow": skipped} and r["lost_frames"] == 0
     assert r["processed_frames"] + skipped == N_FRAMES
     assert r["warm_up_s"] > 0
+
+
+def test_node_mode_runs_the_parameter_files_objective_as_it_is():
+    from sfm_ttr_ros.core.pipeline import TTRConfig
+    from sfm_ttr_ros.tools.benchmark import MODES as ALL_MODES
+    from sfm_ttr_ros.tools.benchmark.runners import NODE_MODE, mode_config
+
+    cfg = TTRConfig()
+    cfg.refinement.loss, cfg.weight_policy = "photometric", "continue"
+    assert NODE_MODE == "node_online" and NODE_MODE in ALL_MODES
+    assert mode_config(NODE_MODE, cfg) is cfg
+
+
+def test_live_time_line_counts_from_each_windows_last_frame():
+    from types import SimpleNamespace
+
+    from sfm_ttr_ros.tools.benchmark.live import timeline_summary, window_timeline
+
+    arrivals = [100.0 + 0.1 * k for k in range(20)]  # 10 Hz
+    ws = SimpleNamespace(index=0, refined=True, reason_key="", names=[f"{k:010d}" for k in
+                                                                        range(10)],
+                         started_at=101.0, finished_at=104.5,
+                         timings={"predict_before": 0.2, "sfm": 0.8, "align": 0.0,
+                                  "refine": 2.0})
+    row = window_timeline(ws, arrivals, {"interim": 102.5, "final": 104.0})
+    assert row["first_frame_arrival"] == pytest.approx(-0.9)
+    assert row["closed"] == pytest.approx(0.1) and row["sfm_done"] == pytest.approx(1.1)
+    assert row["refined"] == pytest.approx(3.1) and row["first_served"] == pytest.approx(1.6)
+    assert row["served"] == pytest.approx(3.1) and row["since_feed_start"] == pytest.approx(2.5)
+    refused = window_timeline(SimpleNamespace(**{**vars(ws), "index": 1, "refined": False,
+                                                 "names": [f"{k:010d}" for k in range(10, 20)]}),
+                              arrivals, {})
+    assert refused["served"] is None and refused["first_served"] is None
+    s = timeline_summary([row, refused])
+    assert s["first_weights_s"] == pytest.approx(2.5)
+    assert s["last_frame_to_weights_s"] == pytest.approx(3.1)
+    assert s["last_frame_to_first_weights_s"] == pytest.approx(1.6)

@@ -1,4 +1,4 @@
-"""Issue 5 end to end: a generated drive → rosbag2 → played into the `refiner` node (a real
+"""The demo end to end: a generated drive → rosbag2 → played into the `refiner` node (a real
 subprocess, as `ros2 run` starts it) → recorded ~/depth → evaluated against the GT topic.
 
 The refined depth must beat the unrefined one on abs rel and RMSE for that drive. Small frames

@@ -1,5 +1,5 @@
 """refinement.frozen_encoder_levels: the encoder kept fixed up to its L-th feature map, computed
-once per frame (a speed option, issue 6), must give exactly the refinement of the remaining
+once per frame (a speed option), must give exactly the refinement of the remaining
 stages."""
 
 import numpy as np

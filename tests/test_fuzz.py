@@ -1,4 +1,4 @@
-"""The fuzz harness (scripts/fuzz_node.py, issue 17) at CI size: the installed refiner started as
+"""The fuzz harness (scripts/fuzz_node.py) at CI size: the installed refiner started as
 a subprocess and fed a few hundred hostile messages and invalid parameter sets through DDS; every
 check of the harness must pass (alive, exact accounting, every valid frame back or counted, no
 fault, no traceback, bounded memory, parameters refused with reasons, clean exit)."""

@@ -1,4 +1,4 @@
-"""A tiny transformers model through the rest of the system (issue 18): LoRA-refined weights
+"""A tiny transformers model through the rest of the system: LoRA-refined weights
 handed to the serving copy, and ``sfm-ttr benchmark --model hf --model-path DIR``.
 
 The tiny randomly initialised Depth Anything of test_hf_model is saved to a temporary directory

@@ -1,4 +1,4 @@
-"""transformers depth models as DepthModels, and parameter-efficient refinement (issue 18).
+"""transformers depth models as DepthModels, and parameter-efficient refinement.
 
 Tiny randomly initialised Depth Anything and DPT configs are written with ``save_pretrained``
 to a temporary directory and loaded back offline: nothing is downloaded."""

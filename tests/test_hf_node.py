@@ -1,4 +1,4 @@
-"""The refiner node running a transformers depth model (issue 18): ``model_type: hf`` with
+"""The refiner node running a transformers depth model: ``model_type: hf`` with
 ``model_path`` = the tiny randomly initialised Depth Anything of test_hf_model, built by the node
 from its parameters, in an in-process ROS 2 graph (test_node's Graph: own context, DDS on
 localhost, a random domain) and fed generated street frames through DDS.

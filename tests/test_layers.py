@@ -1,4 +1,4 @@
-"""The package's layers (issue 14; docs/architecture.md): imports go one way only.
+"""The package's layers (docs/architecture.md): imports go one way only.
 
     core  <-  data  <-  ros  <-  tools
       ^                  |

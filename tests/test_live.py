@@ -1,4 +1,4 @@
-"""Live serving (issue 15): the serving copy's atomic weight swap, the live server's accounting,
+"""Live serving: the serving copy's atomic weight swap, the live server's accounting,
 continual refinement (replay, L2 pull to the start-up weights) and the rollback of a window."""
 
 from __future__ import annotations
@@ -445,7 +445,7 @@ def test_no_interim_weights_while_a_check_runs_after_refinement(one_thread):
 
 def test_interim_weights_are_served_only_when_their_unsupported_change_passes(one_thread,
                                                                              monkeypatch):
-    """With check.max_unsupported_change on (issue 19) interim weights are measured on a few of
+    """With check.max_unsupported_change on interim weights are measured on a few of
     the window's frames before each preview: served when they pass, kept back (counted) when
     not, and the finished window is then refused by the same check."""
     import sfm_ttr_ros.core.verification as verification

@@ -1,4 +1,4 @@
-"""Property tests of msg_adapters (issue 17): whatever the fields of an Image, a CameraInfo or a
+"""Property tests of msg_adapters: whatever the fields of an Image, a CameraInfo or a
 CompressedImage hold, the readers return a well-formed result or raise the documented error
 (an InputError subclass), never anything else. Messages are duck-typed (the readers take any
 object with the fields), so the fields range over what ROS can carry: uint32 sizes and steps,

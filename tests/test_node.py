@@ -384,7 +384,7 @@ def test_an_unrefined_frame_already_on_depth_is_counted_not_sent_again(graph_fac
 
 def test_fallback_principal_point_outside_the_frame_is_a_mismatch_not_fatal(graph_factory,
                                                                             sequence):
-    # issue 17: params/kitti.yaml's fallback (cx, cy) on a smaller frame ended the process
+    # params/kitti.yaml's fallback (cx, cy) on a smaller frame ended the process
     g = graph_factory(window_size=50, window_stride=1, fx=721.5377, fy=721.5377, cx=609.5593,
                       cy=172.854)
     small = np.ascontiguousarray(sequence.images[0][:50, :100])
@@ -621,7 +621,7 @@ def test_installed_refiner_runs_and_stops_on_sigint(installed, context, tmp_path
 @pytest.mark.slow
 def test_live_depth_serves_every_frame_at_once_and_takes_the_refined_weights(graph_factory,
                                                                              sequence):
-    # issue 15: ~/depth answers every frame from the serving copy, without waiting for windows
+    # ~/depth answers every frame from the serving copy, without waiting for windows
     g = graph_factory(window_size=6, window_stride=6, **{"refinement.steps": 20,
                                                           "refinement.lr": 1e-2})
     g.send_info(sequence.intrinsics, sequence.stamps[0])

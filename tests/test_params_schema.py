@@ -280,7 +280,7 @@ def test_node_settings_validate_themselves():
 
 
 def test_a_replaced_parameter_names_its_successor(tmp_path):
-    # issue 15: reset_each_window became weight_policy; an old file says so instead of "unknown"
+    # reset_each_window became weight_policy; an old file says so instead of "unknown"
     old = tmp_path / "old.yaml"
     old.write_text("refiner:\n  ros__parameters:\n    reset_each_window: false\n")
     with pytest.raises(InputError, match="replaced by weight_policy"):

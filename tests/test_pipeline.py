@@ -299,7 +299,7 @@ def test_a_window_that_misses_the_margin_is_rejected_and_changes_nothing(run, mo
 
 @pytest.mark.slow
 def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypatch):
-    """The unsupported-change check (issue 19): measured on every refined window; with τ made
+    """The unsupported-change check: measured on every refined window; with τ made
     tiny every pixel far from the SfM points that moved at all counts, and a threshold below
     the measured share refuses the refined weights like the held-out check does."""
     import sfm_ttr_ros.core.verification as verification
@@ -381,3 +381,20 @@ def test_a_rejected_window_leaves_continual_weights_and_replay_untouched(run, mo
     second = ttr.process_window(run.window, run.intr)
     assert second.reason_key == "rejected_by_check"
     assert _encoder_equals(ttr.model, kept) and len(ttr._replay) == 1
+
+
+@pytest.mark.slow
+def test_a_window_starting_from_carried_weights_runs_carried_steps(run, monkeypatch):
+    """continue: the first window (start-up weights) runs refinement.steps, a window after an
+    accepted one starts from its weights and runs carried_steps; reset_model starts over."""
+    ttr = pinned(run, monkeypatch)
+    monkeypatch.setattr(ttr.config, "weight_policy", "continue")
+    monkeypatch.setattr(ttr.config, "carried_steps", 3)
+    first = ttr.process_window(run.window, run.intr)
+    assert first.refined and first.refinement.steps_done == STEPS
+    carried = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
+    second = ttr.process_window(run.window, run.intr)
+    assert second.refined and second.refinement.steps_done == 3
+    assert not _encoder_equals(ttr.model, carried)  # it went on from the carried weights
+    ttr.reset_model()
+    assert ttr.process_window(run.window, run.intr).refinement.steps_done == STEPS

@@ -1,4 +1,4 @@
-"""``refinement.loss`` (issue 16): Eq. (5) (``sfm``), Ph-TTR (``photometric``) and the hybrid,
+"""``refinement.loss``: Eq. (5) (``sfm``), Ph-TTR (``photometric``) and the hybrid,
 in refine_encoder and through SfmTTR.process_window, on a rendered drive with its true poses
 (no COLMAP: the window's SfM result is built from the generator's ground truth)."""
 
@@ -242,3 +242,21 @@ def test_pipeline_hybrid_zero_is_sfm_and_poses_are_in_network_units(window, monk
     res_ph, kw_ph = process(window, monkeypatch, loss="photometric")
     assert res_ph.refined and len(kw_ph["photometric"]) == len(frames)
     assert res_ph.refinement.frames_used == len(frames)
+
+
+def test_relative_sfm_residual_divides_each_point_by_its_target():
+    """|ŝD − D_nn| / (ŝD): the step's weights are exp(−r²) / target, so a point 10x farther
+    weighs 10x less than with Eq. (5)'s absolute residual, and the same relative error costs
+    the same near and far."""
+    from sfm_ttr_ros.core.refinement import RefinementConfig, step_weights
+    from sfm_ttr_ros.core.supervision import FrameSupervision
+
+    s = FrameSupervision("a", np.zeros((4, 4, 3), np.uint8), np.zeros((2, 2)),
+                         np.array([2.0, 20.0]), np.array([0.5, 0.5]))
+    assert np.allclose(step_weights(s, "absolute"), [0.5, 0.5])
+    w = step_weights(s, "relative")
+    assert np.allclose(w, [0.25, 0.025])
+    pred = s.target * 1.1  # 10 % too far at both depths
+    assert np.allclose(w * np.abs(pred - s.target), [0.05, 0.05])
+    with pytest.raises(ValueError, match="sfm_residual"):
+        RefinementConfig(sfm_residual="squared")

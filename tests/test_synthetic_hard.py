@@ -1,4 +1,4 @@
-"""Synthetic hard drives (issue 19): segments of turning on the spot, a standing camera, cars
+"""Synthetic hard drives: segments of turning on the spot, a standing camera, cars
 crossing, a vehicle ahead moving with the camera, an exposure change, turning while creeping,
 creeping straight and a truck ahead, between ordinary driving; exact depth of the moving
 objects; labels; ``sfm-ttr generate --scenario hard``."""

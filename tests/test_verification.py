@@ -1,4 +1,4 @@
-"""The window checks of issue 19 (sfm_ttr_ros.core.verification), unit by unit: the held-out
+"""The window checks (sfm_ttr_ros.core.verification), unit by unit: the held-out
 split by track, the check error, the verdict, and each sanity statistic on constructed data
 whose right answer is known."""
 

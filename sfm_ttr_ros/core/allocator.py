@@ -1,4 +1,4 @@
-"""Which malloc the node runs on: mimalloc by default, glibc or jemalloc on request (issue 15).
+"""Which malloc the node runs on: mimalloc by default, glibc or jemalloc on request.
 
 glibc's malloc keeps the memory a window frees inside its arenas, and the freed pieces fragment:
 in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md 6f, 6k) the peak RSS was 10–23 % above its

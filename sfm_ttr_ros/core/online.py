@@ -41,6 +41,9 @@ from sfm_ttr_ros.core.refinement import warm_up_optimiser
 from sfm_ttr_ros.core.serving import ServingModel
 from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats
 
+#: Windows whose serving times :attr:`OnlineRefiner.served_at` keeps.
+SERVED_HISTORY = 1000
+
 
 class OnlineRefiner:
     """Live serving plus background windows over one network (see the module docstring).
@@ -81,6 +84,9 @@ class OnlineRefiner:
         self.serving_previews = 0
         self.serving_reverts = 0
         self.serving_interim_refused = 0  # interim weights the window check kept from serving
+        # window index -> {"interim": first interim swap, "final": accepted weights swapped in}
+        # (time.monotonic()), the newest SERVED_HISTORY windows: the time line of sfm_ttr_live
+        self.served_at: dict[int, dict[str, float]] = {}
         ttr.on_refine_step = self._refine_step
 
     # -- input (any thread) ---------------------------------------------------------------------
@@ -167,6 +173,7 @@ class OnlineRefiner:
             self.serving.preview(self.ttr.model.encoder.state_dict(),
                                  self.stream.windows_started, step)
             self.serving_previews += 1
+            self._mark(self.stream.windows_started - 1, "interim")
         except ValueError as exc:
             self.log.warning(f"interim weights after step {step} not served: {exc}")
 
@@ -175,6 +182,7 @@ class OnlineRefiner:
             try:
                 self.serving.update(self.ttr.model.encoder.state_dict(), stats.index + 1)
                 self.serving_updates += 1
+                self._mark(stats.index, "final")
             except Exception as exc:  # noqa: BLE001 - keep serving the previous weights
                 self.serving_update_errors += 1
                 self.log.error(f"window {stats.index}: weights not served: "
@@ -187,10 +195,18 @@ class OnlineRefiner:
         if "sfm" in stats.timings:  # a window that ran SfM: its working set back to the OS
             heap.release_free_heap()  # (core/heap.py; skipped windows free next to nothing)
 
+    def _mark(self, window: int, what: str) -> None:
+        """Note when ``window``'s weights were first swapped into serving (``what``: interim
+        or final); keeps the newest :data:`SERVED_HISTORY` windows."""
+        self.served_at.setdefault(window, {}).setdefault(what, time.monotonic())
+        while len(self.served_at) > SERVED_HISTORY:
+            del self.served_at[min(self.served_at)]
+
     def _revert(self, stats: WindowStats) -> None:
         """A window that ends not accepted: serve the weights from before its interim ones."""
         if self.serving.revert():
             self.serving_reverts += 1
+            self._mark(stats.index, "withdrawn")
             self.log.info(f"window {stats.index} not accepted ({stats.reason}): its interim "
                           "weights withdrawn from serving")
 

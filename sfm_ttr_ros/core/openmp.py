@@ -1,4 +1,4 @@
-"""The OpenMP team size of one thread: the window worker's thread budget (issue 15).
+"""The OpenMP team size of one thread: the window worker's thread budget.
 
 torch runs its intra-op parallel regions on OpenMP (libgomp in the PyPI wheels), and every
 thread that opens a parallel region gets a team of its own. In the node two threads do: the

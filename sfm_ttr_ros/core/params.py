@@ -45,7 +45,13 @@ from sfm_ttr_ros.core.node_settings import (
     NodeSettings,
 )
 from sfm_ttr_ros.core.pipeline import WEIGHT_POLICIES, TTRConfig
-from sfm_ttr_ros.core.refinement import BN_MODES, LOSSES, WEIGHTINGS, RefinementConfig
+from sfm_ttr_ros.core.refinement import (
+    BN_MODES,
+    LOSSES,
+    SFM_RESIDUALS,
+    WEIGHTINGS,
+    RefinementConfig,
+)
 from sfm_ttr_ros.core.sfm import RETRY_HISTORY, SfmConfig
 from sfm_ttr_ros.core.stream import StreamSettings
 from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
@@ -255,10 +261,19 @@ PARAMS: tuple[Param, ...] = (
        "pixel's point from its predicted depth to infinity moves its projection by at least this "
        "many pixels (at the network's input size); far pixels are left to the SfM term; 0 = "
        "every pixel (Monodepth2's loss; 'photometric' is never gated).", 0.0, 1e3),
+    _p("refinement.sfm_residual", "refinement.sfm_residual", "The SfM term's residual: "
+       "absolute = the paper's |s*D_sfm - D_nn| (Eq. (5), grows with depth); relative = "
+       "|s*D_sfm - D_nn| / (s*D_sfm), the same weight near and far (so that the hybrid's "
+       "photometric_weight balances the two terms at every depth).", choices=SFM_RESIDUALS),
     _p("weight_policy", "ttr.weight_policy", "Weights across windows: 'reset' (every window "
        "refines from the start-up weights), 'continue' (from the previous window's result), "
        "'continual' (continue, replaying earlier windows' supervision, pulled toward the "
-       "start-up weights).", choices=WEIGHT_POLICIES),
+       "start-up weights). Under continue and continual a window starts from the last ACCEPTED "
+       "weights: a window that is refused, rolled back or fails leaves them as they were.",
+       choices=WEIGHT_POLICIES),
+    _p("carried_steps", "ttr.carried_steps", "Adam steps of a window that starts from carried "
+       "weights (continue, continual: after an accepted window); 0 = refinement.steps.",
+       0, 1_000_000),
     _p("continual.replay_windows", "ttr.replay_windows", "continual: how many earlier refined "
        "windows' supervision is kept and replayed.", 0, 1000),
     _p("continual.replay_ratio", "ttr.replay_ratio", "continual: share of the refinement steps "
@@ -268,7 +283,7 @@ PARAMS: tuple[Param, ...] = (
     _p("max_loss_ratio", "ttr.max_loss_ratio", "Roll a window back to the weights before it "
        "when its loss after refinement exceeds this many times the loss before (non-finite "
        "losses or weights always roll back); 0 = only the non-finite check.", 0.0, 1e6),
-    # -- window checks (issue 19, core/verification.py; live) -----------------------------------
+    # -- window checks (core/verification.py; live) -----------------------------------
     _p("check.holdout_fraction", "check.holdout_fraction", "Share of a window's supervision "
        "tracks held out of refinement to check it: the refined weights are served and kept only "
        "if the held-out error fell (check.holdout_margin); else the window is published "

@@ -2,7 +2,7 @@
 
 This is the loss of photometric test-time refinement (Ph-TTR, the baseline SfM-TTR is compared
 with: Izquierdo & Civera, CVPR 2023, Sec. 5-6 and Fig. 4) and the photometric half of the hybrid
-SfM + photometric refinement (issue 16). Notation: target frame t, source frames s (the window's
+SfM + photometric refinement. Notation: target frame t, source frames s (the window's
 neighbours t-1, t+1 by default), depth D_t of the target in the network's units, intrinsics K
 in pixels AT THE NETWORK'S INPUT SIZE, T_{s<-t} the rigid transform of target-camera points into
 source-camera points.
@@ -26,7 +26,7 @@ With auto-masking the identity errors pe(I_t, I_s) (un-warped source, plus N(0, 
 break ties) join that minimum: pixels that a raw source already explains (static camera, objects
 moving with the camera) fall back to an identity error and get no depth gradient.
 
-Parallax gate (not in Monodepth2, ``min_parallax`` > 0, issue 16): a warped source joins the
+Parallax gate (not in Monodepth2, ``min_parallax`` > 0): a warped source joins the
 minimum at p only where moving its point from depth D_t(p) to infinity moves its projection by at
 least ``min_parallax`` pixels, |π(K (R P + t)) − π(K R K⁻¹ p̃)| ≥ τ (D_t detached). Where the
 baseline is too short for the point's depth (far field, the focus of expansion) the photometric

@@ -7,6 +7,7 @@ encoder continued from the previous window or reset to the original weights).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -74,7 +75,7 @@ class TTRConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
-    check: CheckConfig = field(default_factory=CheckConfig)  # issue 19: core/verification.py
+    check: CheckConfig = field(default_factory=CheckConfig)  # core/verification.py
     # Weights across windows (WEIGHT_POLICIES): "reset" every window starts from the start-up
     # weights (measured better than "continue": BENCHMARKS.md); "continue" from the previous
     # window's result; "continual" continues with a replay of earlier windows' supervision and
@@ -83,6 +84,10 @@ class TTRConfig:
     replay_windows: int = 3  # continual: earlier windows whose supervision is replayed
     replay_ratio: float = 0.5  # continual: share of the steps spent on a replayed frame
     anchor_weight: float = 0.01  # continual: λ of λ·Σ‖θ − θ₀‖² over the trainable encoder
+    # Steps of a window whose refinement starts from carried weights (continue, continual:
+    # after an accepted window): 0 = refinement.steps. What a window learnt carries
+    # over, so later windows may need fewer steps than the first.
+    carried_steps: int = 0
     # Roll a window back to the weights before it when its loss after refinement exceeds this
     # many times its loss before (or anything is non-finite); 0 = only the non-finite check.
     max_loss_ratio: float = 2.0
@@ -105,6 +110,8 @@ class TTRConfig:
                              f"{self.weight_policy!r}")
         if self.replay_windows < 0:
             raise InputError(f"replay_windows must be >= 0, got {self.replay_windows}")
+        if self.carried_steps < 0:
+            raise InputError(f"carried_steps must be >= 0, got {self.carried_steps}")
         for name in ("replay_ratio", "anchor_weight", "max_loss_ratio"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
@@ -123,7 +130,7 @@ class WindowResult:
     refined: bool
     reason: str = ""  # why the window was not refined ("" when it was)
     reason_key: str = ""  # a verification.CHECK_REASONS key when a check refused the window
-    check: WindowCheck | None = None  # what the window checks measured (issue 19)
+    check: WindowCheck | None = None  # what the window checks measured
     # the refined weights' depths of a window a check refused after refining (for evaluation)
     depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
     sfm: SfmResult | None = None
@@ -164,6 +171,7 @@ class SfmTTR:
         self.check_config(self.config)
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._original = snapshot_encoder(model)
+        self._carried = False  # the encoder holds an accepted window's weights, not start-up's
         # continual policy: the supervision of the last replay_windows refined windows
         self._replay: deque[list[FrameSupervision]] = deque()
         # the last accepted window's camera path in network units (the scale-jump check)
@@ -193,6 +201,7 @@ class SfmTTR:
         """Back to the original encoder weights."""
         restore_encoder(self.model, self._original)
         self._original_key = self._weights_key()
+        self._carried = False
 
     def check_config(self, config: TTRConfig) -> None:
         """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
@@ -344,7 +353,7 @@ class SfmTTR:
         d_nn = np.concatenate([
             sample_at(before[n], sfm.frames[n].pixels, cfg.refinement.sampling) for n in reg])
         # The paper's scale fit; an affine fit in inverse depth for relative inverse-depth
-        # networks (issue 18: the targets are then in the network's own output space).
+        # networks (the targets are then in the network's own output space).
         align = align_output(d_sfm, d_nn, getattr(self.model, "output_kind", ""),
                              cfg.alignment, [len(sfm.frames[n].depths) for n in reg])
         res.alignment, res.scale = align, align.scale
@@ -371,9 +380,12 @@ class SfmTTR:
         res.check.seconds += time.perf_counter() - t0
         continual = cfg.weight_policy == "continual"
         replay = [s for window in self._replay for s in window] if continual else []
-        anchor = self._original if continual and cfg.anchor_weight > 0 else None
         # the weights before the window (rollback); under "reset" they are the start-up weights
         start = self._original if cfg.weight_policy == "reset" else snapshot_encoder(self.model)
+        anchor = self._original if continual and cfg.anchor_weight > 0 else None
+        refinement = cfg.refinement
+        if self._carried and cfg.carried_steps > 0:
+            refinement = dataclasses.replace(refinement, steps=cfg.carried_steps)
         # interim weights: served unchecked without a check after refinement, else only when
         # the unsupported change can be re-measured on them (interim_refusal)
         self._interim_seconds = 0.0
@@ -384,7 +396,7 @@ class SfmTTR:
         t0 = time.perf_counter()
         try:
             res.refinement = refine_encoder(
-                self.model, train, cfg.refinement, should_stop=stop, replay=replay,
+                self.model, train, refinement, should_stop=stop, replay=replay,
                 replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
                 photometric=self._photometric_frames(names, images, sfm, align.scale,
                                                      intrinsics), on_step=on_step)
@@ -434,6 +446,7 @@ class SfmTTR:
             res.depths_candidate, res.depths = res.depths, dict(before)
             return res
         self._path = path_reference(sfm, reg, align.scale) if self._scaled(align) else None
+        self._carried = cfg.weight_policy != "reset"
         if math.isfinite(c.unsupported_change):
             self._unsupported.append(c.unsupported_change)
         if continual and cfg.replay_windows > 0:
@@ -516,7 +529,7 @@ class SfmTTR:
     def _photometric_frames(self, names: list[str], images: dict[str, np.ndarray],
                             sfm: SfmResult, scale: float,
                             intrinsics: Intrinsics) -> list[PhotometricFrame]:
-        """The window's photometric terms (issue 16), prepared once per window when the loss
+        """The window's photometric terms, prepared once per window when the loss
         needs them: network-size images, the SfM poses of each registered frame's registered
         neighbours with their translations times the alignment scale ŝ (SfM units → network
         depth units: Ph-TTR needs the SfM scale too), K at the network's size and the

@@ -28,7 +28,7 @@ caches every block before the last N the same way (:func:`block_prefix_stages`).
 ``bn_mode="train"`` the frozen stages normalise with the frame's own statistics once (their
 running statistics are updated once per frame, not once per step).
 
-The objective (``loss``, issue 16; not in the paper, whose Sec. 5-6 and Fig. 4 compare against
+The objective (``loss``; not in the paper, whose Sec. 5-6 and Fig. 4 compare against
 it): ``sfm`` is Eq. (5); ``photometric`` is photometric test-time refinement (Ph-TTR) with
 Monodepth2's self-supervised loss, the poses taken from the window's SfM and brought into network
 units with ŝ (:mod:`sfm_ttr_ros.core.photometric`); ``hybrid`` adds λ times that loss to Eq. (5)
@@ -69,7 +69,10 @@ from sfm_ttr_ros.core.trainable import TRAINABLE_MODES, merge_lora, select_train
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
 SAMPLINGS = ("bilinear", "nearest")
-LOSSES = ("sfm", "photometric", "hybrid")  # a step's objective, see _step_loss (issue 16)
+LOSSES = ("sfm", "photometric", "hybrid")  # a step's objective, see _step_loss
+#: How the SfM term measures a point's residual: "absolute" |ŝ·D_sfm − D_nn| (Eq. (5)) or
+#: "relative" |ŝ·D_sfm − D_nn| / (ŝ·D_sfm), the same at 2 m and at 60 m (scale-free).
+SFM_RESIDUALS = ("absolute", "relative")
 MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32 stages train
 
 
@@ -83,7 +86,7 @@ class RefinementConfig:
     min_points: int = 10  # frames with fewer selected points are not used for training
     early_stop_patience: int = 0  # >0: stop when the running loss has not improved for N steps
     frozen_encoder_levels: int = 0  # 1..4: encoder fixed up to its 1/2^L feature map (speed)
-    # Which parameters a step trains (issue 18, core/trainable.py): "encoder" (the paper),
+    # Which parameters a step trains (core/trainable.py): "encoder" (the paper),
     # "norm" (normalisation affine weights only) or "lora" (adapters of rank lora_rank on the
     # attention projections, merged into the encoder when the refinement ends);
     # trainable_blocks > 0: only inside the encoder's last N transformer blocks.
@@ -91,7 +94,7 @@ class RefinementConfig:
     lora_rank: int = 8
     trainable_blocks: int = 0
     seed: int = 0
-    # A step's objective (issue 16, see _step_loss): "sfm" Eq. (5); "photometric" Monodepth2's
+    # A step's objective (see _step_loss): "sfm" Eq. (5); "photometric" Monodepth2's
     # photometric + smoothness loss with the window's SfM poses (Ph-TTR); "hybrid" Eq. (5) +
     # photometric_weight · (photometric + smoothness). The photometric loss's α, smoothness
     # weight and source frames (offsets in the window, "-1,1" = t-1 and t+1) follow.
@@ -103,8 +106,15 @@ class RefinementConfig:
     # hybrid only: the parallax gate of its photometric term (core/photometric.py), px at the
     # network's size; Ph-TTR (loss "photometric") stays Monodepth2's loss, ungated.
     hybrid_min_parallax: float = 4.0
+    # The SfM term's residual (SFM_RESIDUALS): "absolute" = Eq. (5); "relative" divides each
+    # point's term by its target ŝ·D_sfm, so that in the hybrid loss λ weighs the SfM and the
+    # photometric terms alike near and far (Eq. (5)'s term grows with depth, in depth units).
+    sfm_residual: str = "absolute"
 
     def __post_init__(self) -> None:
+        if self.sfm_residual not in SFM_RESIDUALS:
+            raise InputError(f"sfm_residual must be one of {SFM_RESIDUALS}, got "
+                             f"{self.sfm_residual!r}")
         if self.loss not in LOSSES:
             raise InputError(f"loss must be one of {LOSSES}, got {self.loss!r}")
         if not (np.isfinite(self.photometric_weight) and self.photometric_weight >= 0):
@@ -255,7 +265,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
         inputs.append(_step_input(model, s, frozen) if k < n_own else None)
         grids.append(normalized_grid(s.pixels, w, h).to(device))
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
-        weights.append(torch.as_tensor(s.weights, dtype=torch.float32, device=device))
+        weights.append(torch.as_tensor(step_weights(s, cfg.sfm_residual), dtype=torch.float32,
+                                       device=device))
 
     pull = _anchor_pairs(model, params, anchor) if anchor is not None and anchor_weight > 0 \
         else []
@@ -307,6 +318,16 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     return result
 
 
+def step_weights(s: FrameSupervision, sfm_residual: str = "absolute") -> np.ndarray:
+    """The per-point weights of a frame's SfM term in a step: exp(−r²) for Eq. (5)'s absolute
+    residual; exp(−r²) / (ŝ·D_sfm) for the relative one, |ŝ·D_sfm − D_nn| / (ŝ·D_sfm) (the
+    target is fixed during refinement, so the relative residual is Eq. (5) reweighted)."""
+    w = np.asarray(s.weights, np.float64)
+    if sfm_residual == "relative":
+        return w / np.maximum(np.abs(np.asarray(s.target, np.float64)), 1e-6)
+    return w
+
+
 def _step_input(model: DepthModel, s: FrameSupervision, frozen_stages: int):
     """A frame's network input; with frozen leading stages their (output, features), computed
     without a graph (they never change during a refinement)."""
@@ -342,7 +363,7 @@ def _step_loss(model: DepthModel, x, frozen_stages: int,
                sfm_term: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
                frame: PhotometricFrame | None, cfg: RefinementConfig,
                photometric_cfg: PhotometricConfig) -> torch.Tensor:
-    """One step's objective on one frame (issue 16), from one forward pass of the network:
+    """One step's objective on one frame, from one forward pass of the network:
 
     * ``sfm``: Eq. (5), L_j = mean_l exp(−r_lj²)·|ŝ·D_sfm(l, j) − D_nn(p_lj)| (``sfm_term`` =
       the frame's sampling grid, targets and weights);

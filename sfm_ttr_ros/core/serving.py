@@ -9,7 +9,7 @@ the old or entirely on the new weights, never on half a state dict. ``version`` 
 window that produced the weights being served (0 = the start-up weights) and ``age_s`` says how
 long ago they were swapped in.
 
-Interim weights (``serve_every_steps``, issue 15): while a window refines, :meth:`preview` serves
+Interim weights (``serve_every_steps``): while a window refines, :meth:`preview` serves
 its weights after every N steps; the first preview of a window keeps a copy of the weights it
 replaces, :meth:`update` (the window was accepted) drops that copy and :meth:`revert` (it was
 not: cancelled, rolled back, refused) puts them back, so a window that fails leaves the served

@@ -189,10 +189,13 @@ class WindowStats:
     loss_after: float = float("nan")
     steps: int = 0  # configured refinement steps for this window
     steps_done: int = 0
-    check_error_before: float = float("nan")  # held-out check error (issue 19)
+    check_error_before: float = float("nan")  # held-out check error
     check_error_after: float = float("nan")
-    unsupported_change: float = float("nan")  # share of unsupported pixels moved (issue 19)
+    unsupported_change: float = float("nan")  # share of unsupported pixels moved
     timings: dict[str, float] = field(default_factory=dict)
+    # time.monotonic() when the worker began the window and when its outputs were ready
+    started_at: float = float("nan")
+    finished_at: float = float("nan")
     cloud_frame: Frame | None = field(default=None, repr=False)  # header and stamp, no pixels
     cloud_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32),
                                   repr=False)
@@ -300,7 +303,7 @@ class StreamProcessor:
         self._windows_failed = 0
         self._windows_skipped = 0
         self._windows_disabled = 0
-        self._windows_rejected = 0  # refused by a window check (issue 19), among the failed
+        self._windows_rejected = 0  # refused by a window check, among the failed
         self._windows_remapped = 0  # whose mapper ran more than once (sfm.mapping_attempts)
         self._non_monotonic = 0
         self._live_only = 0  # unrefined frames not predicted again: served live only
@@ -566,7 +569,8 @@ class StreamProcessor:
         index = self._window_index
         self._window_index += 1
         stats = WindowStats(index, [f.name for f in frames], len(new), refined=False,
-                            steps=self.ttr.config.refinement.steps)
+                            steps=self.ttr.config.refinement.steps,
+                            started_at=time.monotonic())
         queued = self._overloaded()
         if queued:
             stats.reason_key = "overload"
@@ -630,6 +634,7 @@ class StreamProcessor:
     def _finish_window(self, entries: Sequence[_Entry], stats: WindowStats) -> None:
         """Mark the window's frames published and report it (``stats`` is already in
         :attr:`windows`: it goes there before the window's first output is published)."""
+        stats.finished_at = time.monotonic()
         for e in entries:
             e.published = True
         if self.on_window is not None:

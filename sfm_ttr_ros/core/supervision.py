@@ -124,8 +124,8 @@ def build_supervision(sfm: SfmResult, registered: Sequence[str],
 
 def supervision_targets(align: AlignmentResult, d_sfm: np.ndarray, frame: int = 0) -> np.ndarray:
     """The targets of Eq. (5) in the network's output space: ŝ·D_sfm for the paper's scale
-    fit; a/D_sfm + b for an affine fit of relative inverse depth (issue 18,
-    :func:`~sfm_ttr_ros.core.alignment_affine.affine_targets`; per-frame fits: frame
+    fit; a/D_sfm + b for an affine fit of relative inverse depth
+    (:func:`~sfm_ttr_ros.core.alignment_affine.affine_targets`; per-frame fits: frame
     ``frame``'s, none selected where it failed)."""
     if isinstance(align, FrameAffineAlignment):
         if not np.isfinite(align.frame_scale[frame]):

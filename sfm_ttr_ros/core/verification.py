@@ -1,4 +1,4 @@
-"""Trust, but verify, each window (issue 19): sanity checks before refining, a held-out check after.
+"""Trust, but verify, each window: sanity checks before refining, a held-out check after.
 
 The paper names SfM-TTR's weak spots (Sec. 6): dynamic objects, low parallax and drastic
 appearance change make SfM wrong, and SfM-TTR then teaches the network the wrong scene. pycolmap

@@ -30,7 +30,7 @@ warm plaster/brick facades, trees, KITTI camera); ``"B"`` is an overcast dense d
 street, tall grey concrete/glass facades, darker asphalt, more parked cars, few trees, lower and
 wider-angle camera, more yaw wobble, flatter contrast).
 
-Hard drives (:mod:`.scenario`, issue 19): segments of ordinary driving, turning on the spot,
+Hard drives (:mod:`.scenario`): segments of ordinary driving, turning on the spot,
 a standing camera, cars crossing ahead, a vehicle ahead moving with the camera, a sudden
 exposure change, turning while creeping, creeping straight and a truck ahead moving with the
 camera, one label per frame (:func:`make_hard_sequence`, :data:`DEFAULT_HARD_SEGMENTS`).

@@ -1,4 +1,4 @@
-"""Segment-based drives: the hard cases of SfM strung between ordinary driving (issue 19).
+"""Segment-based drives: the hard cases of SfM strung between ordinary driving.
 
 A drive is a list of :class:`Segment` (kind, number of frames), rendered in one street scene
 with exact depth (the moving objects are rendered, so the depth includes them) and one label per

@@ -8,8 +8,8 @@
 * ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.process_window` over the whole
   sequence, the paper's setting (or consecutive chunks of ``offline_max_frames`` frames, each
   from the original weights, when the sequence is too long for one reconstruction).
-* ``ph_ttr_online`` / ``ph_ttr_offline`` and ``hybrid_online`` / ``hybrid_offline`` (issue 16,
-  on request with ``--modes``): the same windows with ``refinement.loss`` ``photometric``
+* ``ph_ttr_online`` / ``ph_ttr_offline`` and ``hybrid_online`` / ``hybrid_offline`` (on
+  request with ``--modes``): the same windows with ``refinement.loss`` ``photometric``
   (Ph-TTR: Monodepth2's loss with the window's SfM poses) and ``hybrid`` (Eq. 5 + λ·photometric);
   the ``sfm_ttr_online`` / ``_offline`` modes always run ``sfm`` (:func:`.runners.mode_config`);
   ``sfm_ttr_live`` runs the parameter file's loss, as the node does (its ``loss`` key).

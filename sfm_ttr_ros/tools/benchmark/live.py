@@ -56,6 +56,8 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     versions: list[int] = []
     windows = {"windows": 0, "windows_refined": 0, "windows_rolled_back": 0, "window_log": []}
 
+    arrivals: list[float] = []  # time.monotonic() of the k-th frame fed
+    timeline: list[dict] = []  # one row per window, see window_timeline
     served: deque[LiveOutput] = deque()  # evaluated by the feeder after the feed
     held = [0]  # bytes of the served depths waiting in ``served``
 
@@ -82,6 +84,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         windows["windows_rolled_back"] += int(ws.reason_key == "rolled_back")
         # the stream numbers frames in arrival order: name k is the k-th frame fed
         windows["window_log"].append(window_record(ws, lambda n: indices[int(n)]))
+        timeline.append(window_timeline(ws, arrivals, online.served_at.get(ws.index, {})))
         for k, v in ws.timings.items():
             run.timings[k] += float(v)
         if progress:
@@ -101,6 +104,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             if delay > 0:
                 time.sleep(delay)
             arrival = time.monotonic()
+            arrivals.append(arrival)
             online.submit_live(frame, arrival)
             online.submit(frame, seq.intrinsics)
             if progress and k % 100 == 99:
@@ -130,7 +134,52 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         "live_counters": c["live"],
         "stream_counters": {k: v for k, v in c.items() if k != "live"},
         "served_versions": sorted(set(versions)),
+        **timeline_summary(timeline),
     })
     log.info("sfm_ttr_live: %d frames at %.1f Hz, latency p50/p95/max %.3f/%.3f/%.3f s, "
              "bare forward %.3f s", len(indices), rate, run.extra["latency_p50_s"],
              run.extra["latency_p95_s"], run.extra["latency_max_s"], forward)
+
+
+def window_timeline(ws: WindowStats, arrivals: Sequence[float],
+                    served: dict[str, float]) -> dict:
+    """One window's time line in seconds after its LAST frame arrived (the stream names frames
+    by arrival: name k is the k-th frame fed): when its first frame arrived
+    (``first_frame_arrival``, negative), the worker took the window up (``closed``), SfM ended
+    (``sfm_done``), the refinement ended (``refined``), its first interim weights or else its
+    accepted weights were swapped into serving (``first_served``), its accepted weights were
+    (``served``), its outputs were ready (``finished``); None for what did not happen.
+    ``since_feed_start`` = ``first_served`` counted from the first frame of the feed."""
+    last = arrivals[int(ws.names[-1])] if ws.names else float("nan")
+    t = ws.timings
+    sfm_done = ws.started_at + t.get("predict_before", 0.0) + t.get("sfm", 0.0)
+    refined = sfm_done + t.get("align", 0.0) + t.get("refine", 0.0)
+    first = served.get("interim", served.get("final"))
+
+    def since(v: float | None, origin: float) -> float | None:
+        return None if v is None or not np.isfinite(v) else float(v - origin)
+
+    return {"window": ws.index, "accepted": ws.refined, "reason_key": ws.reason_key,
+            "first_frame_arrival": since(arrivals[int(ws.names[0])], last) if ws.names else None,
+            "closed": since(ws.started_at, last),
+            "sfm_done": since(sfm_done, last) if "sfm" in t else None,
+            "refined": since(refined, last) if "refine" in t else None,
+            "first_served": since(first, last), "served": since(served.get("final"), last),
+            "finished": since(ws.finished_at, last),
+            "since_feed_start": since(first, arrivals[0]) if arrivals else None}
+
+
+def timeline_summary(timeline: Sequence[dict]) -> dict:
+    """The time line's headline figures: from the feed's first frame to the first refined
+    weights served (``first_weights_s``), and the medians from a window's last frame to its
+    first served weights and to its accepted weights (over the windows that had them)."""
+    first = [r["since_feed_start"] for r in timeline if r["since_feed_start"] is not None]
+    to_any = [r["first_served"] for r in timeline if r["first_served"] is not None]
+    to_final = [r["served"] for r in timeline if r["served"] is not None]
+
+    def median(v: list[float]) -> float | None:
+        return float(np.median(v)) if v else None
+
+    return {"timeline": list(timeline), "first_weights_s": min(first) if first else None,
+            "last_frame_to_first_weights_s": median(to_any),
+            "last_frame_to_weights_s": median(to_final)}

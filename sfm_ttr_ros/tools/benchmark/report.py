@@ -144,11 +144,11 @@ def results_markdown(results: Mapping[str, Any]) -> str:
 
 def window_check_lines(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
     """Markdown: per windowed mode, each window's outcome, reason key, held-out check error
-    before -> after and unsupported change (issue 19); the window timeline figure."""
+    before -> after and unsupported change; the window timeline figure."""
     logged = [m for m in modes if results[m].get("window_log")]
     if not logged:
         return []
-    lines = ["Windows (issue 19: refused = a window check refused it; check = held-out error "
+    lines = ["Windows (refused = a window check refused it; check = held-out error "
              "before -> after; unsupported = share of the pixels far from every SfM point whose "
              "depth the refinement moved):", "",
              "| method | window | frames | outcome | check | unsupported |",

@@ -1,7 +1,7 @@
 """The benchmark's modes over the same frames (see :mod:`sfm_ttr_ros.tools.benchmark`):
 ``no_ttr`` (the network alone), ``<method>_online`` (the node's stream, no ROS transport) and
 ``<method>_offline`` (one window over the whole sequence, or chunks) for the three refinement
-objectives (``refinement.loss``, issue 16): ``sfm_ttr`` (Eq. 5), ``ph_ttr`` (photometric TTR
+objectives (``refinement.loss``): ``sfm_ttr`` (Eq. 5), ``ph_ttr`` (photometric TTR
 with the SfM poses) and ``hybrid``; and the per-mode bookkeeping (:class:`ModeRun`) that
 evaluates each published depth, overall and by depth band."""
 
@@ -35,12 +35,15 @@ log = logging.getLogger("sfm_ttr_ros.tools.benchmark")
 #: What ``sfm-ttr benchmark`` runs when no --modes are given.
 DEFAULT_MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
 #: Method prefix of a windowed mode → the ``refinement.loss`` it runs with, whatever the
-#: parameter file says (issue 16: the same windows and settings, only the objective differs).
+#: parameter file says (the same windows and settings, only the objective differs).
 METHOD_LOSS = {"sfm_ttr": "sfm", "ph_ttr": "photometric", "hybrid": "hybrid"}
 #: The photometric (Ph-TTR) and hybrid twins of the SfM-TTR modes.
 LOSS_MODES = ("ph_ttr_online", "hybrid_online", "ph_ttr_offline", "hybrid_offline")
+#: What the node gives: its windows with the parameter file's objective and weight policy as
+#: they are (the ``<method>_*`` modes override the objective; this one overrides nothing).
+NODE_MODE = "node_online"
 #: Every mode (``sfm_ttr_live`` runs in real time at --rate: tools/benchmark/live.py).
-MODES = (*DEFAULT_MODES, "sfm_ttr_live", *LOSS_MODES)
+MODES = (*DEFAULT_MODES, NODE_MODE, "sfm_ttr_live", *LOSS_MODES)
 #: The top-level stages of a window (WindowResult.timings also holds ``sfm_*`` sub-stages).
 STAGES = ("predict_before", "sfm", "align", "refine", "predict_after")
 
@@ -147,7 +150,7 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 
 
 def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[str, Any]:
-    """One window of a windowed mode for results.json (issue 19): its frames (sequence
+    """One window of a windowed mode for results.json: its frames (sequence
     indices), outcome and reason key, and what the window checks measured."""
     res = ws.result
     check = res.check.summary() if res is not None and res.check is not None else None

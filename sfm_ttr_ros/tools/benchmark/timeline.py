@@ -1,4 +1,4 @@
-"""The benchmark's window timeline (issue 19), OpenCV only: per frame the abs rel of every mode
+"""The benchmark's window timeline, OpenCV only: per frame the abs rel of every mode
 along the sequence, and under it one strip per windowed mode with each window's outcome —
 refined (green), refused by a window check (red, its reason key written in), other unrefined
 (grey) — so a rejected window can be read against what it would have done to its frames."""
