@@ -349,3 +349,26 @@ def test_real_hololens_window(shared_data):
     assert with_gt >= 0.5 and scale > 0
     med = float(np.median(np.concatenate([g[g > 0] for g in gt.values()])))
     assert 0.5 < med < 10.0  # GT read in metres (PNG millimetres / 1000)
+
+
+def test_sfm_begun_ahead_is_the_windows_own_reconstruction(street):
+    """SfmPrefetch reconstructs a window's frames in its own thread and workspace; take()
+    hands exactly that window's result over (once), other frames get None."""
+    from sfm_ttr_ros.core.prefetch import SfmPrefetch
+
+    ahead = SfmPrefetch(SfmConfig(seed=0))
+    try:
+        window = street.frames[:10]
+        assert ahead.start(window, street.intr)
+        assert not ahead.start(window, street.intr)  # the same frames are not begun twice
+        assert ahead.take(street.frames[1:11], street.intr) is None  # other frames: not this
+        got = ahead.take(window, street.intr)
+        assert got is not None and got.ok and got.num_registered == 10
+        errors, _, _ = depth_errors(got, window, street.gt)
+        assert float(np.median(errors)) < 0.05
+        assert ahead.take(window, street.intr) is None  # handed over once
+        assert ahead.counters() == {"started": 1, "used": 1, "discarded": 0}
+        assert ahead.reconstructor.workspace.exists()
+    finally:
+        ahead.close()
+    assert not ahead.reconstructor.workspace.exists()

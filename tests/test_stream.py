@@ -46,6 +46,19 @@ class ScriptedTTR:
     def set_config(self, config):
         self.config = config
 
+    prefetched: list[list[str]]  # the windows whose SfM the stream asked to begin ahead
+
+    def prefetch_sfm(self, frames, intrinsics):  # as SfmPrefetch.start: the same frames once
+        asked = self.__dict__.setdefault("prefetched", [])
+        if asked and asked[-1] == [f.name for f in frames]:
+            return False
+        asked.append([f.name for f in frames])
+        return True
+
+    @property
+    def prefetch_counters(self):
+        return {"started": len(self.__dict__.get("prefetched", [])), "used": 0, "discarded": 0}
+
     def cancel(self):
         self.cancelled = True
 
@@ -460,3 +473,25 @@ def test_zero_steps_publishes_unrefined_as_disabled_without_running_sfm(sequence
     assert c["windows_failed"] == 0 and c["windows_skipped"] == 0
     assert c["windows_disabled"] == 1
     assert stream.windows[0].result.sfm is None  # no time spent on SfM
+
+
+def test_the_next_windows_sfm_begins_while_a_window_runs():
+    """While window 0 refines, the frames of window 1 (its 5 overlap frames + 5 new ones) are
+    all queued: their SfM is asked for ahead, once; with keyframe selection on, never."""
+    for interval, want in ((0.0, [[f"{k:010d}" for k in range(5, 15)]]), (0.05, [])):
+        ttr = ScriptedTTR(delay=0.3)
+        s = StreamProcessor(ttr, StreamSettings(window_size=10, window_stride=5,
+                                                min_keyframe_interval_s=interval,
+                                                overload_pending=0))
+        worker = threading.Thread(target=lambda: [s.step(timeout=0.05) for _ in range(60)])
+        fs = frames(16)
+        for k in range(10):
+            s.submit(fs[k], INTR)
+        worker.start()
+        while not ttr.windows:
+            time.sleep(0.01)
+        for k in range(10, 16):
+            s.submit(fs[k], INTR)
+        worker.join()
+        assert ttr.__dict__.get("prefetched", []) == want, interval
+        assert s.counters()["sfm_ahead"]["started"] == len(want)

@@ -75,6 +75,7 @@ class OnlineRefiner:
         self.live = LiveServer(self.serving, on_live or (lambda out: None),
                                max_queue=settings.live_max_queue, logger=self.log)
         self._nice = settings.worker_nice
+        ttr.prefetch_nice = settings.worker_nice  # SfM ahead runs at the worker's priority
         self._threads = settings.worker_threads
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None

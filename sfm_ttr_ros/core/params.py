@@ -163,6 +163,10 @@ PARAMS: tuple[Param, ...] = (
        "check.holdout_fraction > 0 none is served (only verified weights are). 0 = at the "
        "window's end only.", 0, 100_000),
     # -- SfM (live) -------------------------------------------------------------------------
+    _p("sfm.prefetch", "stream.prefetch_sfm", "While a window refines, reconstruct the next "
+       "window's frames in the background as soon as they are all queued, so that it starts "
+       "with its SfM done (every frame must be a keyframe: min_keyframe_interval_s and "
+       "min_keyframe_motion 0). Off: each window reconstructs when it starts."),
     _p("sfm.max_image_size", "sfm.max_image_size", "SIFT runs on images downscaled to this "
        "longest side; 0 = full resolution.", 0, 100_000,
        constraints="0 or >= 16 (1 crashes pycolmap)"),

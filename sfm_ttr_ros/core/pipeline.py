@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
@@ -26,6 +27,7 @@ from sfm_ttr_ros.core.alignment_affine import (
 from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.photometric import PhotometricFrame, prepare_frames
+from sfm_ttr_ros.core.prefetch import SfmPrefetch
 from sfm_ttr_ros.core.refinement import (
     RefinementConfig,
     RefinementResult,
@@ -170,6 +172,9 @@ class SfmTTR:
         self.config = config or TTRConfig()
         self.check_config(self.config)
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
+        self._prefetch: SfmPrefetch | None = None  # the next window's SfM, see prefetch_sfm
+        self.prefetch_nice = 0  # OS priority of that SfM's thread (the window worker's)
+        self._prefetch_lock = threading.Lock()
         self._original = snapshot_encoder(model)
         self._carried = False  # the encoder holds an accepted window's weights, not start-up's
         # continual policy: the supervision of the last replay_windows refined windows
@@ -218,14 +223,35 @@ class SfmTTR:
         self.check_config(config)
         self.config = config
         self.reconstructor.config = config.sfm
+        if self._prefetch is not None:
+            self._prefetch.set_config(config.sfm)
 
     def cancel(self) -> None:
         """Stop the running window at the next step boundary (thread-safe)."""
         self._stop = True
         self.reconstructor.cancel()
+        if self._prefetch is not None:
+            self._prefetch.cancel()
 
     def close(self) -> None:
         self.reconstructor.close()
+        if self._prefetch is not None:
+            self._prefetch.close()
+
+    def prefetch_sfm(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
+        """Begin the SfM of a coming window now, in the background (:mod:`core/prefetch
+        <sfm_ttr_ros.core.prefetch>`); :meth:`process_window` of exactly these frames then
+        takes it instead of reconstructing. False when one is still running."""
+        with self._prefetch_lock:
+            if self._prefetch is None:
+                self._prefetch = SfmPrefetch(self.config.sfm, self.prefetch_nice)
+        return self._prefetch.start(frames, intrinsics)
+
+    @property
+    def prefetch_counters(self) -> dict[str, int]:
+        """SfM reconstructions begun ahead: started, used by their window, discarded."""
+        return self._prefetch.counters() if self._prefetch is not None else \
+            {"started": 0, "used": 0, "discarded": 0}
 
     # -- prediction ----------------------------------------------------------------------
     def predict(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
@@ -337,7 +363,11 @@ class SfmTTR:
             return res
 
         t0 = time.perf_counter()
-        sfm = self.reconstructor.reconstruct(frames, intrinsics)
+        sfm = self._prefetch.take(frames, intrinsics) if self._prefetch is not None else None
+        if sfm is not None:
+            t["sfm_ahead"] = 1.0  # reconstructed while the previous window refined
+        else:
+            sfm = self.reconstructor.reconstruct(frames, intrinsics)
         t["sfm"] = time.perf_counter() - t0
         t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
         res.sfm = sfm

@@ -63,6 +63,7 @@ unrefined with a reason key (:data:`UNREFINED_REASONS`), or dropped with a reaso
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import threading
 import time
@@ -135,6 +136,10 @@ class StreamSettings:
     # False: a frame no window refines that the live output already served is not predicted
     # again for the windowed output (FrameOutput.depth None; counted under its reason as before)
     republish_unrefined: bool = False
+    # While a window runs and the next window's frames are all queued, reconstruct them in the
+    # background (core/prefetch.py): the next window starts with its SfM done. Only when every
+    # frame is a keyframe (min_keyframe_interval_s and min_keyframe_motion 0).
+    prefetch_sfm: bool = True
 
     @property
     def backlog_images(self) -> int:
@@ -320,6 +325,8 @@ class StreamProcessor:
         self._kf_stamp: float | None = None
         self._kf_thumb: np.ndarray | None = None
         self._window_index = 0
+        # the window being processed (frames, intrinsics): what the next one overlaps
+        self._running: tuple[list[Frame], Intrinsics] | None = None
 
     # -- input (any thread) ----------------------------------------------------------------------
     def submit(self, frame: Frame, intrinsics: Intrinsics) -> None:
@@ -336,6 +343,7 @@ class StreamProcessor:
             self._release_backlog()
             self._last_input = time.monotonic()
             self._cv.notify_all()
+        self._prefetch_next()
         if dropped is not None:
             self._emit_drop(dropped, "overflow",
                             f"input queue full (max_pending={self.settings.max_pending}): dropped "
@@ -451,6 +459,7 @@ class StreamProcessor:
                 "windows_rejected": self._windows_rejected,
                 "windows_remapped": self._windows_remapped,
                 "non_monotonic_stamps": self._non_monotonic,
+                "sfm_ahead": dict(getattr(self.ttr, "prefetch_counters", {})),
             }
 
     @property
@@ -552,6 +561,31 @@ class StreamProcessor:
         self._kf_stamp, self._kf_thumb = frame.stamp, thumb
         return True
 
+    def _prefetch_next(self) -> None:
+        """While a window runs: once the frames of the window after it are all queued (its
+        overlap with the running window plus ``window_stride`` new ones, every frame a
+        keyframe, same intrinsics and image size, stamps rising), begin their SfM in the
+        background (:meth:`SfmTTR.prefetch_sfm`). Any thread; cheap when there is nothing to do."""
+        s = self.settings
+        if not s.prefetch_sfm or s.min_keyframe_interval_s > 0 or s.min_keyframe_motion > 0:
+            return
+        with self._cv:
+            if self._running is None or len(self._queue) < s.window_stride:
+                return
+            running, intr = self._running
+            queued = list(itertools.islice(self._queue, s.window_stride))
+        keep = s.window_size - s.window_stride
+        frames = (running[len(running) - keep:] if keep > 0 else []) + [f for f, _ in queued]
+        if (len(frames) < 2 or any(i != intr for _, i in queued)
+                or any(f.image is RELEASED_IMAGE or f.size != (intr.width, intr.height)
+                       for f in frames)
+                or any(b.stamp <= a.stamp for a, b in itertools.pairwise(frames))):
+            return
+        try:
+            self.ttr.prefetch_sfm(frames, intr)
+        except Exception as exc:  # noqa: BLE001 - ahead of time only: the window does it itself
+            self._warn("prefetch", f"SfM ahead of the next window not begun: {exc}")
+
     def _overloaded(self) -> int:
         limit = self.settings.overload_pending
         q = self.queued()
@@ -584,6 +618,9 @@ class StreamProcessor:
             self._finish_window(entries, stats)
             return outs
 
+        with self._cv:
+            self._running = (frames, self._intr)
+        self._prefetch_next()
         try:
             res = self.ttr.process_window(frames, self._intr,
                                           should_stop=lambda: self._cancelled)
@@ -595,6 +632,9 @@ class StreamProcessor:
             stats.reason_key = "window_error"
             stats.reason = f"window failed: {type(exc).__name__}: {exc}"
             self.log.error(stats.reason)
+        finally:
+            with self._cv:
+                self._running = None
         if self._cancelled:  # shutting down: publish nothing more
             return []
         if res is None:
