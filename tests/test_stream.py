@@ -483,7 +483,7 @@ def test_the_next_windows_sfm_begins_while_a_window_runs():
         s = StreamProcessor(ttr, StreamSettings(window_size=10, window_stride=5,
                                                 min_keyframe_interval_s=interval,
                                                 overload_pending=0))
-        worker = threading.Thread(target=lambda: [s.step(timeout=0.05) for _ in range(60)])
+        worker = threading.Thread(target=lambda st=s: [st.step(timeout=0.05) for _ in range(60)])
         fs = frames(16)
         for k in range(10):
             s.submit(fs[k], INTR)
