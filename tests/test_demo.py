@@ -8,6 +8,7 @@ else (node, parameters file, QoS, player, recorder, evaluation) is what `sfm-ttr
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -21,8 +22,8 @@ pytestmark = pytest.mark.skipif(not default_weights_available(),
 def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     opts = DemoOptions(out=tmp_path / "demo", frames=16, width=640, height=192, domain="B",
                        seed=3, gt_skip_ends=1, timeout_s=400.0,
-                       overrides=["window_size:=8", "window_stride:=4",
-                                  "refinement.steps:=60"])
+                       overrides=["window_size=8", "window_stride=4",
+                                  "refinement.steps=60"])
     res = run_demo(opts)
 
     # every frame came back from the node, which then exited cleanly on SIGINT
@@ -71,3 +72,19 @@ def test_the_demo_reads_the_nodes_live_count_from_its_shutdown_line(tmp_path):
     assert _live_accounting(log) == {"live_published": 27, "live_skipped": 3}
     log.write_text("no shutdown line\n")
     assert _live_accounting(log) == {"live_published": None, "live_skipped": None}
+
+
+def test_the_demo_takes_set_as_every_command_does():
+    """``--set NAME=VALUE`` is checked by the schema before the node starts and reaches the
+    node as a typed ``-p`` (a float keeps its dot, a string its quotes)."""
+    from sfm_ttr_ros.core.frames import InputError
+    from sfm_ttr_ros.tools.demo import refiner_command
+
+    cmd = refiner_command(Path("kitti.yaml"), ["refinement.lr=1e-5", "window_size=8",
+                                               "refinement.loss=sfm", "publish_points=false"])
+    assert cmd[-8:] == ["-p", "refinement.lr:=1.0e-05", "-p", "window_size:=8", "-p",
+                        'refinement.loss:="sfm"', "-p", "publish_points:=false"]
+    for bad in ("refinement.lr=fast", "no_such_parameter=1", "window_size=1",
+                "ttr.predict_batch=4"):
+        with pytest.raises(InputError):
+            refiner_command(Path("kitti.yaml"), [bad])

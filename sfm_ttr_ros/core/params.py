@@ -244,10 +244,12 @@ PARAMS: tuple[Param, ...] = (
        "Anything the blocks before them run once per frame, not per step (ViT-S at 518 px: "
        "steps ~2.8x cheaper than the whole encoder with N = 4, ~3.8x with N = 2); 0 = all. "
        "Transformer encoders only.", 0, 1000),
-    _p("refinement.loss", "refinement.loss", "A step's objective: sfm = the paper's Eq. (5) on "
-       "the aligned SfM points; photometric = Ph-TTR, Monodepth2's photometric + smoothness "
-       "loss with the window's SfM poses (scaled by the alignment scale); hybrid = Eq. (5) + "
-       "refinement.photometric_weight x (photometric + smoothness).", choices=LOSSES),
+    _p("refinement.loss", "refinement.loss", "A step's objective: photometric = Ph-TTR, "
+       "Monodepth2's photometric + smoothness loss with the window's SfM poses (scaled by the "
+       "alignment scale): measured best on real video; sfm = the paper's Eq. (5) on the "
+       "aligned SfM points; hybrid = Eq. (5) + refinement.photometric_weight x (photometric + "
+       "smoothness); auto = photometric, or sfm for a network whose output is affine-invariant "
+       "(relative inverse depth: no depth to warp with).", choices=LOSSES),
     _p("refinement.photometric_weight", "refinement.photometric_weight", "lambda of the hybrid "
        "loss (weight of photometric + smoothness against Eq. (5)); 0 = Eq. (5) alone.", 0.0,
        1e6),
@@ -621,11 +623,20 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 
 
-def _literal(v: Any) -> str:
+def ros_literal(v: Any) -> str:
+    """A parameter value as ROS 2 reads it back with its type (YAML): ``-p NAME:=`` this, or a
+    parameter file's value. A float always has a dot (``1.0``, ``1.0e-05``: ROS reads ``1`` as
+    an integer, and YAML 1.1 reads ``1e-05`` as a string)."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, str):
         return f'"{v}"'
+    if isinstance(v, float):
+        text = repr(v)
+        mantissa, e, exponent = text.partition("e")
+        if "." not in mantissa and mantissa.lstrip("-").isdigit():
+            mantissa += ".0"
+        return mantissa + e + exponent
     return repr(v)
 
 
@@ -654,6 +665,6 @@ def markdown_table() -> str:
     lines = ["| parameter | type | default | range / values | set | description |",
              "| --- | --- | --- | --- | --- | --- |"]
     for p in PARAMS:
-        lines.append(f"| `{p.name}` | {p.type_name} | `{_literal(p.default)}` | {_limits(p)} | "
+        lines.append(f"| `{p.name}` | {p.type_name} | `{ros_literal(p.default)}` | {_limits(p)} | "
                      f"{'live' if p.live else 'start-up'} | {p.description} |")
     return "\n".join(lines) + "\n"

@@ -33,6 +33,7 @@ from sfm_ttr_ros.core.refinement import (
     RefinementResult,
     frozen_stage_count,
     refine_encoder,
+    resolve_loss,
     restore_encoder,
     snapshot_encoder,
     warm_up_refinement,
@@ -78,11 +79,12 @@ class TTRConfig:
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
     check: CheckConfig = field(default_factory=CheckConfig)  # core/verification.py
-    # Weights across windows (WEIGHT_POLICIES): "reset" every window starts from the start-up
-    # weights (measured better than "continue": BENCHMARKS.md); "continue" from the previous
-    # window's result; "continual" continues with a replay of earlier windows' supervision and
-    # an L2 pull toward the start-up encoder (see refine_encoder).
-    weight_policy: str = "reset"
+    # Weights across windows (WEIGHT_POLICIES): "continue" every window starts from the last
+    # ACCEPTED window's weights (a refused or rolled-back window leaves them as they were;
+    # measured best on real video: BENCHMARKS.md); "reset" from the start-up weights (the
+    # paper's per-sequence refinement); "continual" continues with a replay of earlier windows'
+    # supervision and an L2 pull toward the start-up encoder (see refine_encoder).
+    weight_policy: str = "continue"
     replay_windows: int = 3  # continual: earlier windows whose supervision is replayed
     replay_ratio: float = 0.5  # continual: share of the steps spent on a replayed frame
     anchor_weight: float = 0.01  # continual: λ of λ·Σ‖θ − θ₀‖² over the trainable encoder
@@ -169,7 +171,7 @@ class SfmTTR:
         self.model = model.eval()
         for p in self.model.parameters():
             p.requires_grad_(False)
-        self.config = config or TTRConfig()
+        self.config = self._concrete(config or TTRConfig())
         self.check_config(self.config)
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._prefetch: SfmPrefetch | None = None  # the next window's SfM, see prefetch_sfm
@@ -208,6 +210,15 @@ class SfmTTR:
         self._original_key = self._weights_key()
         self._carried = False
 
+    def _concrete(self, config: TTRConfig) -> TTRConfig:
+        """``config`` with its objective resolved for this model (``refinement.loss`` "auto":
+        :func:`~sfm_ttr_ros.core.refinement.resolve_loss`); the caller's object is not
+        changed."""
+        refinement = resolve_loss(config.refinement, self.model)
+        if refinement is config.refinement:
+            return config
+        return dataclasses.replace(config, refinement=refinement)
+
     def check_config(self, config: TTRConfig) -> None:
         """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
         without the staged-encoder protocol, or all of its levels)."""
@@ -220,6 +231,7 @@ class SfmTTR:
 
     def set_config(self, config: TTRConfig) -> None:
         """New options, used from the next window on."""
+        config = self._concrete(config)
         self.check_config(config)
         self.config = config
         self.reconstructor.config = config.sfm

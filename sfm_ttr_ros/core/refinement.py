@@ -39,6 +39,7 @@ units with ŝ (:mod:`sfm_ttr_ros.core.photometric`); ``hybrid`` adds λ times th
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -46,6 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from sfm_ttr_ros.core.alignment_affine import is_affine_output
 from sfm_ttr_ros.core.frames import InputError, Intrinsics
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.photometric import (
@@ -69,7 +71,7 @@ from sfm_ttr_ros.core.trainable import TRAINABLE_MODES, merge_lora, select_train
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
 SAMPLINGS = ("bilinear", "nearest")
-LOSSES = ("sfm", "photometric", "hybrid")  # a step's objective, see _step_loss
+LOSSES = ("auto", "sfm", "photometric", "hybrid")  # a step's objective, see _step_loss
 #: How the SfM term measures a point's residual: "absolute" |ŝ·D_sfm − D_nn| (Eq. (5)) or
 #: "relative" |ŝ·D_sfm − D_nn| / (ŝ·D_sfm), the same at 2 m and at 60 m (scale-free).
 SFM_RESIDUALS = ("absolute", "relative")
@@ -96,9 +98,12 @@ class RefinementConfig:
     seed: int = 0
     # A step's objective (see _step_loss): "sfm" Eq. (5); "photometric" Monodepth2's
     # photometric + smoothness loss with the window's SfM poses (Ph-TTR); "hybrid" Eq. (5) +
-    # photometric_weight · (photometric + smoothness). The photometric loss's α, smoothness
-    # weight and source frames (offsets in the window, "-1,1" = t-1 and t+1) follow.
-    loss: str = "sfm"
+    # photometric_weight · (photometric + smoothness); "auto" (the default) = "photometric",
+    # the one measured best on real video (BENCHMARKS.md), or "sfm" for a network whose output
+    # is affine-invariant (no depth scale to warp with): resolve_loss. params/paper.yaml holds
+    # the paper's Eq. (5). The photometric loss's α, smoothness weight and source frames
+    # (offsets in the window, "-1,1" = t-1 and t+1) follow.
+    loss: str = "auto"
     photometric_weight: float = 10.0  # λ: measured on the generated drive (BENCHMARKS.md)
     photometric_alpha: float = 0.85
     smoothness_weight: float = 1e-3
@@ -165,6 +170,15 @@ class RefinementResult:
     early_stopped: bool = False
     frames_used: int = 0
     seconds: float = 0.0
+
+
+def resolve_loss(config: RefinementConfig, model: DepthModel) -> RefinementConfig:
+    """``config`` with ``loss`` "auto" made concrete for ``model``: "photometric" for a network
+    that predicts depth up to scale, "sfm" for one whose output is affine-invariant inverse
+    depth (the photometric warp needs depth); ``config`` itself otherwise."""
+    if config.loss != "auto":
+        return config
+    return dataclasses.replace(config, loss="sfm" if is_affine_output(model) else "photometric")
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -234,7 +248,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     ``anchor_weight``·Σ‖θ − θ₀‖² over the trainable encoder parameters (L2-SP), so the weights
     drift from θ₀ only as far as the scene asks. ``loss_history`` records Eq. (5) alone.
     """
-    cfg = config or RefinementConfig()
+    cfg = resolve_loss(config or RefinementConfig(), model)
     result = RefinementResult()
     usable = _training_frames(supervision, photometric, cfg)
     by_name = {f.name: f for f in photometric} if cfg.uses_photometric else {}

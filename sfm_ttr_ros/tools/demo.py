@@ -10,7 +10,7 @@ Steps (each printed as it runs):
 2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`);
 3. the unrefined network's depth for every image of the bag (same model, same weights) → a
    ``no_ttr`` bag with the same stamps;
-4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``-p`` overrides),
+4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``--set`` overrides),
    remapped to the bag's topics; the bag played into it (:func:`sfm_ttr_ros.ros.player.play_bag`)
    while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`) until every
    image came back; then SIGINT;
@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.ros import names
 from sfm_ttr_ros.tools.process import interrupt
@@ -58,7 +59,11 @@ class DemoOptions:
     kitti_raw: str | None = None
     kitti_gt: str | None = None
     drive: str | None = None
-    frames: int = 30  # synthetic drive length
+    # The synthetic drive and how fast it is played: 45 frames at 0.3 x their 10 Hz (15 s) so
+    # that on 2 CPU cores the first window's weights reach ~/depth while the drive still
+    # plays (its 15 frames are in after 5 s, its first interim weights ~5 s later): the live
+    # output shows what a robot gets, not only the windowed one (~1.5 minutes in all).
+    frames: int = 45
     width: int = 1242
     height: int = 375
     domain: str = "B"
@@ -66,8 +71,8 @@ class DemoOptions:
     gt_skip_ends: int = 5  # synthetic drive: frames without GT at each end (KITTI: 5)
     max_frames: int = 0  # real drive: 0 = all
     params_file: str | None = None  # default: params/kitti.yaml
-    overrides: list[str] = field(default_factory=list)  # extra -p name:=value for the node
-    rate: float = 1.0
+    overrides: list[str] = field(default_factory=list)  # NAME=VALUE, as --set everywhere
+    rate: float = 0.3
     timeout_s: float = 1800.0
     threads: int = 2
     storage: str = "mcap"
@@ -155,9 +160,20 @@ def refiner_command(params_file: Path, overrides: list[str],
         cmd += ["-p", "image_transport:=compressed"]
     # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
     cmd += ["-p", "republish_unrefined:=true"]
-    for o in overrides:
-        cmd += ["-p", o]
+    for name, value in node_overrides(overrides).items():
+        cmd += ["-p", f"{name}:={schema.ros_literal(value)}"]
     return cmd
+
+
+def node_overrides(items: list[str]) -> dict[str, object]:
+    """``--set NAME=VALUE`` items checked and typed by the one schema, as ``sfm-ttr run`` and
+    ``benchmark`` take them (:class:`InputError` before the node starts for an unknown name, a
+    wrong type or a value out of range); only the node's own parameters."""
+    values = schema.parse_overrides(items)
+    unknown = [n for n in values if n not in schema.SCHEMA]
+    if unknown:
+        raise InputError(f"--set {unknown[0]}: not a parameter of the refiner node")
+    return values
 
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
@@ -387,7 +403,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                        drive=args.drive, frames=args.frames, width=args.width,
                        height=args.height, domain=args.domain, seed=args.seed,
                        max_frames=args.max_frames, params_file=args.params_file,
-                       overrides=list(args.param or []), rate=args.rate,
+                       overrides=list(args.set or []), rate=args.rate,
                        timeout_s=args.timeout, threads=args.threads, storage=args.storage,
                        eigen_crop=args.eigen_crop, overwrite=args.overwrite,
                        compressed=args.compressed)
@@ -404,15 +420,18 @@ def add_commands(sub) -> None:
     d.add_argument("--kitti-gt", help="real drive: KITTI depth (improved GT) root")
     d.add_argument("--drive", help="real drive: <date>_drive_XXXX_sync")
     d.add_argument("--max-frames", type=int, default=0, help="real drive: first N frames")
-    d.add_argument("--frames", type=int, default=30, help="synthetic drive length")
+    d.add_argument("--frames", type=int, default=DemoOptions.frames,
+                   help="synthetic drive length")
     d.add_argument("--width", type=int, default=1242)
     d.add_argument("--height", type=int, default=375)
     d.add_argument("--domain", default="B", help="synthetic domain (B = held out from training)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--params-file", help="refiner parameters (default params/kitti.yaml)")
-    d.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE",
-                   help="extra refiner parameter, e.g. -p refinement.steps:=50")
-    d.add_argument("--rate", type=float, default=1.0, help="bag playback rate")
+    d.add_argument("--set", dest="set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a refiner parameter over the parameter file (repeatable), as in "
+                        "sfm-ttr run / benchmark, e.g. --set refinement.steps=50")
+    d.add_argument("--rate", type=float, default=DemoOptions.rate,
+                   help="bag playback rate (1 = as recorded, 10 Hz for KITTI)")
     d.add_argument("--timeout", type=float, default=1800.0,
                    help="seconds to wait for the refined depth after playback")
     d.add_argument("--threads", type=int, default=2, help="torch threads for no-TTR prediction")

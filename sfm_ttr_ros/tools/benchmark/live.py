@@ -123,7 +123,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra.update(windows)
     run.extra.update({
         "policy": cfg.weight_policy,
-        "loss": cfg.refinement.loss,  # the parameter file's, as the node runs it
+        "loss": ttr.config.refinement.loss,  # the parameter file's, as the node runs it
         "rate_hz": rate,
         "frames": len(indices),
         "latency_p50_s": float(np.percentile(lat, 50)) if lat.size else float("nan"),
