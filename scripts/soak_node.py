@@ -438,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="soak_out", help="folder for soak.json, soak.png, the log")
     ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"),
                     help="the node's command (split like a shell line), e.g. "
-                    "'.venv/bin/python scripts/heap_probe.py' for the heap probe")
+                    "'.venv/bin/python scripts/studies/heap_probe.py' for the heap probe")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
     ap.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE")
     ap.add_argument("--drive-frames", type=int, default=30, help="length of the looped drive")

@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # The photometric / hybrid measurements of BENCHMARKS.md section 7 (issue 16), params/kitti.yaml,
 # online mode, the same windows for every loss:
-#   bash scripts/hybrid_benchmarks.sh [OUT_DIR] [LAMBDA ...]     (~15 min per λ on 2 quiet CPU cores)
+#   bash scripts/studies/hybrid_benchmarks.sh [OUT_DIR] [LAMBDA ...]     (~15 min per λ on 2 quiet CPU cores)
 # On the generated domain-B drive (seed 1, 40 frames) and hololens_000 (first 40 frames): no TTR,
 # sfm, photometric, and the hybrid for every λ given (default 10) with the parallax gate at each
 # τ of $TAUS (default "0 2 4" px, refinement.hybrid_min_parallax). SEQUENCES="b3 b5" runs
 # the same on two other domain-B drives (seeds 3 and 5: not used to choose λ and τ).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${1:-bench/hybrid}
 shift || true
 LAMBDAS=("${@:-10}")

@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # The window-check measurements of BENCHMARKS.md section 9 (issue 19), params/kitti.yaml:
-#   bash scripts/check_benchmarks.sh [OUT_DIR]        (~90 min on 2 quiet CPU cores)
+#   bash scripts/studies/check_benchmarks.sh [OUT_DIR]        (~90 min on 2 quiet CPU cores)
 # 1. what each window's refinement did to its own frames against GT, and the checks' verdicts
 #    (scripts/check_outcomes.py) on the hard drive, the domain-B drive and hololens_000;
 # 2. sfm-ttr benchmark with the checks on (defaults) and off, reset and continual policies.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${1:-bench/checks}
 SFM_TTR=.venv/bin/sfm-ttr
 H=../shared/data/hololens_000

@@ -7,7 +7,7 @@ default network over ``--frames`` random images of ``--size`` in batches of that
 ``--threads`` torch threads, and prints the best of ``--repeats`` times and the RSS high-water
 mark above the RSS before the first pass (the transient a window's prediction adds).
 
-    .venv/bin/python scripts/predict_batch.py --threads 1 --batches 8 4 2 1
+    .venv/bin/python scripts/studies/predict_batch.py --threads 1 --batches 8 4 2 1
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ a window of three 518-px-wide frames (518 x 154, the KITTI aspect), Eq. (5) on 5
 each, Adam, as ``refine_encoder`` runs it. Each mode runs in its own process so peak RSS is its
 own.
 
-    .venv/bin/python scripts/benchmark_trainable.py --threads 2 --steps 10
+    .venv/bin/python scripts/studies/benchmark_trainable.py --threads 2 --steps 10
 
 prints one JSON line per mode: trainable parameters, the cost of one more step (a window of
 2 + steps steps minus one of 2 steps, divided by steps: per-window work such as the frozen

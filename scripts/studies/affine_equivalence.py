@@ -3,7 +3,7 @@ made affine-invariant (sfm_ttr_ros/tools/affine_wrap.py: p = a_j / D + b_j, rand
 refined window by window on the SAME SfM result; both evaluated as depth (the affine path's
 output through each frame's own fit, a / (p − b)), median-scaled, the KITTI protocol.
 
-    .venv/bin/python scripts/affine_equivalence.py --kitti-raw /tmp/lv/raw \\
+    .venv/bin/python scripts/studies/affine_equivalence.py --kitti-raw /tmp/lv/raw \\
         --drive 2011_09_26_drive_0001_sync --kitti-gt /tmp/lv/gt --frames 300 --out affine_eq.json
 
 params/kitti.yaml's windows and steps, with ``refinement.loss`` sfm (photometric terms need
@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from sfm_ttr_ros.core.alignment_affine import affine_to_depth  # noqa: E402

@@ -13,7 +13,7 @@ matches better than the warped one (auto-masking), and ``warp_ratio``, the mean 
 the mean identity error. Not a check of the package: a measurement of candidates for one.
 
     H=../shared/data/hololens_000
-    .venv/bin/python scripts/window_variants.py --images $H/images --intrinsics $H/K.txt \\
+    .venv/bin/python scripts/studies/window_variants.py --images $H/images --intrinsics $H/K.txt \\
         --gt-depth $H/depth --gt-scale 1000 --starts 15 45 --reps 6 > variants.jsonl
 """
 
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def photometric_stats(model, frames, res, intrinsics) -> dict[str, float]:

@@ -11,7 +11,7 @@ alike. Reported per loss: the median over repeats of seconds per step, and the o
 per-window preparation of the photometric terms (``prepare_frames``: images at the network size,
 poses, identity errors)::
 
-    .venv/bin/python scripts/loss_step_cost.py --steps 20 --repeats 3
+    .venv/bin/python scripts/studies/loss_step_cost.py --steps 20 --repeats 3
 """
 
 from __future__ import annotations

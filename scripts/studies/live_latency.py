@@ -8,7 +8,7 @@ server only (``--mode live``) or to the live server and the windows, as the node
 main`` steps the same windows in the calling thread (as ``sfm_ttr_online`` does): both print each
 window's stage timings, which tells what the worker thread itself costs.
 
-    .venv/bin/python scripts/live_latency.py --kitti-raw /tmp/d/raw --drive \\
+    .venv/bin/python scripts/studies/live_latency.py --kitti-raw /tmp/d/raw --drive \\
         2011_09_26_drive_0001_sync --mode both --set worker_nice=10
 """
 
