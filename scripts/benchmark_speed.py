@@ -122,9 +122,9 @@ CONVERSIONS = ("input_image", "depth_image", "colored_image", "pointcloud", "dia
                "serialize")
 NAIVE_STEPS = 200  # the paper's
 # The naive run refines as the paper does (every encoder stage, 200 steps) at the learning rate
-# that measured best for 200 steps with the default network (BENCHMARKS.md section 3: 3e-5 beat
-# the paper's 1e-4), whatever the parameter file's lr: a naive run handicapped by an lr tuned
-# for fewer steps would flatter the comparison.
+# that measured best for 200 steps with the default network (docs/decisions.md, "Refinement":
+# 3e-5 beat the paper's 1e-4), whatever the parameter file's lr: a naive run handicapped by an
+# lr tuned for fewer steps would flatter the comparison.
 NAIVE_LR = 3e-5
 LATENCY_DEFINITION = (
     "per window: from the push of the window's last frame into the stream to all of its "

@@ -65,7 +65,7 @@ def percentile(values: list[float], q: float) -> float:
 
 def rss_maxima(rss: list[tuple[float, float]], bucket_s: float) -> list[float]:
     """The RSS's maximum in each ``bucket_s`` seconds of the run ((t, MiB) samples): whether
-    it keeps growing or has reached its level (BENCHMARKS.md 6f: the peak after frame 100
+    it keeps growing or has reached its level (docs/decisions.md, "Memory": the peak after frame 100
     is set by the first windows; after them the maxima stay within a few per cent)."""
     out: dict[int, float] = {}
     for t, v in rss:

@@ -1,5 +1,5 @@
-"""scripts/studies/predict_batch.py (BENCHMARKS.md section 6f) on tiny images: one line per batch size
-with a time and a non-negative RSS transient, each measured in its own process."""
+"""scripts/studies/predict_batch.py (docs/decisions.md, "Memory") on tiny images: one line per
+batch size with a time and a non-negative RSS transient, each measured in its own process."""
 
 import re
 import subprocess

@@ -1,4 +1,4 @@
-"""scripts/studies/recovery_table.py (BENCHMARKS.md section 9): the blocks around each bad segment, their
+"""scripts/studies/recovery_table.py (BENCHMARKS.md §9): the blocks around each bad segment, their
 means over a group's runs, and the ratio to the network alone on the same frames."""
 
 import json

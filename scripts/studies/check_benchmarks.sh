@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The window-check measurements of BENCHMARKS.md section 9 (issue 19), params/kitti.yaml:
+# The window-check measurements behind docs/decisions.md "Window checks" (the `sfm` loss), params/kitti.yaml:
 #   bash scripts/studies/check_benchmarks.sh [OUT_DIR]        (~90 min on 2 quiet CPU cores)
 # 1. what each window's refinement did to its own frames against GT, and the checks' verdicts
 #    (scripts/check_outcomes.py) on the hard drive, the domain-B drive and hololens_000;

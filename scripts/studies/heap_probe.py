@@ -1,4 +1,4 @@
-"""The refiner node with a heap probe inside its process (issue 15's memory, BENCHMARKS.md 6e/6f).
+"""The refiner node with a heap probe inside its process (docs/decisions.md, "Memory").
 
 Runs :func:`sfm_ttr_ros.ros.node.main` with a sampler thread that writes one JSON line every
 0.2 s to ``$HEAP_PROBE_OUT`` (default ``heap_probe.jsonl``): RSS (VmRSS, RssAnon, RssFile,

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The photometric / hybrid measurements of BENCHMARKS.md section 7 (issue 16), params/kitti.yaml,
+# The photometric / hybrid measurements behind BENCHMARKS.md §3 (depth bands) and docs/decisions.md (the hybrid loss), params/kitti.yaml,
 # online mode, the same windows for every loss:
 #   bash scripts/studies/hybrid_benchmarks.sh [OUT_DIR] [LAMBDA ...]     (~15 min per λ on 2 quiet CPU cores)
 # On the generated domain-B drive (seed 1, 40 frames) and hololens_000 (first 40 frames): no TTR,

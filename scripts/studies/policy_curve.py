@@ -4,8 +4,9 @@ Reads the ``per_frame.csv`` of ``sfm-ttr benchmark`` runs made on the same frame
 mode's abs rel over consecutive blocks of frames (``--block``, e.g. one window) and draws one
 curve per run, plus the first-third / last-third means in a JSON next to the figure.
 
-    .venv/bin/python scripts/studies/policy_curve.py --runs reset=bench/reset continue=bench/continue \\
-        continual=bench/continual --mode sfm_ttr_online --block 15 --out bench/policies.png
+    .venv/bin/python scripts/studies/policy_curve.py --runs reset=bench/reset \\
+        continue=bench/continue continual=bench/continual --mode sfm_ttr_online --block 15 \\
+        --out bench/policies.png
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ group; e.g. the drive with the truck, and the same drive without it made with ``
 drive) every block is also given as a ratio to the network alone on the same frames, which
 takes the road's own difficulty out of "back to its level before".
 
-    .venv/bin/python scripts/studies/recovery_table.py --segments /tmp/hard/raw/.../image_02/segments.txt \\
+    .venv/bin/python scripts/studies/recovery_table.py \\
+        --segments /tmp/hard/raw/.../image_02/segments.txt \\
         --run truck=b/live_hard_1 --run truck=b/live_hard_2 --no-ttr truck=b/nottr_hard \\
         --run no_truck=b/live_hard_nt_1 --no-ttr no_truck=b/nottr_hard_nt \\
         --bad turn truck --out recovery.json

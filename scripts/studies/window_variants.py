@@ -1,16 +1,17 @@
 """Repeat single windows and compare what the window checks see with what refinement did (issue 19).
 
 pycolmap's multi-threaded mapper does not give the same reconstruction every run: on
-hololens_000 windows 1 and 3 come out in one of two (section 9 of BENCHMARKS.md), one of which
-refinement turns into worse depth. For each ``--starts`` window (``window_size`` frames of the
-params file) and each of ``--reps`` runs this processes the window alone (``reset``, window mode,
-every check of the file), and prints one JSON line: abs rel of its frames before and after (the
-candidate depth when a check refused it), the sanity statistics (mean reprojection error, scale
-spread, inlier ratio), the unsupported change U, and two photometric statistics of the
-reconstruction with the network's depth BEFORE refinement and the SfM poses (Monodepth2's
-error, t-1 / t+1 sources): ``identity_won``, the share of pixels where the unwarped source
-matches better than the warped one (auto-masking), and ``warp_ratio``, the mean warped error over
-the mean identity error. Not a check of the package: a measurement of candidates for one.
+hololens_000 windows 1 and 3 come out in one of two (docs/decisions.md, "Window checks"), one
+of which refinement turns into worse depth. For each ``--starts`` window (``window_size`` frames
+of the params file) and each of ``--reps`` runs this processes the window alone (``reset``,
+window mode, every check of the file), and prints one JSON line: abs rel of its frames before
+and after (the candidate depth when a check refused it), the sanity statistics (mean
+reprojection error, scale spread, inlier ratio), the unsupported change U, and two photometric
+statistics of the reconstruction with the network's depth BEFORE refinement and the SfM poses
+(Monodepth2's error, t-1 / t+1 sources): ``identity_won``, the share of pixels where the
+unwarped source matches better than the warped one (auto-masking), and ``warp_ratio``, the mean
+warped error over the mean identity error. Not a check of the package: a measurement of
+candidates for one.
 
     H=../shared/data/hololens_000
     .venv/bin/python scripts/studies/window_variants.py --images $H/images --intrinsics $H/K.txt \\
