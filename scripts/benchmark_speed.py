@@ -319,13 +319,9 @@ def build_configs(params_file: str | Path | None = None, tuned_set: Sequence[str
 
 def make_header(stamp: float, frame_id: str = "camera"):
     """A std_msgs Header for a stamp in seconds (as the node's input images carry)."""
-    from std_msgs.msg import Header
+    from msg_adapters import make_header as header_from_ns
 
-    h = Header()
-    ns = round(stamp * 1e9)
-    h.stamp.sec, h.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
-    h.frame_id = frame_id
-    return h
+    return header_from_ns(round(stamp * 1e9), frame_id)
 
 
 class _FreshReconstructor(SfmReconstructor):
