@@ -122,9 +122,9 @@ CONVERSIONS = ("input_image", "depth_image", "colored_image", "pointcloud", "dia
                "serialize")
 NAIVE_STEPS = 200  # the paper's
 # The naive run refines as the paper does (every encoder stage, 200 steps) at the learning rate
-# that measured best for 200 steps with the default network (BENCHMARKS.md section 3: 3e-5 beat
-# the paper's 1e-4), whatever the parameter file's lr: a naive run handicapped by an lr tuned
-# for fewer steps would flatter the comparison.
+# that measured best for 200 steps with the default network (docs/decisions.md, "Refinement":
+# 3e-5 beat the paper's 1e-4), whatever the parameter file's lr: a naive run handicapped by an
+# lr tuned for fewer steps would flatter the comparison.
 NAIVE_LR = 3e-5
 LATENCY_DEFINITION = (
     "per window: from the push of the window's last frame into the stream to all of its "
@@ -319,13 +319,9 @@ def build_configs(params_file: str | Path | None = None, tuned_set: Sequence[str
 
 def make_header(stamp: float, frame_id: str = "camera"):
     """A std_msgs Header for a stamp in seconds (as the node's input images carry)."""
-    from std_msgs.msg import Header
+    from msg_adapters import make_header as header_from_ns
 
-    h = Header()
-    ns = round(stamp * 1e9)
-    h.stamp.sec, h.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
-    h.frame_id = frame_id
-    return h
+    return header_from_ns(round(stamp * 1e9), frame_id)
 
 
 class _FreshReconstructor(SfmReconstructor):

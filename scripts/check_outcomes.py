@@ -14,7 +14,7 @@ the confusion numbers of the issue's target:
 * helpful windows: >= 90 % must be accepted.
 
 With ``--policy reset`` (the default) windows are independent, so one run judges any threshold
-set. Example (BENCHMARKS.md section 9)::
+set. Example (BENCHMARKS.md §9)::
 
     .venv/bin/python scripts/check_outcomes.py --kitti-raw bench/hard/raw \\
         --kitti-gt bench/hard/gt --drive 2011_09_26_drive_0001_sync --out bench/hard/checks.json

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The accuracy benchmarks recorded in BENCHMARKS.md: no TTR vs SfM-TTR online (the node's
 # windows) vs offline (the whole sequence, as the paper), default model,
-# params/kitti_accurate.yaml (the overlapping windows and 200 steps of BENCHMARKS.md 1-3; the
-# faster default params/kitti.yaml is measured by scripts/benchmark_speed.py, section 4).
+# params/kitti_accurate.yaml (the overlapping windows and 200 steps of BENCHMARKS.md §1-2; the
+# faster default params/kitti.yaml is measured by scripts/benchmark_speed.py, §5).
 #   bash scripts/run_benchmarks.sh [OUT_DIR]        (~25 min on 2 CPU cores)
 # 1. a generated KITTI-format drive of held-out domain B (the model was trained on domain A);
 # 2. ../shared/data/hololens_000: 100 real indoor frames, GT depth in mm.

@@ -65,7 +65,7 @@ def percentile(values: list[float], q: float) -> float:
 
 def rss_maxima(rss: list[tuple[float, float]], bucket_s: float) -> list[float]:
     """The RSS's maximum in each ``bucket_s`` seconds of the run ((t, MiB) samples): whether
-    it keeps growing or has reached its level (BENCHMARKS.md 6f: the peak after frame 100
+    it keeps growing or has reached its level (docs/decisions.md, "Memory": the peak after frame 100
     is set by the first windows; after them the maxima stay within a few per cent)."""
     out: dict[int, float] = {}
     for t, v in rss:
@@ -438,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="soak_out", help="folder for soak.json, soak.png, the log")
     ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"),
                     help="the node's command (split like a shell line), e.g. "
-                    "'.venv/bin/python scripts/heap_probe.py' for the heap probe")
+                    "'.venv/bin/python scripts/studies/heap_probe.py' for the heap probe")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
     ap.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE")
     ap.add_argument("--drive-frames", type=int, default=30, help="length of the looped drive")

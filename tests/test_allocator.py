@@ -39,7 +39,7 @@ def test_mimalloc_is_the_default_and_re_executes_once_with_its_options(fake_libr
     [(path, argv, env)] = calls
     assert path == sys.executable and argv == ["py", "refiner", "--ros-args"]
     assert env["LD_PRELOAD"] == f"{lib} /x/other.so" and env[allocator.PRELOADED_ENV] == str(lib)
-    assert env["MIMALLOC_ALLOW_THP"] == "0"  # live p95 0.17 s with huge pages (BENCHMARKS 6k)
+    assert env["MIMALLOC_ALLOW_THP"] == "0"  # live p95 0.17 s with huge pages (BENCHMARKS §6)
     assert note == f"malloc: mimalloc ({lib}, re-executed)"
     # the second start: the guard says it was tried, and it does not loop
     calls.clear()

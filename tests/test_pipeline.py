@@ -246,7 +246,7 @@ def test_window_summary_is_plain_numbers(run):
                  "scale": res.scale, "loss_before": res.loss_before,
                  "loss_after": res.loss_after, "check": res.check.summary()}
     assert s["loss_after"] < s["loss_before"]
-    # the sanity checks ran and passed; no held-out check by default (BENCHMARKS.md section 9)
+    # the sanity checks ran and passed; no held-out check by default (BENCHMARKS.md §9)
     c = s["check"]
     assert c["reason_key"] == "" and c["parallax"] > 0.1 and c["reprojection_error"] < 2.0
     assert c["check_points"] == 0 and math.isnan(c["error_before"])

@@ -1,12 +1,12 @@
-"""scripts/predict_batch.py (BENCHMARKS.md section 6f) on tiny images: one line per batch size
-with a time and a non-negative RSS transient, each measured in its own process."""
+"""scripts/studies/predict_batch.py (docs/decisions.md, "Memory") on tiny images: one line per
+batch size with a time and a non-negative RSS transient, each measured in its own process."""
 
 import re
 import subprocess
 import sys
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "predict_batch.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "studies" / "predict_batch.py"
 
 
 def test_predict_batch_reports_time_and_memory_per_batch_size():

@@ -1,4 +1,4 @@
-"""scripts/recovery_table.py (BENCHMARKS.md section 9): the blocks around each bad segment, their
+"""scripts/studies/recovery_table.py (BENCHMARKS.md §9): the blocks around each bad segment, their
 means over a group's runs, and the ratio to the network alone on the same frames."""
 
 import json
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "recovery_table.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "studies" / "recovery_table.py"
 
 
 def write_run(path: Path, mode: str, values: dict[int, float]) -> Path:

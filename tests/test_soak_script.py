@@ -1,4 +1,5 @@
-"""scripts/soak_node.py's report helpers (the soak itself runs for minutes: BENCHMARKS.md 6f, 8)."""
+"""scripts/soak_node.py's report helpers (the soak itself runs for minutes: BENCHMARKS.md §6,
+§7)."""
 
 from __future__ import annotations
 
