@@ -1,11 +1,11 @@
 """Which malloc the node runs on: mimalloc by default, glibc or jemalloc on request.
 
 glibc's malloc keeps the memory a window frees inside its arenas, and the freed pieces fragment:
-in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md 6f, 6k) the peak RSS was 10–23 % above its
+in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md "Memory") the peak RSS was 10–23 % above its
 value at frame 100. jemalloc 5.3 kept it within 6–9 % but its timed purge made a window 13–14 %
-slower (6f, 6i). mimalloc 3.4 (MIT, from PyPI: ``cmeel-mimalloc``, installed with the package)
+slower (docs/decisions.md "Memory"). mimalloc 3.4 (MIT, from PyPI: ``cmeel-mimalloc``, installed with the package)
 gives freed pages back a second after they are freed (``purge_delay``): peak 5.3–6.4 % above
-frame 100 in four soaks, windows as fast as on glibc or faster, live latency the same (6k), with
+frame 100 in four soaks, windows as fast as on glibc or faster, live latency the same (BENCHMARKS.md "Memory"), with
 ``MIMALLOC_ALLOW_THP=0``: with transparent huge pages allowed the live p95 was 0.15–0.17 s
 (faults of 2-MiB pages). Hence the default.
 

@@ -7,7 +7,7 @@ window's peak and creeps up as the arenas fragment. ``malloc_trim(0)`` returns e
 can (also from the middle of the arenas), at ~15-40 ms in the window worker after each window
 that ran SfM (a window skipped for overload frees next to nothing);
 in a 2.5-min soak of the node at 10 Hz the RSS between windows fell from ~1.6 GB to ~1.0 GB and
-the final RSS from 1663 to 990 MiB (BENCHMARKS.md section 6c). On mimalloc and jemalloc
+the final RSS from 1663 to 990 MiB (BENCHMARKS.md "Live latency and the live share"). On mimalloc and jemalloc
 (core/allocator.py) the same call collects and purges their free pages (``mi_collect(true)``,
 ``mallctl("arena.<all>.purge")``; glibc's ``malloc_trim`` would find an empty glibc heap there).
 Another C library (musl, macOS): a no-op.
@@ -16,7 +16,7 @@ Another C library (musl, macOS): a no-op.
 8 per core): the node's threads (executor, live server, worker, DDS, OpenMP) each fragment an
 arena of their own. The node sets 2 at start-up (:data:`NODE_ARENAS`) unless the environment
 sets ``MALLOC_ARENA_MAX``: in a 2.5-min soak the peak RSS fell from 1618 to 1500 MiB and the
-final from 1048 to 825 MiB, live latency unchanged (BENCHMARKS.md section 6e).
+final from 1048 to 825 MiB, live latency unchanged (BENCHMARKS.md "Memory").
 
 :func:`in_own_mapping` keeps a large long-lived buffer (the node's decoded frames) out of the
 heap altogether, in an anonymous mapping of its own.
@@ -132,7 +132,7 @@ def in_own_mapping(array: np.ndarray) -> np.ndarray:
     memory cannot be returned and the arenas grow (fragmentation); in a 2.5-min soak of the
     node the arenas grew 673 -> 1010 MB from frame 100 to the peak with the images in the heap
     and 602 -> 759 MB with each in its own mapping, peak RSS over frame 100's +22.8 % -> +12.9 %
-    (BENCHMARKS.md section 6f). Cost: ~0.7 ms per 1242x375 frame (copy, page faults, munmap)."""
+    (BENCHMARKS.md "Memory"). Cost: ~0.7 ms per 1242x375 frame (copy, page faults, munmap)."""
     if array.nbytes < OWN_MAPPING_MIN_BYTES:
         return array
     private = getattr(mmap, "MAP_PRIVATE", None)  # not shared memory (Windows: no flags)

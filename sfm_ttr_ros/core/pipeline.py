@@ -98,8 +98,8 @@ class TTRConfig:
     min_supervision_points: int = 50  # fewer selected points in the window: do not refine
     # Frames per forward pass of the window's predictions. 2 on CPU: a window's 15 KITTI-size
     # frames in 0.44 s (1 thread) / 0.25 s (2 threads) against 0.45-0.60 / 0.31-0.34 s with 8,
-    # and +45 MiB of RSS at the peak against +220-237 MiB (scripts/predict_batch.py,
-    # BENCHMARKS.md section 6f).
+    # and +45 MiB of RSS at the peak against +220-237 MiB (scripts/studies/predict_batch.py,
+    # BENCHMARKS.md "Memory").
     predict_batch: int = 2
     # Reuse a prediction made with the same weights for the same pixels instead of running the
     # network again (the overlap frames of consecutive windows: the previous window's refined

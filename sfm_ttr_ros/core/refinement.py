@@ -453,7 +453,7 @@ def warm_up_refinement(model: DepthModel, config: RefinementConfig) -> float:
 
     On CUDA the first refinement of a process loads its kernels and each thread makes its own
     cuDNN and cuBLAS handles: on an H200 the first window took 9.9 s against 3.1–3.5 s for the
-    next ones, and while it ran the live frames stalled for 1.5 s (BENCHMARKS.md 6h). Run by
+    next ones, and while it ran the live frames stalled for 1.5 s (BENCHMARKS.md "GPU"). Run by
     the window worker before it takes frames, these costs are paid at start-up. Two frames of
     grey at the network's input size, 1 unit apart sideways, a grid of SfM points at depth 1:
     :data:`WARM_UP_STEPS` steps of ``config``'s objective (Eq. (5), with the photometric term

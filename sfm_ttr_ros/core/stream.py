@@ -718,7 +718,7 @@ class StreamProcessor:
         the live output already served, unless ``republish_unrefined``: those come out with
         ``depth`` None (:attr:`FrameOutput.live_only`), counted under ``key`` all the same.
         Under overload this is most frames, and predicting them again took ~40 % of the
-        worker's time that windows then lacked (BENCHMARKS.md section 6d)."""
+        worker's time that windows then lacked (BENCHMARKS.md "Live latency and the live share")."""
         if not frames:
             return []
         again = self.settings.republish_unrefined

@@ -112,7 +112,7 @@ UNSUPPORTED_STEP = 4
 UNSUPPORTED_HISTORY = 10
 #: accepted windows the ratio needs before it refuses any (measured: a helpful second window of
 #: the demo drive moved 4-10x the first's U, 0.025-0.046 against 0.0046-0.0063, and was refused
-#: when the reference was that one window; BENCHMARKS.md section 9, end)
+#: when the reference was that one window; BENCHMARKS.md "Window checks")
 UNSUPPORTED_MIN_HISTORY = 3
 #: registered frames on which interim weights are checked before they are served (one network
 #: forward each per preview: 2 x 7 previews x ~45 ms on one core, ~6 % of a KITTI window)

@@ -82,7 +82,7 @@ SEGMENT_KINDS = ("drive", "rotate", "static", "crossing", "lead", "exposure", "t
 # a turn step of 0.05 or more (±30° or ±45°) gave SfM enough parallax that refinement helped,
 # 0.03 made the window worse against GT; a creep step of 0.03 helped in the default drive's
 # window and hurt in another, 0.02 and below hurt in both. The default drive keeps 0.03 for
-# both: BENCHMARKS.md section 9 was measured on it.
+# both: BENCHMARKS.md "Window checks" was measured on it.
 TURN_STEP = 0.03
 CREEP_STEP = 0.03
 _STEP = {"drive": 1.0, "rotate": 0.0, "static": 0.0, "crossing": 0.5, "lead": 1.0,
