@@ -188,7 +188,7 @@ PARAMS: tuple[Param, ...] = (
        "reprojection error above sfm.retry_above_error; the one with the most registered "
        "frames, then the lowest error, is kept. From the same matches the mapper now and then "
        "settles on a wrong reconstruction with ~2x the error that another seed gets right "
-       "(BENCHMARKS.md "Window checks"). A run takes 0.1-0.6 s (3-10 % of a window); 1 = the mapper "
+       "(BENCHMARKS.md, 'Window checks'). A run takes 0.1-0.6 s (3-10 % of a window); 1 = the mapper "
        "once.", 1, 100),
     _p("sfm.retry_above_error", "sfm.retry_above_error", "Mean reprojection error (px) above "
        "which the mapper runs again (sfm.mapping_attempts); a retry that is not needed costs "
@@ -208,7 +208,7 @@ PARAMS: tuple[Param, ...] = (
        "iterations of the per-frame two-point (scale, shift) model of relative inverse-depth "
        "networks (output_kind relative_inverse_depth): a two-point sample is all-inlier far "
        "less often than the paper's one-point one (20 iterations); ~ms per window "
-       "(BENCHMARKS.md "ViT and affine paths").",
+       "(BENCHMARKS.md, 'ViT and affine paths').",
        1, 1_000_000),
     _p("alignment.tau", "alignment.tau", "RANSAC inlier threshold on (s*D_sfm - D_nn)^2 / "
        "(s*D_sfm).", 0.0, 1e6, constraints="> 0"),
