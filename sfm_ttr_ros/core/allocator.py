@@ -3,11 +3,11 @@
 glibc's malloc keeps the memory a window frees inside its arenas, and the freed pieces fragment:
 in 2.5-min soaks of the node at 10 Hz (BENCHMARKS.md "Memory") the peak RSS was 10–23 % above its
 value at frame 100. jemalloc 5.3 kept it within 6–9 % but its timed purge made a window 13–14 %
-slower (docs/decisions.md "Memory"). mimalloc 3.4 (MIT, from PyPI: ``cmeel-mimalloc``, installed with the package)
-gives freed pages back a second after they are freed (``purge_delay``): peak 5.3–6.4 % above
-frame 100 in four soaks, windows as fast as on glibc or faster, live latency the same (BENCHMARKS.md "Memory"), with
-``MIMALLOC_ALLOW_THP=0``: with transparent huge pages allowed the live p95 was 0.15–0.17 s
-(faults of 2-MiB pages). Hence the default.
+slower (docs/decisions.md "Memory"). mimalloc 3.4 (MIT, from PyPI: ``cmeel-mimalloc``, installed
+with the package) gives freed pages back a second after they are freed (``purge_delay``): peak
+5.3–6.4 % above frame 100 in four soaks, windows as fast as on glibc or faster, live latency the
+same (BENCHMARKS.md "Memory"), with ``MIMALLOC_ALLOW_THP=0``: with transparent huge pages allowed
+the live p95 was 0.15–0.17 s (faults of 2-MiB pages). Hence the default.
 
 ``SFM_TTR_MALLOC`` chooses: ``mimalloc`` (default; the wheel's library), ``glibc``,
 ``jemalloc`` (the system's ``libjemalloc.so.2``: ``apt install libjemalloc2``) or the path of a

@@ -7,10 +7,10 @@ window's peak and creeps up as the arenas fragment. ``malloc_trim(0)`` returns e
 can (also from the middle of the arenas), at ~15-40 ms in the window worker after each window
 that ran SfM (a window skipped for overload frees next to nothing);
 in a 2.5-min soak of the node at 10 Hz the RSS between windows fell from ~1.6 GB to ~1.0 GB and
-the final RSS from 1663 to 990 MiB (BENCHMARKS.md "Live latency and the live share"). On mimalloc and jemalloc
-(core/allocator.py) the same call collects and purges their free pages (``mi_collect(true)``,
-``mallctl("arena.<all>.purge")``; glibc's ``malloc_trim`` would find an empty glibc heap there).
-Another C library (musl, macOS): a no-op.
+the final RSS from 1663 to 990 MiB (BENCHMARKS.md "Live latency and the live share"). On mimalloc
+and jemalloc (core/allocator.py) the same call collects and purges their free pages
+(``mi_collect(true)``, ``mallctl("arena.<all>.purge")``; glibc's ``malloc_trim`` would find an
+empty glibc heap there). Another C library (musl, macOS): a no-op.
 
 :func:`limit_arenas` caps glibc's per-thread arenas (``mallopt(M_ARENA_MAX)``, by default up to
 8 per core): the node's threads (executor, live server, worker, DDS, OpenMP) each fragment an

@@ -2,12 +2,12 @@
 
 torch runs its intra-op parallel regions on OpenMP (libgomp in the PyPI wheels), and every
 thread that opens a parallel region gets a team of its own. In the node two threads do: the
-live server and the window worker. Measured on 2 cores (BENCHMARKS.md "Live latency and the live share",
-``scripts/studies/live_latency.py --mode main|windows``): a window's refinement takes 3.7-4.8 s with two
-threads in the main thread, 8.6-8.8 s with two threads in the background worker, and 5.6-5.9 s
-with ONE thread in the worker. Once the process holds more OpenMP threads than cores, libgomp
-stops spin-waiting and every parallel region pays a futex wake-up; the refinement's many small
-ops (416x128 maps) lose more to that than they gain from the second core. So the worker runs
+live server and the window worker. Measured on 2 cores (BENCHMARKS.md "Live latency and the live
+share", ``scripts/studies/live_latency.py --mode main|windows``): a window's refinement takes
+3.7-4.8 s with two threads in the main thread, 8.6-8.8 s with two threads in the background worker,
+and 5.6-5.9 s with ONE thread in the worker. Once the process holds more OpenMP threads than cores,
+libgomp stops spin-waiting and every parallel region pays a futex wake-up; the refinement's many
+small ops (416x128 maps) lose more to that than they gain from the second core. So the worker runs
 ``worker_threads`` (1) and the live server keeps torch's default.
 
 ``omp_set_num_threads`` sets the calling thread's team size only (an OpenMP ICV per thread),

@@ -188,8 +188,8 @@ PARAMS: tuple[Param, ...] = (
        "reprojection error above sfm.retry_above_error; the one with the most registered "
        "frames, then the lowest error, is kept. From the same matches the mapper now and then "
        "settles on a wrong reconstruction with ~2x the error that another seed gets right "
-       "(BENCHMARKS.md, 'Window checks'). A run takes 0.1-0.6 s (3-10 % of a window); 1 = the mapper "
-       "once.", 1, 100),
+       "(BENCHMARKS.md, 'Window checks'). A run takes 0.1-0.6 s (3-10 % of a window); 1 = "
+       "the mapper once.", 1, 100),
     _p("sfm.retry_above_error", "sfm.retry_above_error", "Mean reprojection error (px) above "
        "which the mapper runs again (sfm.mapping_attempts); a retry that is not needed costs "
        "only its time. 0 = every attempt runs.", 0.0, 1000.0),

@@ -291,7 +291,8 @@ class SfmReconstructor:
         same matches pycolmap's incremental mapper now and then settles on a wrong
         reconstruction of a window that another seed reconstructs right, with about twice the
         reprojection error (hololens_000 windows 1 and 3: 0.98-1.07 px against 0.60-0.65 px,
-        refinement then made them worse), or on a few frames and points (BENCHMARKS.md "Window checks"). A run that found no model at all is not repeated (it can take seconds)."""
+        refinement then made them worse), or on a few frames and points (BENCHMARKS.md "Window
+        checks"). A run that found no model at all is not repeated (it can take seconds)."""
         cfg = self.config
         limit = float(cfg.retry_above_error)
         if cfg.retry_above_ratio > 0 and self._errors:

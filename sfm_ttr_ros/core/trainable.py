@@ -20,8 +20,8 @@ the last N transformer blocks of the encoder (:func:`encoder_blocks`): the backw
 stops at the first trained block instead of running down to the patch embedding, and on
 Depth Anything the blocks before it run once per frame, not per step
 (:func:`~sfm_ttr_ros.core.refinement.block_prefix_stages`): a ViT-S step ~2.8x cheaper than the
-whole encoder with N = 4, ~3.8x with N = 2 (BENCHMARKS.md "ViT and affine paths"). Convolutional encoders
-have no blocks: use ``frozen_encoder_levels`` there.
+whole encoder with N = 4, ~3.8x with N = 2 (BENCHMARKS.md "ViT and affine paths"). Convolutional
+encoders have no blocks: use ``frozen_encoder_levels`` there.
 
 The decoder h is never trained. Only this module imports ``peft`` (lazily, for ``lora``).
 """
