@@ -43,7 +43,7 @@ def _other_value(p: schema.Param):
     special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True,
                "refinement.photometric_sources": "-2,2",
                "check.max_scale_spread": 1.5, "check.max_scale_jump": 1.5,  # 0 or >= 1
-               "check.unsupported_change_ratio": 1.5}
+               "check.unsupported_change_ratio": 1.5, "first_window_size": 4}
     if p.name in special:
         return special[p.name]
     if p.choices:

@@ -495,3 +495,18 @@ def test_the_next_windows_sfm_begins_while_a_window_runs():
         worker.join()
         assert ttr.__dict__.get("prefetched", []) == want, interval
         assert s.counters()["sfm_ahead"]["started"] == len(want)
+
+
+def test_a_short_first_window_then_windows_of_window_size():
+    """first_window_size 4: the first window closes after 4 keyframes (its weights reach the
+    live output sooner), the next ones have window_size frames; every frame is accounted for."""
+    ttr = ScriptedTTR()
+    s = StreamProcessor(ttr, StreamSettings(window_size=6, window_stride=6, first_window_size=4))
+    outs = []
+    for f in frames(16):
+        outs += s.push(f, INTR)
+    assert [len(w) for w in ttr.windows] == [4, 6, 6]
+    assert ttr.windows[1][0] == f"{4:010d}"
+    check_accounting(s, outs, 16)
+    with pytest.raises(ValueError, match="first_window_size"):
+        StreamSettings(window_size=6, first_window_size=7)

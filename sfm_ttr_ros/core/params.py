@@ -125,6 +125,10 @@ _START_UP = {"live": False}
 PARAMS: tuple[Param, ...] = (
     # -- windows and keyframes (live) -----------------------------------------------------------
     _p("window_size", "stream.window_size", "Keyframes per SfM-TTR window.", 2, 1000),
+    _p("first_window_size", "stream.first_window_size", "The stream's first window closes "
+       "after this many keyframes instead of window_size, so that the first refined weights "
+       "reach ~/depth sooner; 0 = window_size.", 0, 1000,
+       constraints="0 or 2..window_size"),
     _p("window_stride", "stream.window_stride", "New keyframes between consecutive windows "
        "(window_size - stride frames overlap).", 1, 1000, constraints="<= window_size"),
     _p("min_keyframe_interval_s", "stream.min_keyframe_interval_s", "Minimum time between "

@@ -119,6 +119,9 @@ class StreamSettings:
 
     window_size: int = 10
     window_stride: int = 5
+    # > 0: the stream's first window closes after this many keyframes instead of window_size,
+    # so that the first refined weights reach the live output sooner (a short clip); 0 = off
+    first_window_size: int = 0
     min_keyframe_interval_s: float = 0.0
     min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
     max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
@@ -152,6 +155,9 @@ class StreamSettings:
     def __post_init__(self) -> None:
         if self.window_size < 2:
             raise InputError(f"window_size must be >= 2, got {self.window_size}")
+        if self.first_window_size and not 2 <= self.first_window_size <= self.window_size:
+            raise InputError(f"first_window_size must be 0 or in [2, window_size="
+                             f"{self.window_size}], got {self.first_window_size}")
         if not 1 <= self.window_stride <= self.window_size:
             raise InputError(f"window_stride must be in [1, window_size={self.window_size}], "
                              f"got {self.window_stride}")
@@ -542,8 +548,10 @@ class StreamProcessor:
             return outs
         self._buffer.append(_Entry(frame))
         n_new = self._n_unpublished
-        if len(self._buffer) >= s.window_size and n_new >= min(s.window_stride, s.window_size):
-            outs += self._run_window(self._buffer[-max(s.window_size, n_new):])
+        size = s.first_window_size if s.first_window_size and not self._window_index \
+            else s.window_size
+        if len(self._buffer) >= size and n_new >= min(s.window_stride, size):
+            outs += self._run_window(self._buffer[-max(size, n_new):])
             keep = s.window_size - s.window_stride
             self._buffer = self._buffer[len(self._buffer) - keep:] if keep > 0 else []
         return outs
