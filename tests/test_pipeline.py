@@ -305,7 +305,7 @@ def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypa
     import sfm_ttr_ros.core.verification as verification
 
     ttr = pinned(run, monkeypatch)
-    ttr._unsupported.clear()  # the accepted windows of the tests before
+    ttr.checks.unsupported.clear()  # the accepted windows of the tests before
     original = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
     measured = ttr.process_window(run.window, run.intr)  # off (0): measured, never refuses
     u = measured.check.unsupported_change
@@ -325,12 +325,12 @@ def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypa
     assert res.depths_candidate and _encoder_equals(ttr.model, original)
     assert res.timings["check"] < 0.1 * res.timings["refine"]
     # the reference of check.unsupported_change_ratio: U of the accepted windows only
-    assert list(ttr._unsupported) == [pytest.approx(u)]
+    assert list(ttr.checks.unsupported) == [pytest.approx(u)]
     monkeypatch.setattr(ttr.config.check, "unsupported_change_ratio",
                         4 * c.unsupported_change / u)  # far above this stream's usual: refused
     res = ttr.process_window(run.window, run.intr)  # ... unless the stream's usual is as high
     assert res.refined and res.check.unsupported_change > 1e-6, res.reason
-    assert len(ttr._unsupported) == 2
+    assert len(ttr.checks.unsupported) == 2
 
 
 @pytest.mark.slow
@@ -372,15 +372,15 @@ def test_a_rejected_window_leaves_continual_weights_and_replay_untouched(run, mo
     ttr = pinned(run, monkeypatch)
     monkeypatch.setattr(ttr.config, "weight_policy", "continual")
     first = ttr.process_window(run.window, run.intr)  # accepted: weights and replay move on
-    assert first.refined and len(ttr._replay) == 1
+    assert first.refined and len(ttr.weights.replay) == 1
     # the replay keeps its frames at the network's input size (0.16 MB, not 1.4 MB, at KITTI's)
-    assert {s.image.shape[:2] for s in ttr._replay[0]} == {tuple(ttr.model.input_size)}
+    assert {s.image.shape[:2] for s in ttr.weights.replay[0]} == {tuple(ttr.model.input_size)}
     kept = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
     monkeypatch.setattr(ttr.config.check, "holdout_fraction", 0.2)
     monkeypatch.setattr(ttr.config.check, "holdout_margin", 0.9)
     second = ttr.process_window(run.window, run.intr)
     assert second.reason_key == "rejected_by_check"
-    assert _encoder_equals(ttr.model, kept) and len(ttr._replay) == 1
+    assert _encoder_equals(ttr.model, kept) and len(ttr.weights.replay) == 1
 
 
 @pytest.mark.slow

@@ -25,7 +25,8 @@ import threading
 import time
 
 STAGE_FILES = ("sfm.py", "refinement.py", "photometric.py", "alignment.py", "supervision.py",
-               "verification.py", "stream.py", "online.py", "pipeline.py")
+               "verification.py", "checks.py", "weights.py", "stream.py", "online.py",
+               "pipeline.py")
 
 
 class MallInfo2(ctypes.Structure):

@@ -1,8 +1,14 @@
-"""One SfM-TTR window end to end: SfM → alignment → refinement → prediction.
+"""One SfM-TTR window end to end, as Fig. 2 of the paper: SfM → alignment → supervision →
+refinement → prediction.
 
-The same :class:`SfmTTR` object serves the command line (offline: one window = the whole
-sequence, as in the paper), the benchmark and the ROS node (online: sliding windows, the
-encoder continued from the previous window or reset to the original weights).
+:meth:`SfmTTR.process_window` only calls the stages (private helpers here, each in front of the
+module that holds its equations) and two collaborators: :class:`~sfm_ttr_ros.core.checks.
+WindowChecks` (the window checks before, while and after refining, and rollback) and
+:class:`~sfm_ttr_ros.core.weights.WeightPolicy` (where a window's refinement starts, what an
+accepted window leaves to the next). The same :class:`SfmTTR` object serves the command line
+(offline: one window = the whole sequence, as in the paper), the benchmark and the ROS node
+(online: sliding windows, the encoder continued from the previous window or reset to the
+original weights).
 """
 
 from __future__ import annotations
@@ -12,7 +18,7 @@ import itertools
 import math
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -24,6 +30,7 @@ from sfm_ttr_ros.core.alignment_affine import (
     align_output,
     is_affine_output,
 )
+from sfm_ttr_ros.core.checks import WindowChecks
 from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.photometric import PhotometricFrame, prepare_frames
@@ -34,40 +41,18 @@ from sfm_ttr_ros.core.refinement import (
     frozen_stage_count,
     refine_encoder,
     resolve_loss,
-    restore_encoder,
-    snapshot_encoder,
     warm_up_refinement,
 )
-from sfm_ttr_ros.core.serving import finite_state
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
 from sfm_ttr_ros.core.supervision import (
     FrameSupervision,
-    at_network_size,
     build_supervision,
     frame_loss,
     sample_at,
 )
 from sfm_ttr_ros.core.trainable import check_trainable
-from sfm_ttr_ros.core.verification import (
-    UNSUPPORTED_HISTORY,
-    CheckConfig,
-    PathReference,
-    WindowCheck,
-    accept,
-    check_error,
-    frame_scale_spread,
-    parallax,
-    path_reference,
-    probe_frames,
-    sanity_check,
-    scale_jump,
-    split_supervision,
-    track_length,
-    unsupported_change,
-    unsupported_refusal,
-)
-
-WEIGHT_POLICIES = ("reset", "continue", "continual")
+from sfm_ttr_ros.core.verification import CheckConfig, WindowCheck
+from sfm_ttr_ros.core.weights import WEIGHT_POLICIES, RefinementPlan, WeightPolicy
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16
@@ -163,6 +148,49 @@ class WindowResult:
         }
 
 
+@dataclass
+class _Window:
+    """One window on its way through Fig. 2: what each stage hands the next (the outcome so far
+    in ``result``)."""
+
+    frames: Sequence[Frame]
+    intrinsics: Intrinsics
+    result: WindowResult
+    registered: list[str] = field(default_factory=list)  # the frames SfM registered, in order
+    d_sfm: np.ndarray = field(default_factory=lambda: np.zeros(0))  # their D_sfm, concatenated
+    d_nn: np.ndarray = field(default_factory=lambda: np.zeros(0))  # D_nn at the same pixels
+    scaled: bool = False  # the alignment is the paper's scale fit (depth up to scale)
+    supervision: list[FrameSupervision] = field(default_factory=list)  # Eq. (5) per frame
+    train: list[FrameSupervision] = field(default_factory=list)  # what the refinement sees
+    held: list[FrameSupervision] = field(default_factory=list)  # the held-out check points
+
+    def __post_init__(self) -> None:
+        self.images = {f.name: f.image for f in self.frames}
+
+    @property
+    def names(self) -> list[str]:
+        return self.result.names
+
+    @property
+    def before(self) -> dict[str, np.ndarray]:
+        """The depths of the weights before the window."""
+        return self.result.depths_before
+
+    @property
+    def timings(self) -> dict[str, float]:
+        return self.result.timings
+
+
+def _unrefined(res: WindowResult, reason: str, reason_key: str = "",
+               depths: dict[str, np.ndarray] | None = None) -> WindowResult:
+    """``res`` as a window that is not refined, with why; ``depths`` (the depths before) are
+    published instead of the refined weights' when given."""
+    res.refined, res.reason, res.reason_key = False, reason, reason_key
+    if depths is not None:
+        res.depths = dict(depths)
+    return res
+
+
 class SfmTTR:
     """SfM-TTR over windows of a stream for one depth network."""
 
@@ -177,22 +205,14 @@ class SfmTTR:
         self._prefetch: SfmPrefetch | None = None  # the next window's SfM, see prefetch_sfm
         self.prefetch_nice = 0  # OS priority of that SfM's thread (the window worker's)
         self._prefetch_lock = threading.Lock()
-        self._original = snapshot_encoder(model)
-        self._carried = False  # the encoder holds an accepted window's weights, not start-up's
-        # continual policy: the supervision of the last replay_windows refined windows
-        self._replay: deque[list[FrameSupervision]] = deque()
-        # the last accepted window's camera path in network units (the scale-jump check)
-        self._path: PathReference | None = None
-        # U of the last accepted windows: the reference of check.unsupported_change_ratio
-        self._unsupported: deque[float] = deque(maxlen=UNSUPPORTED_HISTORY)
+        # where each window starts and what an accepted one leaves to the next (weight policy)
+        self.weights = WeightPolicy(self.model, on_reset=self._original_restored)
+        self.checks = WindowChecks()  # the window checks and their references across windows
         self._stop = False
         # called with the step count after each refinement step of a window whose current
         # weights may be served before its end (the live server's interim weights,
         # core/online.py): no check after refinement, or one that interim_refusal() re-runs
         self.on_refine_step: Callable[[int], None] | None = None
-        self._interim_check: Callable[[], str] | None = None  # see interim_refusal()
-        self.interim_unsupported = float("nan")  # U of the last interim weights checked
-        self._interim_seconds = 0.0  # the window's time in interim checks (in its "refine")
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
         self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
@@ -206,9 +226,11 @@ class SfmTTR:
     # -- state ---------------------------------------------------------------------------
     def reset_model(self) -> None:
         """Back to the original encoder weights."""
-        restore_encoder(self.model, self._original)
+        self.weights.reset()
+
+    def _original_restored(self) -> None:
+        """The start-up weights are back: their predictions count as the original's again."""
         self._original_key = self._weights_key()
-        self._carried = False
 
     def _concrete(self, config: TTRConfig) -> TTRConfig:
         """``config`` with its objective resolved for this model (``refinement.loss`` "auto":
@@ -349,153 +371,53 @@ class SfmTTR:
     def process_window(self, frames: Sequence[Frame], intrinsics: Intrinsics,
                        refine: bool = True,
                        should_stop: Callable[[], bool] | None = None) -> WindowResult:
-        """Run the whole method on one window; every frame gets a depth in the result."""
+        """Run the whole method on one window; every frame gets a depth in the result.
+
+        Fig. 2 of the paper, stage by stage; the window checks (:class:`WindowChecks`) judge
+        the window before and after refining, the weight policy (:class:`WeightPolicy`) says
+        where its refinement starts and what an accepted window leaves to the next."""
         check_window(frames, intrinsics)
         self._stop = False
         cfg = self.config
-        names = [f.name for f in frames]
-        t: dict[str, float] = {}
-
-        def stop() -> bool:
-            return self._stop or (should_stop is not None and should_stop())
-
-        if cfg.weight_policy == "reset":
-            self.reset_model()
-        # the scale-jump check compares with the window just before, when it was accepted
-        previous_path, self._path = self._path, None
-        t0 = time.perf_counter()
-        before = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
-        t["predict_before"] = time.perf_counter() - t0
-        res = WindowResult(names, dict(before), before, refined=False, timings=t)
+        self.weights.begin_window(cfg)  # "reset": every window from the start-up weights
+        self.checks.begin_window()  # the scale-jump reference: the window before, if accepted
+        w = self._predict_before(frames, intrinsics)  # D_nn = h(g(I_j)) with the weights before
+        res = w.result
         if not refine:
-            res.reason = "refinement skipped"
-            return res
+            return _unrefined(res, "refinement skipped")
         if cfg.refinement.steps == 0:  # nothing to refine: do not spend time on SfM either
-            res.reason = "refinement disabled: refinement.steps is 0"
-            return res
-
-        t0 = time.perf_counter()
-        sfm = self._prefetch.take(frames, intrinsics) if self._prefetch is not None else None
-        if sfm is not None:
-            t["sfm_ahead"] = 1.0  # reconstructed while the previous window refined
-        else:
-            sfm = self.reconstructor.reconstruct(frames, intrinsics)
-        t["sfm"] = time.perf_counter() - t0
-        t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
-        res.sfm = sfm
-        if not sfm.ok:
-            res.reason = f"SfM failed: {sfm.reason}"
-            return res
-
-        # Stage 2-3: network depth at the SfM keypoints, one scale for the whole window.
-        t0 = time.perf_counter()
-        images = {f.name: f.image for f in frames}
-        reg = [n for n in names if n in sfm.frames]
-        d_sfm = np.concatenate([sfm.frames[n].depths for n in reg])
-        d_nn = np.concatenate([
-            sample_at(before[n], sfm.frames[n].pixels, cfg.refinement.sampling) for n in reg])
-        # The paper's scale fit; an affine fit in inverse depth for relative inverse-depth
-        # networks (the targets are then in the network's own output space).
-        align = align_output(d_sfm, d_nn, getattr(self.model, "output_kind", ""),
-                             cfg.alignment, [len(sfm.frames[n].depths) for n in reg])
-        res.alignment, res.scale = align, align.scale
-        t["align"] = time.perf_counter() - t0
-        if not align.ok or int(align.selected.sum()) < cfg.min_supervision_points:
-            res.reason = (f"too few supervision points: {int(align.selected.sum())} selected of "
-                          f"{d_sfm.size} (< {cfg.min_supervision_points})")
-            return res
-
-        t0 = time.perf_counter()
-        res.check = self._sanity(sfm, reg, d_sfm, d_nn, align, previous_path)
-        res.check.seconds = time.perf_counter() - t0
+            return _unrefined(res, "refinement disabled: refinement.steps is 0")
+        if why := self._reconstruct(w):  # SfM: D_sfm, p_lj, r_lj (Sec. 3.1)
+            return _unrefined(res, why)
+        if why := self._align(w):  # D_nn(p_lj) and one scale ŝ for the window (Sec. 3.2)
+            return _unrefined(res, why)
+        res.check = self.checks.before_refining(cfg.check, res.sfm, w.registered, w.d_sfm,
+                                                w.d_nn, res.alignment, w.scaled)
         if res.check.reason_key:
-            res.reason_key, res.reason = res.check.reason_key, f"check: {res.check.reason}"
-            return res
-        sup = build_supervision(sfm, reg, images, align, cfg.refinement.weighting)
-        res.loss_before = float(np.mean([frame_loss(before[s.name], s) for s in sup]))
-        t0 = time.perf_counter()
-        train, held = (split_supervision(sup, cfg.check.holdout_fraction, cfg.check.seed)
-                       if cfg.check.holdout else (sup, []))
-        res.check.check_points = sum(len(s) for s in held)
-        rescale = self._scaled(align)
-        res.check.error_before = check_error(before, held, cfg.refinement.sampling, rescale)
-        res.check.seconds += time.perf_counter() - t0
-        continual = cfg.weight_policy == "continual"
-        replay = [s for window in self._replay for s in window] if continual else []
-        # the weights before the window (rollback); under "reset" they are the start-up weights
-        start = self._original if cfg.weight_policy == "reset" else snapshot_encoder(self.model)
-        anchor = self._original if continual and cfg.anchor_weight > 0 else None
-        refinement = cfg.refinement
-        if self._carried and cfg.carried_steps > 0:
-            refinement = dataclasses.replace(refinement, steps=cfg.carried_steps)
-        # interim weights: served unchecked without a check after refinement, else only when
-        # the unsupported change can be re-measured on them (interim_refusal)
-        self._interim_seconds = 0.0
-        self._interim_check = (self._interim_gate(before, images, sfm, reg)
-                               if cfg.check.interim_checkable and rescale else None)
-        on_step = (self.on_refine_step if not cfg.check.after_refinement
-                   or self._interim_check is not None else None)
-        t0 = time.perf_counter()
-        try:
-            res.refinement = refine_encoder(
-                self.model, train, refinement, should_stop=stop, replay=replay,
-                replay_ratio=cfg.replay_ratio, anchor=anchor, anchor_weight=cfg.anchor_weight,
-                photometric=self._photometric_frames(names, images, sfm, align.scale,
-                                                     intrinsics), on_step=on_step)
-        finally:
-            self._interim_check = None
-        t["refine"] = time.perf_counter() - t0
-        if self._interim_seconds:  # part of the check's cost, spent between refinement steps
-            t["interim_check"] = self._interim_seconds
-            res.check.seconds += self._interim_seconds
+            return _unrefined(res, f"check: {res.check.reason}", res.check.reason_key)
+        self._supervise(w)  # Eq. (5) per frame; the held-out tracks set apart
+        plan = self.weights.begin(cfg)  # where the refinement starts, what it replays
+        res.refinement = self._refine(w, plan, should_stop)  # Adam on the encoder (Sec. 3.3)
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
-            res.reason = "refinement cancelled"
-            return res
-
-        t0 = time.perf_counter()
-        res.depths = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
-        t["predict_after"] = time.perf_counter() - t0
-        res.loss_after = float(np.mean([frame_loss(res.depths[s.name], s) for s in sup]))
-        res.refined = res.refinement.steps_done > 0
+            return _unrefined(res, "refinement cancelled")
+        self._predict_after(w)  # the refined weights' depth of every frame
         if not res.refined:
-            res.reason = "refinement cancelled" if res.refinement.cancelled else "no usable frame"
-            return res
-        why = self._rollback_reason(res)
-        if why:
-            restore_encoder(self.model, start)
-            res.refined, res.reason, res.depths = False, f"rolled back: {why}", dict(before)
-            return res
-        t0 = time.perf_counter()
-        c = res.check
-        c.error_after = check_error(res.depths, held, cfg.refinement.sampling, rescale)
-        if rescale:
-            c.unsupported_change = unsupported_change(
-                before, res.depths, {n: sfm.frames[n].pixels for n in reg})
-        c.seconds += time.perf_counter() - t0
-        t["check"] = c.seconds
-        if not accept(cfg.check, c.error_before, c.error_after):
-            c.reason_key = "rejected_by_check"
-            c.reason = (f"held-out check error {c.error_before:.4g} -> {c.error_after:.4g} "
-                        f"on {c.check_points} points did not fall by "
-                        f"check.holdout_margin {cfg.check.holdout_margin:g}")
-        elif unsupported_refusal(cfg.check, c.unsupported_change, self._unsupported):
-            c.reason_key = "check_unsupported_change"
-            c.reason = unsupported_refusal(cfg.check, c.unsupported_change, self._unsupported)
+            return _unrefined(res, "no usable frame")
+        if why := self.checks.rollback_reason(cfg.max_loss_ratio, res.refinement.loss_history,
+                                              res.loss_before, res.loss_after,
+                                              self.model.encoder):
+            self.weights.refuse(plan)
+            return _unrefined(res, f"rolled back: {why}", depths=w.before)
+        c = self.checks.after_refining(cfg.check, res.check, w.before, res.depths, w.held,
+                                       res.sfm, w.registered, cfg.refinement.sampling, w.scaled)
+        res.timings["check"] = c.seconds
         if c.reason_key:
-            restore_encoder(self.model, start)
-            res.reason_key = c.reason_key
-            res.refined, res.reason = False, f"rejected by check: {c.reason}"
-            res.depths_candidate, res.depths = res.depths, dict(before)
-            return res
-        self._path = path_reference(sfm, reg, align.scale) if self._scaled(align) else None
-        self._carried = cfg.weight_policy != "reset"
-        if math.isfinite(c.unsupported_change):
-            self._unsupported.append(c.unsupported_change)
-        if continual and cfg.replay_windows > 0:
-            self._replay.append(self._replay_frames(sup))
-            while len(self._replay) > cfg.replay_windows:
-                self._replay.popleft()
-        self._cloud(res, sfm, reg)
+            self.weights.refuse(plan)
+            res.depths_candidate = res.depths
+            return _unrefined(res, f"rejected by check: {c.reason}", c.reason_key, w.before)
+        self.weights.accept(cfg, w.supervision)
+        self.checks.accept(c, res.sfm, w.registered, res.scale, w.scaled)
+        self._cloud(res, res.sfm, w.registered)
         return res
 
     def interim_refusal(self) -> str:
@@ -504,69 +426,128 @@ class SfmTTR:
         measured on :func:`probe_frames` of the window with the weights as they are now, judged
         as the finished window's will be (core/verification.py, 3.). For ``on_refine_step``
         (the worker thread, between steps)."""
-        check = self._interim_check
-        return check() if check is not None else ""
+        return self.checks.interim_refusal()
 
-    def _interim_gate(self, before: dict[str, np.ndarray], images: dict[str, np.ndarray],
-                      sfm: SfmResult, reg: list[str]) -> Callable[[], str]:
-        probe = probe_frames(reg)
-        pixels = {n: sfm.frames[n].pixels for n in probe}
-        history = tuple(self._unsupported)
+    @property
+    def interim_unsupported(self) -> float:
+        """U of the last interim weights checked (:meth:`interim_refusal`)."""
+        return self.checks.interim_unsupported
 
-        def refusal() -> str:
-            t0 = time.perf_counter()
-            # mid-refinement: predict() switches to eval mode; put every module back as it was
-            # (bn_mode "train" keeps the encoder's BatchNorm in training mode)
-            modes = [(m, m.training) for m in self.model.modules()]
-            try:
-                depths = self._run_network([images[n] for n in probe])
-            finally:
-                for m, training in modes:
-                    m.training = training
-            self.interim_unsupported = unsupported_change(
-                before, dict(zip(probe, depths, strict=True)), pixels)
-            why = unsupported_refusal(self.config.check, self.interim_unsupported, history)
-            self._interim_seconds += time.perf_counter() - t0
-            return why
+    # -- the stages of one window (Fig. 2) -----------------------------------------------
+    def _predict_before(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> _Window:
+        """The network's depth of every frame with the weights before the window: the
+        published depth unless the window is refined, and D_nn of the alignment."""
+        names = [f.name for f in frames]
+        t: dict[str, float] = {}
+        t0 = time.perf_counter()
+        before = dict(zip(names, self.predict([f.image for f in frames]), strict=True))
+        t["predict_before"] = time.perf_counter() - t0
+        return _Window(frames, intrinsics,
+                       WindowResult(names, dict(before), before, refined=False, timings=t))
 
-        return refusal
+    def _reconstruct(self, w: _Window) -> str:
+        """SfM of the window (Sec. 3.1), or the reconstruction begun ahead of it
+        (:meth:`prefetch_sfm`); why the window stops here ("" = it goes on)."""
+        t, res = w.timings, w.result
+        t0 = time.perf_counter()
+        sfm = (self._prefetch.take(w.frames, w.intrinsics) if self._prefetch is not None
+               else None)
+        if sfm is not None:
+            t["sfm_ahead"] = 1.0  # reconstructed while the previous window refined
+        else:
+            sfm = self.reconstructor.reconstruct(w.frames, w.intrinsics)
+        t["sfm"] = time.perf_counter() - t0
+        t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
+        res.sfm = sfm
+        return "" if sfm.ok else f"SfM failed: {sfm.reason}"
+
+    def _align(self, w: _Window) -> str:
+        """Network depth at the SfM keypoints and one scale for the whole window (Sec. 3.2,
+        Eq. (4): RANSAC, weighted least squares, the relaxed selection of the supervision
+        points); why the window stops here ("" = it goes on)."""
+        cfg, res, sfm = self.config, w.result, w.result.sfm
+        t0 = time.perf_counter()
+        w.registered = reg = [n for n in w.names if n in sfm.frames]
+        w.d_sfm = np.concatenate([sfm.frames[n].depths for n in reg])
+        w.d_nn = np.concatenate([
+            sample_at(w.before[n], sfm.frames[n].pixels, cfg.refinement.sampling) for n in reg])
+        # The paper's scale fit; an affine fit in inverse depth for relative inverse-depth
+        # networks (the targets are then in the network's own output space).
+        align = align_output(w.d_sfm, w.d_nn, getattr(self.model, "output_kind", ""),
+                             cfg.alignment, [len(sfm.frames[n].depths) for n in reg])
+        res.alignment, res.scale = align, align.scale
+        w.scaled = self._scaled(align)
+        w.timings["align"] = time.perf_counter() - t0
+        if not align.ok or int(align.selected.sum()) < cfg.min_supervision_points:
+            return (f"too few supervision points: {int(align.selected.sum())} selected of "
+                    f"{w.d_sfm.size} (< {cfg.min_supervision_points})")
+        return ""
+
+    def _supervise(self, w: _Window) -> None:
+        """Eq. (5) per registered frame (targets ŝ·D_sfm at p_lj, weights exp(−r²)), the
+        window's loss before refining, and the held-out split of the window checks."""
+        cfg, res = self.config, w.result
+        w.supervision = build_supervision(res.sfm, w.registered, w.images, res.alignment,
+                                          cfg.refinement.weighting)
+        res.loss_before = float(np.mean([frame_loss(w.before[s.name], s)
+                                         for s in w.supervision]))
+        w.train, w.held = self.checks.hold_out(cfg.check, res.check, w.supervision, w.before,
+                                               cfg.refinement.sampling, w.scaled)
+
+    def _refine(self, w: _Window, plan: RefinementPlan,
+                should_stop: Callable[[], bool] | None) -> RefinementResult:
+        """Test-time refinement (Sec. 3.3): Adam on the encoder over the training points, as
+        ``plan`` says; between steps ``on_refine_step`` may serve the interim weights when the
+        window checks allow it (their time counts in "refine" and in the check's)."""
+        cfg, res = self.config, w.result
+
+        def stop() -> bool:
+            return self._stop or (should_stop is not None and should_stop())
+
+        serve = self.checks.arm_interim(cfg.check, w.before, w.images, res.sfm, w.registered,
+                                        self._predict_as_is, w.scaled)
+        t0 = time.perf_counter()
+        try:
+            refinement = refine_encoder(
+                self.model, w.train, plan.refinement, should_stop=stop, replay=plan.replay,
+                replay_ratio=plan.replay_ratio, anchor=plan.anchor,
+                anchor_weight=plan.anchor_weight,
+                photometric=self._photometric_frames(w.names, w.images, res.sfm, res.scale,
+                                                     w.intrinsics),
+                on_step=self.on_refine_step if serve else None)
+        finally:
+            interim = self.checks.disarm_interim()
+        w.timings["refine"] = time.perf_counter() - t0
+        if interim:  # part of the check's cost, spent between refinement steps
+            w.timings["interim_check"] = interim
+            res.check.seconds += interim
+        return refinement
+
+    def _predict_after(self, w: _Window) -> None:
+        """The refined weights' depth of every frame and the window's loss after."""
+        res = w.result
+        t0 = time.perf_counter()
+        res.depths = dict(zip(w.names, self.predict([f.image for f in w.frames]), strict=True))
+        w.timings["predict_after"] = time.perf_counter() - t0
+        res.loss_after = float(np.mean([frame_loss(res.depths[s.name], s)
+                                        for s in w.supervision]))
+        res.refined = res.refinement.steps_done > 0
+
+    def _predict_as_is(self, images: list[np.ndarray]) -> list[np.ndarray]:
+        """The network's depth of ``images`` mid-refinement (the interim gate): predict()
+        switches to eval mode; every module is put back as it was (bn_mode "train" keeps the
+        encoder's BatchNorm in training mode)."""
+        modes = [(m, m.training) for m in self.model.modules()]
+        try:
+            return self._run_network(images)
+        finally:
+            for m, training in modes:
+                m.training = training
 
     def _scaled(self, align: AlignmentResult) -> bool:
         """Whether ``align`` is the paper's scale fit (depth up to scale): the scale checks'
         precondition."""
         return not isinstance(align, AffineAlignmentResult) and not is_affine_output(self.model)
-
-    def _sanity(self, sfm: SfmResult, reg: list[str], d_sfm: np.ndarray, d_nn: np.ndarray,
-                align: AlignmentResult, previous: PathReference | None) -> WindowCheck:
-        """The window's statistics and the verdict of the cheap checks
-        (:func:`~sfm_ttr_ros.core.verification.sanity_check`)."""
-        c = WindowCheck(reprojection_error=sfm.reprojection_error,
-                        track_length=track_length(sfm, reg), parallax=parallax(sfm, reg))
-        if align.ransac_inliers.size:
-            valid = np.isfinite(d_sfm) & np.isfinite(d_nn) & (d_sfm > 0) & (d_nn > 0)
-            c.inlier_ratio = float(align.ransac_inliers.sum() / max(1, int(valid.sum())))
-        if self._scaled(align):
-            bounds = np.cumsum([0] + [len(sfm.frames[n].depths) for n in reg])
-            parts = [slice(a, b) for a, b in itertools.pairwise(bounds)]
-            c.scale_spread = frame_scale_spread([d_sfm[p] for p in parts],
-                                                [d_nn[p] for p in parts])
-            c.scale_jump = scale_jump(path_reference(sfm, reg, align.scale), previous)
-        return sanity_check(self.config.check, c)
-
-    def _rollback_reason(self, res: WindowResult) -> str:
-        """Why a refined window must not be kept ("" when it may): a non-finite loss or
-        encoder weight, or a loss after refinement above ``max_loss_ratio`` x the loss before
-        (the refinement exploded)."""
-        history = np.asarray(res.refinement.loss_history, np.float64)
-        if not np.all(np.isfinite(history)) or not math.isfinite(res.loss_after):
-            return "non-finite loss"
-        if not finite_state(self.model.encoder.state_dict()):
-            return "non-finite weights"
-        ratio = self.config.max_loss_ratio
-        if ratio > 0 and res.loss_after > ratio * res.loss_before:
-            return (f"loss {res.loss_before:.4g} -> {res.loss_after:.4g} exceeds "
-                    f"max_loss_ratio {ratio:g}")
-        return ""
 
     def _photometric_frames(self, names: list[str], images: dict[str, np.ndarray],
                             sfm: SfmResult, scale: float,
@@ -581,17 +562,6 @@ class SfmTTR:
             return []
         return prepare_frames(self.model, names, images, sfm.frames, scale, intrinsics,
                               r.photometric_config())
-
-    def _replay_frames(self, sup: list[FrameSupervision]) -> list[FrameSupervision]:
-        """A window's supervision as the replay keeps it: with a model whose input is the image
-        resized to ``input_size`` (:meth:`DepthModel.preprocess`) each image at that size
-        (:func:`~sfm_ttr_ros.core.supervision.at_network_size`; 3 windows of 15 KITTI frames:
-        7 MB instead of 63 MB); other models' images (normalised, or sized by their own
-        processor) as they are."""
-        if (len(tuple(getattr(self.model, "input_size", ()))) != 2
-                or type(self.model).preprocess is not DepthModel.preprocess):
-            return list(sup)
-        return [at_network_size(s, self.model) for s in sup]
 
     @staticmethod
     def _cloud(res: WindowResult, sfm: SfmResult, reg: list[str]) -> None:
