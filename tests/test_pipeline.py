@@ -101,7 +101,9 @@ def biased_state(scene):
 
 
 def config(seed: int = 0) -> TTRConfig:
-    cfg = TTRConfig()
+    """The paper's method: Eq. (5), every window from the start-up weights."""
+    cfg = TTRConfig(weight_policy="reset")
+    cfg.refinement.loss = "sfm"
     cfg.refinement.steps = STEPS
     cfg.refinement.lr = LR
     cfg.refinement.seed = seed

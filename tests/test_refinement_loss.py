@@ -166,7 +166,8 @@ def test_loss_settings_are_checked():
     assert (p.alpha, p.smoothness_weight, p.source_offsets, p.seed) == (0.5, 0.01, (-2, -1, 1), 7)
     assert cfg.uses_photometric and RefinementConfig(loss="photometric").uses_photometric
     assert not RefinementConfig(loss="hybrid", photometric_weight=0.0).uses_photometric
-    assert not RefinementConfig().uses_photometric  # the default: sfm
+    assert RefinementConfig().loss == "auto"  # the default: resolved per network (below)
+    assert not RefinementConfig(loss="sfm").uses_photometric
     for kw, msg in (({"loss": "ssim"}, "loss must be one of"),
                     ({"photometric_weight": -1.0}, "photometric_weight"),
                     ({"photometric_weight": float("inf")}, "photometric_weight"),
@@ -214,7 +215,7 @@ def process(window, monkeypatch, **refinement):
 
 def test_pipeline_hybrid_zero_is_sfm_and_poses_are_in_network_units(window, monkeypatch):
     frames, sfm = window
-    res_sfm, kw_sfm = process(window, monkeypatch)
+    res_sfm, kw_sfm = process(window, monkeypatch, loss="sfm")
     res_zero, kw_zero = process(window, monkeypatch, loss="hybrid", photometric_weight=0.0)
     assert res_sfm.refined and res_zero.refined
     assert list(kw_sfm["photometric"]) == [] and list(kw_zero["photometric"]) == []

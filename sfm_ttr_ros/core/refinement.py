@@ -172,13 +172,17 @@ class RefinementResult:
     seconds: float = 0.0
 
 
-def resolve_loss(config: RefinementConfig, model: DepthModel) -> RefinementConfig:
-    """``config`` with ``loss`` "auto" made concrete for ``model``: "photometric" for a network
-    that predicts depth up to scale, "sfm" for one whose output is affine-invariant inverse
-    depth (the photometric warp needs depth); ``config`` itself otherwise."""
+def resolve_loss(config: RefinementConfig, model: DepthModel,
+                 photometric_frames: bool = True) -> RefinementConfig:
+    """``config`` with ``loss`` "auto" made concrete: "photometric" for a network that predicts
+    depth up to scale, "sfm" (Eq. (5)) for one whose output is affine-invariant inverse depth
+    (the photometric warp needs depth) or when no photometric frames are at hand
+    (``photometric_frames`` False: :func:`refine_encoder` called with supervision alone);
+    ``config`` itself when its loss is not "auto"."""
     if config.loss != "auto":
         return config
-    return dataclasses.replace(config, loss="sfm" if is_affine_output(model) else "photometric")
+    photometric = photometric_frames and not is_affine_output(model)
+    return dataclasses.replace(config, loss="photometric" if photometric else "sfm")
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -248,7 +252,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     ``anchor_weight``·Σ‖θ − θ₀‖² over the trainable encoder parameters (L2-SP), so the weights
     drift from θ₀ only as far as the scene asks. ``loss_history`` records Eq. (5) alone.
     """
-    cfg = resolve_loss(config or RefinementConfig(), model)
+    cfg = resolve_loss(config or RefinementConfig(), model, bool(photometric))
     result = RefinementResult()
     usable = _training_frames(supervision, photometric, cfg)
     by_name = {f.name: f for f in photometric} if cfg.uses_photometric else {}
