@@ -58,11 +58,12 @@ class TorchSiftConfig:
     first_octave: int = -1  # -1: the image upsampled 2x first (Sec. 3.3); 0: as given
     peak_threshold: float = 0.02 / 3  # |D| on [0, 1] images (COLMAP: 0.02 / num_scales)
     edge_threshold: float = 10.0  # r of Sec. 4.1
-    max_offset: float = 0.6  # subpixel refinement: discard samples whose fit moves further
+    max_offset: float = 0.6  # subpixel refinement: move the sample where the fit is further
     refine: bool = True  # Sec. 4's quadratic fit; False: keypoints at the sample
+    refine_iterations: int = 5  # fits (and moves) at most per candidate (vlfeat / COLMAP: 5)
     max_num_features: int = 8192  # the strongest |D| kept (after orientation assignment)
     max_orientations: int = 2  # orientations per location at most (COLMAP: 2)
-    root_sift: bool = False
+    root_sift: bool = True  # COLMAP's default normalisation (L1_ROOT)
     min_octave_size: int = 16  # no octave smaller than this on its short side
 
 
@@ -161,47 +162,78 @@ def _extrema(dog, cfg: TorchSiftConfig):
     return torch.nonzero(is_ext, as_tuple=True)
 
 
-def _localise(dog, s, y, x, cfg: TorchSiftConfig):
-    """Sec. 4 and 4.1 for one octave: subpixel/subscale offsets by one Newton step of the
-    quadratic Taylor fit, contrast of the fit, and the edge (principal curvature) test.
-    Returns (keep mask, xs, ys, ss: refined coordinates, value: interpolated D)."""
+def _taylor(D, s, y, x):
+    """Value, gradient (3) and Hessian (3 x 3) of D in (x, y, sigma) at integer samples by
+    finite differences (Lowe 2004, Sec. 4)."""
     import torch
-
-    D = dog
 
     def at(ds, dy, dx):
         return D[s + ds, y + dy, x + dx]
 
     v = at(0, 0, 0)
-    dx = 0.5 * (at(0, 0, 1) - at(0, 0, -1))
-    dy = 0.5 * (at(0, 1, 0) - at(0, -1, 0))
-    ds = 0.5 * (at(1, 0, 0) - at(-1, 0, 0))
+    g = torch.stack([0.5 * (at(0, 0, 1) - at(0, 0, -1)), 0.5 * (at(0, 1, 0) - at(0, -1, 0)),
+                     0.5 * (at(1, 0, 0) - at(-1, 0, 0))], -1)
     dxx = at(0, 0, 1) + at(0, 0, -1) - 2 * v
     dyy = at(0, 1, 0) + at(0, -1, 0) - 2 * v
     dss = at(1, 0, 0) + at(-1, 0, 0) - 2 * v
     dxy = 0.25 * (at(0, 1, 1) - at(0, 1, -1) - at(0, -1, 1) + at(0, -1, -1))
     dxs = 0.25 * (at(1, 0, 1) - at(1, 0, -1) - at(-1, 0, 1) + at(-1, 0, -1))
     dys = 0.25 * (at(1, 1, 0) - at(1, -1, 0) - at(-1, 1, 0) + at(-1, -1, 0))
-    # Sec. 4.1: the ratio of principal curvatures from the 2x2 spatial Hessian
-    tr = dxx + dyy
-    det = dxx * dyy - dxy * dxy
-    r = cfg.edge_threshold
-    keep = (det > 0) & (tr * tr * r < (r + 1) ** 2 * det)
-    xs, ys, ss = x.to(D.dtype), y.to(D.dtype), s.to(D.dtype)
-    value = v
+    H = torch.stack([torch.stack([dxx, dxy, dxs], -1), torch.stack([dxy, dyy, dys], -1),
+                     torch.stack([dxs, dys, dss], -1)], -2)
+    return v, g, H
+
+
+def _localise(dog, s, y, x, cfg: TorchSiftConfig):
+    """Sec. 4 and 4.1 for one octave: the subpixel / subscale offset x̂ = −H⁻¹ g of the
+    quadratic Taylor fit of D, Eq. (3); where it exceeds ``max_offset`` (0.5 in Lowe) in a
+    dimension the sample moves one step that way and the fit is repeated (up to
+    ``refine_iterations`` times; then discarded); the contrast of the fit D(x̂), Eq. (3), and
+    the edge test (ratio of principal curvatures of the 2 x 2 spatial Hessian, Sec. 4.1) at the
+    final sample. Returns (keep mask, xs, ys, ss: refined coordinates, value: D(x̂))."""
+    import torch
+
+    L, Hh, Ww = dog.shape
+    off = torch.zeros(s.shape[0], 3, device=dog.device, dtype=dog.dtype)
     if cfg.refine:
-        H = torch.stack([torch.stack([dxx, dxy, dxs], -1), torch.stack([dxy, dyy, dys], -1),
-                         torch.stack([dxs, dys, dss], -1)], -2)
-        g = torch.stack([dx, dy, ds], -1)
-        det3 = torch.linalg.det(H)
-        ok = det3.abs() > 1e-12
-        H = torch.where(ok[:, None, None], H, torch.eye(3, device=H.device, dtype=H.dtype))
-        off = -torch.linalg.solve(H, g[..., None])[..., 0]  # Eq. (3)
-        off = torch.where(ok[:, None], off, torch.zeros_like(off))
-        keep &= ok & (off.abs() <= cfg.max_offset).all(-1)
+        ok = torch.ones_like(s, dtype=torch.bool)
+        for it in range(max(1, cfg.refine_iterations)):
+            v, g, H = _taylor(dog, s, y, x)
+            det3 = torch.linalg.det(H)
+            solvable = det3.abs() > 1e-12
+            Hs = torch.where(solvable[:, None, None], H,
+                             torch.eye(3, device=H.device, dtype=H.dtype))
+            off = -torch.linalg.solve(Hs, g[..., None])[..., 0]
+            off = torch.where(solvable[:, None], off, torch.zeros_like(off))
+            ok = solvable & (off.abs() <= cfg.max_offset).all(-1)
+            if it == cfg.refine_iterations - 1 or bool(ok.all()):
+                break
+            step = torch.where(off.abs() > cfg.max_offset, torch.sign(off),
+                               torch.zeros_like(off)).long()
+            step = torch.where(solvable[:, None], step, torch.zeros_like(step))
+            x = (x + step[:, 0]).clamp(1, Ww - 2)
+            y = (y + step[:, 1]).clamp(1, Hh - 2)
+            s = (s + step[:, 2]).clamp(1, L - 2)
         value = v + 0.5 * (g * off).sum(-1)  # D(x̂), Sec. 4
-        xs, ys, ss = xs + off[:, 0], ys + off[:, 1], ss + off[:, 2]
+        keep = ok
+    else:
+        v, g, H = _taylor(dog, s, y, x)
+        value = v
+        keep = torch.ones_like(s, dtype=torch.bool)
+    dxx, dyy, dxy = H[:, 0, 0], H[:, 1, 1], H[:, 0, 1]
+    tr, det = dxx + dyy, dxx * dyy - dxy * dxy
+    r = cfg.edge_threshold
+    keep &= (det > 0) & (tr * tr * r < (r + 1) ** 2 * det)
     keep &= value.abs() > cfg.peak_threshold
+    # candidates that converged on the same sample are one keypoint
+    lin = (s * Hh + y) * Ww + x
+    first = torch.full((L * Hh * Ww,), lin.numel(), device=lin.device, dtype=torch.long)
+    idx = torch.arange(lin.numel(), device=lin.device)
+    first.scatter_reduce_(0, lin[keep], idx[keep], reduce="amin")
+    keep &= first[lin] == idx
+    xs = x.to(dog.dtype) + off[:, 0]
+    ys = y.to(dog.dtype) + off[:, 1]
+    ss = s.to(dog.dtype) + off[:, 2]
     return keep, xs, ys, ss, value
 
 
