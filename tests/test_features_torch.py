@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+# torch on one thread: on a busy 2-core machine two threads measured several times slower
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 from sfm_ttr_ros.core.features_torch import TorchSiftConfig, detect_and_describe  # noqa: E402
 from sfm_ttr_ros.core.frames import Frame, InputError  # noqa: E402
@@ -204,7 +206,12 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
 
     seq, frames = drive
     with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
+        # frames 0-4 first, their features then dropped from memory: the full window's new
+        # pairs read them back from the database
+        assert rec.reconstruct(frames[:5], seq.intrinsics).num_registered >= 4
+        rec._torch_db._cache.clear()
         res = rec.reconstruct(frames, seq.intrinsics)
+        assert rec.frames_extracted == 8
         with pycolmap.Database.open(rec.database_path) as db:
             images = db.read_all_images()
             nkp = [db.num_keypoints_for_image(i.image_id) for i in images]
@@ -214,6 +221,12 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
         extracted = rec.frames_extracted
         again = rec.reconstruct(frames[4:], seq.intrinsics)
         assert rec.frames_extracted == extracted and again.ok
+        # switching to COLMAP's features starts a fresh database (kinds are never mixed)
+        rec.config = SfmConfig(features="colmap")
+        rec.reconstruct(frames[:3], seq.intrinsics)
+        assert rec.frames_extracted == extracted + 3
+        with pycolmap.Database.open(rec.database_path) as db:
+            assert db.num_images() == 3
     assert "extract.detect_describe" in res.timings  # the torch path ran, not COLMAP's SIFT
     assert len(images) == 8 and nkp == ndesc and min(nkp) >= 100
     # sequential matching with overlap 10: all 28 pairs of 8 frames, most verified
@@ -237,11 +250,13 @@ def test_torch_features_on_real_hololens_frames(shared_data):
     if not root.is_dir():
         pytest.skip(f"{root} not found")
     seq = open_image_folder(root / "images", root / "K.txt", root / "depth", gt_scale=1000.0)
-    frames = seq.frames(55, 61)  # 6 frames; first octave 0 (not upsampled) for the time
-    with SfmReconstructor(SfmConfig(features="torch", first_octave=0),
-                          feature_device="cpu") as rec:
+    frames = seq.frames(55, 61)  # 6 frames (files 00058-00063)
+    with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
         res = rec.reconstruct(frames, seq.intrinsics)
+    # measured: 6/6 registered, ~1700 points, 0.34 px, depth error 1.0 % (COLMAP's SIFT on the
+    # same frames: 6/6, ~1500 points, 0.34 px, 1.1 %)
     assert res.ok, res.reason
     assert res.num_registered == len(frames)
-    assert res.reprojection_error <= 1.0
-    assert median_depth_error(res, frames, lambda f: seq.gt(f.name)) <= 0.05
+    assert res.num_points >= 800
+    assert res.reprojection_error <= 0.6
+    assert median_depth_error(res, frames, lambda f: seq.gt(f.name)) <= 0.04

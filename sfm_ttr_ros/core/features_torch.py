@@ -12,9 +12,11 @@ What each step implements:
   exactly aligned between octaves);
 * extrema (Sec. 3.1): a DoG sample larger (smaller) than its 26 neighbours in space and scale,
   with |D| above ``peak_threshold``;
-* accurate keypoint localisation (Sec. 4): one Newton step of the quadratic fit of D in
-  (x, y, sigma), Eq. (3); samples whose offset exceeds ``max_offset`` in any dimension are
-  discarded and the interpolated contrast |D(x̂)|, Eq. (3), must stay above ``peak_threshold``;
+* accurate keypoint localisation (Sec. 4): the Newton step of the quadratic fit of D in
+  (x, y, sigma), Eq. (3); where the offset exceeds ``max_offset`` in a dimension the sample
+  moves one step that way and the fit is repeated (``refine_iterations``, 5 as vlfeat/COLMAP),
+  else the candidate is discarded; the interpolated contrast |D(x̂)| must stay above
+  ``peak_threshold`` (a prefilter of 0.8 times it runs on the samples);
 * eliminating edge responses (Sec. 4.1): Tr(H)² / Det(H) < (r + 1)² / r, r = ``edge_threshold``;
 * orientation assignment (Sec. 5): a 36-bin histogram of gradient orientations in a Gaussian
   window of 1.5 sigma, weighted by gradient magnitude, smoothed; every peak within 80 % of the

@@ -183,6 +183,7 @@ class SfmReconstructor:
         # torch device of sfm.features "torch" (None: the GPU when torch sees one, else CPU)
         self.feature_device = feature_device
         self._torch_db = None  # TorchFeatureDatabase of this generation (sfm.features "torch")
+        self._db_features = self.config.features  # the feature kind the database holds
         self._own_workspace = workspace is None
         self._root = Path(workspace or tempfile.mkdtemp(prefix="sfm_ttr_"))
         self.max_cached_frames = max_cached_frames
@@ -253,6 +254,9 @@ class SfmReconstructor:
             if self._intrinsics is not None:
                 self.reset()
             self._intrinsics = intrinsics
+        if self._names and self._db_features != self.config.features:
+            self.reset()  # keypoints of one feature kind are never matched with the other's
+        self._db_features = self.config.features
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))
