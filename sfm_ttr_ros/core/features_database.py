@@ -1,8 +1,9 @@
 """The torch SIFT features (core/features_torch.py) and their matches (core/matching_torch.py)
 in a COLMAP database, as hloc does with its own features: images imported with pycolmap
 (one camera with the known intrinsics), keypoints and descriptors written per image, raw
-matches per pair of sequential frames, each pair verified by pycolmap's calibrated two-view
-geometry (essential / fundamental / homography RANSAC, COLMAP's defaults), so that pycolmap's
+matches per pair of sequential frames, the pairs verified by pycolmap's geometric verification
+(calibrated two-view geometry: essential / fundamental / homography RANSAC, COLMAP's defaults),
+so that pycolmap's
 incremental mapper then runs on the database exactly as after its own SIFT.
 
 Descriptors stay on the feature device for the frames that later frames are matched with (the
@@ -116,43 +117,36 @@ class TorchFeatureDatabase:
             torch.cuda.synchronize()
 
     # -- matching and verification -----------------------------------------------------------
-    def match(self, names: Sequence[str], overlap: int, camera_id: int,
-              options=None, check=None) -> int:
+    def match(self, names: Sequence[str], overlap: int, num_threads: int = 2,
+              token=None, check=None) -> int:
         """Match every pair of ``names`` (database image names, in stream order) at most
-        ``overlap`` apart that is not matched yet (sequential matching), write the raw matches
-        and pycolmap's verified two-view geometry of each pair. ``check()`` runs between pairs
-        (cancellation). Returns the number of pairs matched."""
+        ``overlap`` apart that is not matched yet (sequential matching) and write the raw
+        matches; then pycolmap's geometric verification (``pycolmap.geometric_verification``:
+        calibrated two-view geometry per pair, COLMAP's defaults, ``num_threads`` threads; pairs
+        verified before are skipped) writes each new pair's two-view geometry. ``check()`` runs
+        between pairs (cancellation). Returns the number of pairs matched."""
         import pycolmap
 
-        opts = options or pycolmap.TwoViewGeometryOptions()
-        t_match = t_verify = 0.0
+        t0 = time.perf_counter()
         done = 0
         with pycolmap.Database.open(self.database_path) as db:
             ids = {img.name: int(img.image_id) for img in db.read_all_images()}
-            camera = db.read_camera(camera_id)
             for i, a in enumerate(names):
                 for b in names[i + 1:i + 1 + overlap]:
                     if (a, b) in self._matched:
                         continue
                     if check is not None:
                         check()
-                    t0 = time.perf_counter()
                     fa, fb = self._features(db, a, ids[a]), self._features(db, b, ids[b])
                     m = match_mutual_ratio(fa.descriptors, fb.descriptors, self.matching)
-                    t1 = time.perf_counter()
-                    t_match += t1 - t0
-                    m32 = m.astype(np.uint32)
-                    db.write_matches(ids[a], ids[b], m32)
-                    if len(m) >= opts.min_num_inliers:
-                        k1 = fa.keypoints[:, :2].double().cpu().numpy()
-                        k2 = fb.keypoints[:, :2].double().cpu().numpy()
-                        geom = pycolmap.estimate_calibrated_two_view_geometry(
-                            camera, k1, camera, k2, m32, opts)
-                    else:
-                        geom = pycolmap.TwoViewGeometry()
-                    db.write_two_view_geometry(ids[a], ids[b], geom)
-                    t_verify += time.perf_counter() - t1
+                    db.write_matches(ids[a], ids[b], m.astype(np.uint32))
                     self._matched.add((a, b))
                     done += 1
-        self.timings = {"match": t_match, "verify": t_verify}
+        t1 = time.perf_counter()
+        if done:
+            verifier = pycolmap.GeometricVerifierOptions()
+            verifier.num_threads = int(num_threads)
+            pycolmap.geometric_verification(self.database_path, verifier_options=verifier,
+                                            cancellation_token=token)
+        self.timings = {"match": t1 - t0, "verify": time.perf_counter() - t1}
         return done

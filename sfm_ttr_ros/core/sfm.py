@@ -424,7 +424,8 @@ class SfmReconstructor:
         if cfg.features == "torch":
             # sequential matching in stream order, each pair verified by pycolmap
             self._torch_features().match([f"{n}.png" for n in self._names], cfg.overlap,
-                                         self._camera_id, check=lambda: self._check_cancel(token))
+                                         cfg.num_threads, token,
+                                         check=lambda: self._check_cancel(token))
             return
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = cfg.num_threads
