@@ -52,7 +52,7 @@ from sfm_ttr_ros.core.refinement import (
     WEIGHTINGS,
     RefinementConfig,
 )
-from sfm_ttr_ros.core.sfm import RETRY_HISTORY, SfmConfig
+from sfm_ttr_ros.core.sfm import FEATURE_BACKENDS, RETRY_HISTORY, SfmConfig
 from sfm_ttr_ros.core.stream import StreamSettings
 from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
 from sfm_ttr_ros.core.verification import UNSUPPORTED_HISTORY, UNSUPPORTED_MIN_HISTORY, CheckConfig
@@ -180,6 +180,11 @@ PARAMS: tuple[Param, ...] = (
        "mapping.", 1, 256),
     _p("sfm.first_octave", "sfm.first_octave", "SIFT first octave: -1 = COLMAP default "
        "(upsampled), 0 = ~3x faster.", -1, 8),
+    _p("sfm.features", "sfm.features", "SfM features: colmap = pycolmap's SIFT and sequential "
+       "matcher on the CPU (the reference); torch = a weight-free SIFT (difference-of-Gaussians "
+       "detector, SIFT descriptor) and mutual nearest-neighbour + ratio matching in torch, on "
+       "the GPU when torch sees one, the matches verified and mapped by pycolmap as before.",
+       choices=FEATURE_BACKENDS, **_START_UP),
     _p("sfm.overlap", "sfm.overlap", "Sequential matching: each frame is matched with the next "
        "N frames.", 1, 1000),
     _p("sfm.init_min_tri_angle", "sfm.init_min_tri_angle", "Minimum triangulation angle "

@@ -40,6 +40,7 @@ log = logging.getLogger(__name__)
 
 _PYCOLMAP_LOGGING_SET = False
 MIN_MAX_IMAGE_SIZE = 16  # smallest SIFT downscale accepted (1 crashes pycolmap 4.2.1)
+FEATURE_BACKENDS = ("colmap", "torch")  # sfm.features
 RETRY_HISTORY = 10  # reconstructions of the stream whose median error sfm.retry_above_ratio scales
 
 
@@ -82,6 +83,10 @@ class SfmConfig:
     retry_above_ratio: float = 1.3
     seed: int = 0
     verbose: bool = False
+    # "colmap": pycolmap's SIFT and sequential matcher on the CPU (the reference); "torch": the
+    # weight-free torch SIFT of core/features_torch.py and mutual nearest-neighbour + ratio
+    # matching on the accelerator when there is one, the matches verified by pycolmap
+    features: str = "colmap"
 
     def __post_init__(self) -> None:
         # Values that reach pycolmap options known to end the process or to fail every window
@@ -94,6 +99,9 @@ class SfmConfig:
         if not float(self.init_min_tri_angle) > 0:
             raise InputError(f"sfm.init_min_tri_angle must be > 0, got "
                              f"{self.init_min_tri_angle}")
+        if self.features not in FEATURE_BACKENDS:
+            raise InputError(f"sfm.features must be one of {list(FEATURE_BACKENDS)}, got "
+                             f"{self.features!r}")
         if int(self.mapping_attempts) < 1:
             raise InputError(f"sfm.mapping_attempts must be >= 1, got {self.mapping_attempts}")
         for name in ("retry_above_error", "retry_above_ratio"):
@@ -170,8 +178,12 @@ class SfmReconstructor:
     """
 
     def __init__(self, config: SfmConfig | None = None, workspace: str | Path | None = None,
-                 max_cached_frames: int = 200):
+                 max_cached_frames: int = 200, feature_device: str | None = None):
         self.config = config or SfmConfig()
+        # torch device of sfm.features "torch" (None: the GPU when torch sees one, else CPU)
+        self.feature_device = feature_device
+        self._torch_db = None  # TorchFeatureDatabase of this generation (sfm.features "torch")
+        self._db_features = self.config.features  # the feature kind the database holds
         self._own_workspace = workspace is None
         self._root = Path(workspace or tempfile.mkdtemp(prefix="sfm_ttr_"))
         self.max_cached_frames = max_cached_frames
@@ -208,6 +220,7 @@ class SfmReconstructor:
         self._names = []
         self._digests = {}
         self._camera_id = None
+        self._torch_db = None
         self._errors.clear()
 
     def close(self) -> None:
@@ -241,6 +254,9 @@ class SfmReconstructor:
             if self._intrinsics is not None:
                 self.reset()
             self._intrinsics = intrinsics
+        if self._names and self._db_features != self.config.features:
+            self.reset()  # keypoints of one feature kind are never matched with the other's
+        self._db_features = self.config.features
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))
@@ -260,11 +276,13 @@ class SfmReconstructor:
             self._extract(new, intrinsics, token)
             self._digests.update((f.name, digests[f.name]) for f in new)
             timings["extract"] = time.perf_counter() - t0
+            self._torch_timings(timings, "extract", new)
             self._check_cancel(token)
 
             t0 = time.perf_counter()
             self._match(token)
             timings["match"] = time.perf_counter() - t0
+            self._torch_timings(timings, "match", True)
             self._check_cancel(token)
 
             reason = self._precheck(names)
@@ -320,6 +338,12 @@ class SfmReconstructor:
             self._errors.append(kept["reprojection_error"])
         return best
 
+    def _torch_timings(self, timings: dict[str, float], stage: str, ran) -> None:
+        """The torch features' steps inside a stage (e.g. ``extract.detect_describe``,
+        ``match.verify``), when sfm.features is "torch" and the stage ran."""
+        if self._torch_db is not None and ran:
+            timings.update((f"{stage}.{k}", v) for k, v in self._torch_db.timings.items())
+
     def _check_cancel(self, token) -> None:
         if self._cancelled or token.is_cancelled:
             raise SfmCancelled("SfM cancelled")
@@ -341,6 +365,47 @@ class SfmReconstructor:
         reader.camera_params = f"{intr.fx},{intr.fy},{intr.cx + 0.5},{intr.cy + 0.5}"
         if self._camera_id is not None:
             reader.existing_camera_id = self._camera_id
+        if cfg.features == "torch":
+            self._extract_torch(frames, reader)
+        else:
+            self._extract_colmap(frames, reader, token)
+        for f in frames:
+            (self.image_dir / f"{f.name}.png").unlink(missing_ok=True)  # keypoints suffice now
+        with pycolmap.Database.open(self.database_path) as db:
+            if self._camera_id is None:
+                self._camera_id = int(db.read_all_cameras()[0].camera_id)
+        self._names.extend(f.name for f in frames)
+        self.frames_extracted += len(frames)
+
+    def _torch_features(self):
+        from sfm_ttr_ros.core.features_database import TorchFeatureDatabase
+        from sfm_ttr_ros.core.features_torch import TorchSiftConfig
+
+        if self._torch_db is None:
+            cfg = self.config
+            sift = TorchSiftConfig(first_octave=cfg.first_octave,
+                                   max_num_features=cfg.max_num_features)
+            self._torch_db = TorchFeatureDatabase(self.database_path, self.feature_device,
+                                                  sift, keep=cfg.overlap + 2)
+        return self._torch_db
+
+    def _extract_torch(self, frames: Sequence[Frame], reader) -> None:
+        """sfm.features "torch": images imported by pycolmap (camera, rig, frame), then torch
+        SIFT keypoints and descriptors written into the database (core/features_database)."""
+        import pycolmap
+
+        with pycolmap.Database.open(self.database_path):
+            pass  # import_images needs the database file to exist
+        pycolmap.import_images(self.database_path, self.image_dir,
+                               camera_mode=pycolmap.CameraMode.SINGLE,
+                               image_names=[f"{f.name}.png" for f in frames], options=reader)
+        self._torch_features().extract([(f"{f.name}.png", f.image) for f in frames],
+                                       self.config.max_image_size)
+
+    def _extract_colmap(self, frames: Sequence[Frame], reader, token) -> None:
+        import pycolmap
+
+        cfg = self.config
         ext = pycolmap.FeatureExtractionOptions()
         ext.num_threads = cfg.num_threads
         ext.max_image_size = cfg.max_image_size if cfg.max_image_size > 0 else -1
@@ -351,18 +416,17 @@ class SfmReconstructor:
             camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
             extraction_options=ext, device=pycolmap.Device.cpu, cancellation_token=token,
         )
-        for f in frames:
-            (self.image_dir / f"{f.name}.png").unlink(missing_ok=True)  # keypoints suffice now
-        with pycolmap.Database.open(self.database_path) as db:
-            if self._camera_id is None:
-                self._camera_id = int(db.read_all_cameras()[0].camera_id)
-        self._names.extend(f.name for f in frames)
-        self.frames_extracted += len(frames)
 
     def _match(self, token) -> None:
         import pycolmap
 
         cfg = self.config
+        if cfg.features == "torch":
+            # sequential matching in stream order, each pair verified by pycolmap
+            self._torch_features().match([f"{n}.png" for n in self._names], cfg.overlap,
+                                         cfg.num_threads, token,
+                                         check=lambda: self._check_cancel(token))
+            return
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = cfg.num_threads
         pairing = pycolmap.SequentialPairingOptions()
