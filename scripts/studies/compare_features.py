@@ -14,8 +14,8 @@ street drive (``--drive-frames`` frames, 1242 x 375, the generator of ``sfm-ttr 
 in memory; or an existing KITTI-layout drive with ``--kitti-raw``/``--drive``/``--kitti-gt``).
 Nothing is downloaded. Writes one JSON file (``--out``) and prints a table.
 
-    nice -n 10 .venv/bin/python scripts/compare_features.py --device cpu --out cpu.json
-    .venv/bin/python scripts/compare_features.py --device cuda --out cuda.json
+    nice -n 10 .venv/bin/python scripts/studies/compare_features.py --device cpu --out cpu.json
+    .venv/bin/python scripts/studies/compare_features.py --device cuda --out cuda.json
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from sfm_ttr_ros.core.frames import Frame  # noqa: E402
