@@ -71,10 +71,11 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
         "benchmark",
         help="no TTR vs SfM-TTR online (the node's windows) vs offline (whole sequence)",
         description="Run, on the same frames with the same network, (a) no test-time "
-                    "refinement, (b) SfM-TTR online in the node's sliding windows (same code "
-                    "path, no ROS transport), (c) SfM-TTR offline over the whole sequence (the "
-                    "paper's setting); evaluate every frame with ground truth and write "
-                    "OUT/results.json, results.md, per_frame.csv and figure.png.")
+                    "refinement, (b) what the node gives (node_online: its windows, objective "
+                    "and weight policy, same code path, no ROS transport), (c) the paper's "
+                    "SfM-TTR online in the same windows and (d) offline over the whole sequence; "
+                    "evaluate every frame with ground truth and write OUT/results.json, "
+                    "results.md, per_frame.csv and figure.png.")
     add_sequence_args(b)
     add_parameter_args(b, ("model", "method", "windows"),
                        "params/kitti.yaml, installed or from the repository")
@@ -82,8 +83,10 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, help="output folder")
     g.add_argument("--modes", nargs="+", choices=MODES, default=list(DEFAULT_MODES),
                    help=f"which modes to run (default: {' '.join(DEFAULT_MODES)}); "
-                        "sfm_ttr_live feeds the frames in real time at --rate; ph_ttr_* and "
-                        "hybrid_* refine with refinement.loss photometric / hybrid")
+                        "node_online = the node's windows with the parameter file's objective "
+                        "and weight policy as they are; sfm_ttr_live feeds the frames in real "
+                        "time at --rate; sfm_ttr_*, ph_ttr_* and hybrid_* refine with "
+                        "refinement.loss sfm (the paper's Eq. (5)) / photometric / hybrid")
     g.add_argument("--rate", type=float, default=10.0,
                    help="input rate of sfm_ttr_live in Hz (default 10, a KITTI camera)")
     g.add_argument("--offline-max-frames", type=int, default=0,

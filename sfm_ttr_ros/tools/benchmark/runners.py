@@ -32,18 +32,19 @@ from sfm_ttr_ros.tools.benchmark.bands import DepthBands
 
 log = logging.getLogger("sfm_ttr_ros.tools.benchmark")
 
-#: What ``sfm-ttr benchmark`` runs when no --modes are given.
-DEFAULT_MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
+#: What the node gives: its windows with the parameter file's objective and weight policy as
+#: they are (the ``<method>_*`` modes override the objective; this one overrides nothing).
+NODE_MODE = "node_online"
+#: What ``sfm-ttr benchmark`` runs when no --modes are given: the network alone, what the node
+#: gives, and the paper's Eq. (5) online (the node's windows) and offline (one window).
+DEFAULT_MODES = ("no_ttr", NODE_MODE, "sfm_ttr_online", "sfm_ttr_offline")
 #: Method prefix of a windowed mode → the ``refinement.loss`` it runs with, whatever the
 #: parameter file says (the same windows and settings, only the objective differs).
 METHOD_LOSS = {"sfm_ttr": "sfm", "ph_ttr": "photometric", "hybrid": "hybrid"}
 #: The photometric (Ph-TTR) and hybrid twins of the SfM-TTR modes.
 LOSS_MODES = ("ph_ttr_online", "hybrid_online", "ph_ttr_offline", "hybrid_offline")
-#: What the node gives: its windows with the parameter file's objective and weight policy as
-#: they are (the ``<method>_*`` modes override the objective; this one overrides nothing).
-NODE_MODE = "node_online"
 #: Every mode (``sfm_ttr_live`` runs in real time at --rate: tools/benchmark/live.py).
-MODES = (*DEFAULT_MODES, NODE_MODE, "sfm_ttr_live", *LOSS_MODES)
+MODES = (*DEFAULT_MODES, "sfm_ttr_live", *LOSS_MODES)
 #: The top-level stages of a window (WindowResult.timings also holds ``sfm_*`` sub-stages).
 STAGES = ("predict_before", "sfm", "align", "refine", "predict_after")
 
