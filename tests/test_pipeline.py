@@ -392,11 +392,12 @@ def test_a_window_starting_from_carried_weights_runs_carried_steps(run, monkeypa
     ttr = pinned(run, monkeypatch)
     monkeypatch.setattr(ttr.config, "weight_policy", "continue")
     monkeypatch.setattr(ttr.config, "carried_steps", 3)
+    monkeypatch.setattr(ttr.config, "max_loss_ratio", 0.0)  # this test's lr is for speed only
     first = ttr.process_window(run.window, run.intr)
     assert first.refined and first.refinement.steps_done == STEPS
     carried = {k: v.clone() for k, v in ttr.model.encoder.state_dict().items()}
     second = ttr.process_window(run.window, run.intr)
-    assert second.refined and second.refinement.steps_done == 3
+    assert second.refined and second.refinement.steps_done == 3, second.reason
     assert not _encoder_equals(ttr.model, carried)  # it went on from the carried weights
     ttr.reset_model()
     assert ttr.process_window(run.window, run.intr).refinement.steps_done == STEPS

@@ -264,14 +264,16 @@ def test_relative_sfm_residual_divides_each_point_by_its_target():
 
 
 def test_auto_objective_is_photometric_unless_the_network_is_affine_invariant():
-    """loss "auto" (the default): Ph-TTR for a network that predicts depth up to scale, the
-    paper's Eq. (5) for one whose output is relative inverse depth (nothing to warp with)."""
+    """loss "auto" (the default): the hybrid for a network that predicts depth up to scale, the
+    paper's Eq. (5) for one whose output is relative inverse depth (nothing to warp with) or
+    when refine_encoder gets no photometric frames."""
     from sfm_ttr_ros.core.refinement import resolve_loss
 
     model = tiny_model()
     cfg = RefinementConfig()
     assert cfg.loss == "auto"
-    assert resolve_loss(cfg, model).loss == "photometric"
+    assert resolve_loss(cfg, model).loss == "hybrid"
+    assert resolve_loss(cfg, model, photometric_frames=False).loss == "sfm"
     assert resolve_loss(replace(cfg, loss="sfm"), model).loss == "sfm"
     model.output_kind = "relative_inverse_depth"
     assert resolve_loss(cfg, model).loss == "sfm"

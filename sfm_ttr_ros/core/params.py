@@ -253,12 +253,13 @@ PARAMS: tuple[Param, ...] = (
        "Anything the blocks before them run once per frame, not per step (ViT-S at 518 px: "
        "steps ~2.8x cheaper than the whole encoder with N = 4, ~3.8x with N = 2); 0 = all. "
        "Transformer encoders only.", 0, 1000),
-    _p("refinement.loss", "refinement.loss", "A step's objective: photometric = Ph-TTR, "
-       "Monodepth2's photometric + smoothness loss with the window's SfM poses (scaled by the "
-       "alignment scale): measured best on real video; sfm = the paper's Eq. (5) on the "
-       "aligned SfM points; hybrid = Eq. (5) + refinement.photometric_weight x (photometric + "
-       "smoothness); auto = photometric, or sfm for a network whose output is affine-invariant "
-       "(relative inverse depth: no depth to warp with).", choices=LOSSES),
+    _p("refinement.loss", "refinement.loss", "A step's objective: hybrid = Eq. (5)'s SfM term "
+       "(refinement.sfm_residual) + refinement.photometric_weight x (Monodepth2's photometric "
+       "+ smoothness loss with the window's SfM poses, scaled by the alignment scale); "
+       "photometric = that photometric loss alone (Ph-TTR); sfm = the paper's Eq. (5) on the "
+       "aligned SfM points; auto = hybrid (measured best on real video, BENCHMARKS.md), or sfm "
+       "for a network whose output is affine-invariant (relative inverse depth: no depth to "
+       "warp with).", choices=LOSSES),
     _p("refinement.photometric_weight", "refinement.photometric_weight", "lambda of the hybrid "
        "loss (weight of photometric + smoothness against Eq. (5)); 0 = Eq. (5) alone.", 0.0,
        1e6),
@@ -276,10 +277,11 @@ PARAMS: tuple[Param, ...] = (
        "pixel's point from its predicted depth to infinity moves its projection by at least this "
        "many pixels (at the network's input size); far pixels are left to the SfM term; 0 = "
        "every pixel (Monodepth2's loss; 'photometric' is never gated).", 0.0, 1e3),
-    _p("refinement.sfm_residual", "refinement.sfm_residual", "The SfM term's residual: "
-       "absolute = the paper's |s*D_sfm - D_nn| (Eq. (5), grows with depth); relative = "
-       "|s*D_sfm - D_nn| / (s*D_sfm), the same weight near and far (so that the hybrid's "
-       "photometric_weight balances the two terms at every depth).", choices=SFM_RESIDUALS),
+    _p("refinement.sfm_residual", "refinement.sfm_residual", "hybrid loss only: its SfM "
+       "term's residual. relative = |s*D_sfm - D_nn| / (s*D_sfm), the same weight near and far, "
+       "so that photometric_weight balances the two terms at every depth; absolute = the "
+       "paper's |s*D_sfm - D_nn| (in depth units: far points dominate). Loss sfm is always the "
+       "paper's.", choices=SFM_RESIDUALS),
     _p("weight_policy", "ttr.weight_policy", "Weights across windows: 'reset' (every window "
        "refines from the start-up weights), 'continue' (from the previous window's result), "
        "'continual' (continue, replaying earlier windows' supervision, pulled toward the "

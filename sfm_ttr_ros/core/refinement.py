@@ -72,8 +72,8 @@ BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
 SAMPLINGS = ("bilinear", "nearest")
 LOSSES = ("auto", "sfm", "photometric", "hybrid")  # a step's objective, see _step_loss
-#: How the SfM term measures a point's residual: "absolute" |ŝ·D_sfm − D_nn| (Eq. (5)) or
-#: "relative" |ŝ·D_sfm − D_nn| / (ŝ·D_sfm), the same at 2 m and at 60 m (scale-free).
+#: How the hybrid loss's SfM term measures a point's residual: "absolute" |ŝ·D_sfm − D_nn|
+#: (Eq. (5)) or "relative" |ŝ·D_sfm − D_nn| / (ŝ·D_sfm), the same at 2 m and at 60 m.
 SFM_RESIDUALS = ("absolute", "relative")
 MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32 stages train
 
@@ -98,23 +98,25 @@ class RefinementConfig:
     seed: int = 0
     # A step's objective (see _step_loss): "sfm" Eq. (5); "photometric" Monodepth2's
     # photometric + smoothness loss with the window's SfM poses (Ph-TTR); "hybrid" Eq. (5) +
-    # photometric_weight · (photometric + smoothness); "auto" (the default) = "photometric",
-    # the one measured best on real video (BENCHMARKS.md), or "sfm" for a network whose output
-    # is affine-invariant (no depth scale to warp with): resolve_loss. params/paper.yaml holds
-    # the paper's Eq. (5). The photometric loss's α, smoothness weight and source frames
-    # (offsets in the window, "-1,1" = t-1 and t+1) follow.
+    # photometric_weight · (photometric + smoothness); "auto" (the default) = "hybrid" with
+    # the relative SfM residual and no parallax gate (the defaults below), measured best on
+    # real video and sound on generated drives (BENCHMARKS.md), or "sfm" for a network whose
+    # output is affine-invariant (no depth scale to warp with): resolve_loss.
+    # params/paper.yaml holds the paper's Eq. (5). The photometric loss's α, smoothness weight
+    # and source frames (offsets in the window, "-1,1" = t-1 and t+1) follow.
     loss: str = "auto"
     photometric_weight: float = 10.0  # λ: measured on the generated drive (BENCHMARKS.md)
     photometric_alpha: float = 0.85
     smoothness_weight: float = 1e-3
     photometric_sources: str = "-1,1"
     # hybrid only: the parallax gate of its photometric term (core/photometric.py), px at the
-    # network's size; Ph-TTR (loss "photometric") stays Monodepth2's loss, ungated.
-    hybrid_min_parallax: float = 4.0
-    # The SfM term's residual (SFM_RESIDUALS): "absolute" = Eq. (5); "relative" divides each
-    # point's term by its target ŝ·D_sfm, so that in the hybrid loss λ weighs the SfM and the
-    # photometric terms alike near and far (Eq. (5)'s term grows with depth, in depth units).
-    sfm_residual: str = "absolute"
+    # network's size, 0 = off; Ph-TTR (loss "photometric") stays Monodepth2's loss, ungated.
+    hybrid_min_parallax: float = 0.0
+    # hybrid only: its SfM term's residual (SFM_RESIDUALS): "relative" divides each point's
+    # Eq. (5) term by its target ŝ·D_sfm, so that λ weighs the SfM and the photometric terms
+    # alike near and far (Eq. (5)'s term is in depth units and grows with depth); "absolute"
+    # = Eq. (5) as it is. Loss "sfm" is always the paper's Eq. (5).
+    sfm_residual: str = "relative"
 
     def __post_init__(self) -> None:
         if self.sfm_residual not in SFM_RESIDUALS:
@@ -174,15 +176,16 @@ class RefinementResult:
 
 def resolve_loss(config: RefinementConfig, model: DepthModel,
                  photometric_frames: bool = True) -> RefinementConfig:
-    """``config`` with ``loss`` "auto" made concrete: "photometric" for a network that predicts
-    depth up to scale, "sfm" (Eq. (5)) for one whose output is affine-invariant inverse depth
-    (the photometric warp needs depth) or when no photometric frames are at hand
-    (``photometric_frames`` False: :func:`refine_encoder` called with supervision alone);
-    ``config`` itself when its loss is not "auto"."""
+    """``config`` with ``loss`` "auto" made concrete: "hybrid" (Eq. (5)'s SfM term with
+    ``sfm_residual`` + λ·photometric) for a network that predicts depth up to scale, "sfm"
+    (Eq. (5)) for one whose output is affine-invariant inverse depth (the photometric warp needs
+    depth) or when no photometric frames are at hand (``photometric_frames`` False:
+    :func:`refine_encoder` called with supervision alone); ``config`` itself when its loss is
+    not "auto"."""
     if config.loss != "auto":
         return config
     photometric = photometric_frames and not is_affine_output(model)
-    return dataclasses.replace(config, loss="photometric" if photometric else "sfm")
+    return dataclasses.replace(config, loss="hybrid" if photometric else "sfm")
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -283,7 +286,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
         inputs.append(_step_input(model, s, frozen) if k < n_own else None)
         grids.append(normalized_grid(s.pixels, w, h).to(device))
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
-        weights.append(torch.as_tensor(step_weights(s, cfg.sfm_residual), dtype=torch.float32,
+        residual = cfg.sfm_residual if cfg.loss == "hybrid" else "absolute"
+        weights.append(torch.as_tensor(step_weights(s, residual), dtype=torch.float32,
                                        device=device))
 
     pull = _anchor_pairs(model, params, anchor) if anchor is not None and anchor_weight > 0 \
