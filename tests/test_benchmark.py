@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 DRIVE = "2011_09_26_drive_0001_sync"
 N_FRAMES, GT_SKIP = 8, 1
 N_GT = N_FRAMES - 2 * GT_SKIP
-MODES = ("no_ttr", "sfm_ttr_online", "sfm_ttr_offline")
+MODES = ("no_ttr", "node_online", "sfm_ttr_online", "sfm_ttr_offline")
 KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "frames", "seconds_per_frame",
         "refined_frames", "timings")
 
@@ -157,7 +157,7 @@ def test_markdown_csv_and_figure(bench):
     fig = cv2.imread(str(out / "figure.png"))
     assert fig is not None and fig.ndim == 3
     # two frames, each: a depth row (96 px), an error row, a scatter row (>= 256 px)
-    assert fig.shape[0] >= 2 * (96 * 2 + 256) and fig.shape[1] == 4 * 320
+    assert fig.shape[0] >= 2 * (96 * 2 + 256) and fig.shape[1] == (len(MODES) + 1) * 320
     assert fig.std() > 10  # not blank
 
 

@@ -441,8 +441,10 @@ def test_the_parallax_gate_is_the_hybrids_only():
     from sfm_ttr_ros.core.refinement import RefinementConfig
 
     assert RefinementConfig(loss="photometric").photometric_config().min_parallax == 0.0
-    assert RefinementConfig(loss="hybrid").photometric_config().min_parallax == 4.0
-    cfg = RefinementConfig(loss="hybrid", hybrid_min_parallax=0.0)
+    assert RefinementConfig(loss="hybrid").photometric_config().min_parallax == 0.0  # off
+    cfg = RefinementConfig(loss="hybrid", hybrid_min_parallax=4.0)
+    assert cfg.photometric_config().min_parallax == 4.0
+    cfg = RefinementConfig(loss="photometric", hybrid_min_parallax=4.0)
     assert cfg.photometric_config().min_parallax == 0.0
     with pytest.raises(InputError, match="min_parallax"):
         RefinementConfig(loss="hybrid", hybrid_min_parallax=-2.0)

@@ -96,14 +96,17 @@ def mean_photometric(model, frames) -> float:
 def test_hybrid_with_zero_weight_is_sfm_bit_for_bit(drive):
     seq, names = drive
     m_sfm, r_sfm = run(seq, names, "sfm")
-    m_hyb, r_hyb = run(seq, names, "hybrid", 0.0)
+    m_hyb, r_hyb = run(seq, names, "hybrid", 0.0, sfm_residual="absolute")
     assert r_hyb.loss_history == r_sfm.loss_history and r_sfm.steps_done == 12
     a, b = encoder_state(m_sfm), encoder_state(m_hyb)
     assert all(torch.equal(a[k], b[k]) for k in a)
+    # the relative residual (the default) divides each point's term by its target: other steps
+    _, r_rel = run(seq, names, "hybrid", 0.0)
+    assert r_rel.loss_history != r_sfm.loss_history
     # λ > 0 changes the steps; a tiny λ changes them only a little: the hybrid's Eq. (5) term
     # comes from the same forward pass as sfm's
-    _, r_tiny = run(seq, names, "hybrid", 1e-3)
-    _, r_one = run(seq, names, "hybrid", 1.0)
+    _, r_tiny = run(seq, names, "hybrid", 1e-3, sfm_residual="absolute")
+    _, r_one = run(seq, names, "hybrid", 1.0, sfm_residual="absolute")
     assert r_tiny.loss_history != r_sfm.loss_history
     assert r_tiny.loss_history == pytest.approx(r_sfm.loss_history, rel=1e-4)
     assert r_one.loss_history[0] > r_sfm.loss_history[0]  # + λ·photometric on step 1
@@ -216,7 +219,8 @@ def process(window, monkeypatch, **refinement):
 def test_pipeline_hybrid_zero_is_sfm_and_poses_are_in_network_units(window, monkeypatch):
     frames, sfm = window
     res_sfm, kw_sfm = process(window, monkeypatch, loss="sfm")
-    res_zero, kw_zero = process(window, monkeypatch, loss="hybrid", photometric_weight=0.0)
+    res_zero, kw_zero = process(window, monkeypatch, loss="hybrid", photometric_weight=0.0,
+                                sfm_residual="absolute")
     assert res_sfm.refined and res_zero.refined
     assert list(kw_sfm["photometric"]) == [] and list(kw_zero["photometric"]) == []
     assert res_zero.refinement.loss_history == res_sfm.refinement.loss_history
