@@ -569,3 +569,15 @@ def test_live_time_line_counts_from_each_windows_last_frame():
     assert s["first_weights_s"] == pytest.approx(2.5)
     assert s["last_frame_to_weights_s"] == pytest.approx(3.1)
     assert s["last_frame_to_first_weights_s"] == pytest.approx(1.6)
+
+
+def test_a_window_cut_short_by_the_end_of_the_feed_is_on_the_time_line():
+    from sfm_ttr_ros.tools.benchmark.live import interim_timeline, timeline_summary
+
+    arrivals = [10.0 + 0.1 * k for k in range(30)]
+    row = interim_timeline(2, {"interim": 14.0, "names": [f"{k:010d}" for k in range(15, 30)]},
+                           arrivals)
+    assert row["accepted"] is None and row["served"] is None
+    assert row["first_served"] == pytest.approx(14.0 - 12.9)
+    assert row["since_feed_start"] == pytest.approx(4.0)
+    assert timeline_summary([row])["first_weights_s"] == pytest.approx(4.0)

@@ -85,9 +85,10 @@ class OnlineRefiner:
         self.serving_previews = 0
         self.serving_reverts = 0
         self.serving_interim_refused = 0  # interim weights the window check kept from serving
-        # window index -> {"interim": first interim swap, "final": accepted weights swapped in}
-        # (time.monotonic()), the newest SERVED_HISTORY windows: the time line of sfm_ttr_live
-        self.served_at: dict[int, dict[str, float]] = {}
+        # window index -> {"interim": first interim swap, "final": accepted weights swapped in,
+        # "withdrawn": interim weights taken back} (time.monotonic()) and "names": the window's
+        # frames; the newest SERVED_HISTORY windows: the time line of sfm_ttr_live
+        self.served_at: dict[int, dict] = {}
         ttr.on_refine_step = self._refine_step
 
     # -- input (any thread) ---------------------------------------------------------------------
@@ -199,7 +200,10 @@ class OnlineRefiner:
     def _mark(self, window: int, what: str) -> None:
         """Note when ``window``'s weights were first swapped into serving (``what``: interim
         or final); keeps the newest :data:`SERVED_HISTORY` windows."""
-        self.served_at.setdefault(window, {}).setdefault(what, time.monotonic())
+        marks = self.served_at.setdefault(window, {})
+        marks.setdefault(what, time.monotonic())
+        if "names" not in marks:
+            marks["names"] = self.stream.running_names
         while len(self.served_at) > SERVED_HISTORY:
             del self.served_at[min(self.served_at)]
 

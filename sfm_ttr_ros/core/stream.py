@@ -473,6 +473,12 @@ class StreamProcessor:
         return self.windows[-1] if self.windows else None
 
     @property
+    def running_names(self) -> list[str]:
+        """The frames of the window being processed (oldest first); [] between windows."""
+        with self._cv:
+            return [f.name for f in self._running[0]] if self._running is not None else []
+
+    @property
     def windows_started(self) -> int:
         """Windows begun so far: during a window, its index + 1."""
         return self._window_index

@@ -116,6 +116,12 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         online.stop(timeout=None)  # wait: pycolmap must be out of the workspace before close
         ttr.close()
     evaluate()
+    # windows whose weights were served while they refined but that the end of the feed cut
+    # short (stop cancels the running window): their interim weights are on the time line too
+    done = {row["window"] for row in timeline}
+    for index, marks in sorted(online.served_at.items()):
+        if index not in done and marks.get("names"):
+            timeline.append(interim_timeline(index, marks, arrivals))
     run.seconds = fed_s
     lat = np.asarray(latencies, np.float64)
     c = online.counters()
@@ -167,6 +173,20 @@ def window_timeline(ws: WindowStats, arrivals: Sequence[float],
             "first_served": since(first, last), "served": since(served.get("final"), last),
             "finished": since(ws.finished_at, last),
             "since_feed_start": since(first, arrivals[0]) if arrivals else None}
+
+
+def interim_timeline(index: int, marks: dict, arrivals: Sequence[float]) -> dict:
+    """The time line row of a window that served interim weights but did not finish before the
+    feed ended (``accepted`` None; only its first serving is known)."""
+    names = marks["names"]
+    last = arrivals[int(names[-1])]
+    first = marks.get("interim")
+    return {"window": index, "accepted": None, "reason_key": "cut_short",
+            "first_frame_arrival": float(arrivals[int(names[0])] - last), "closed": None,
+            "sfm_done": None, "refined": None,
+            "first_served": None if first is None else float(first - last), "served": None,
+            "finished": None,
+            "since_feed_start": None if first is None else float(first - arrivals[0])}
 
 
 def timeline_summary(timeline: Sequence[dict]) -> dict:
