@@ -51,12 +51,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # msg_adapters / sfm_ttr_ros from this checkout (the client side)
 
+from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
+
 # the node under test: cheap windows on top of params/kitti.yaml, a deep input history so DDS
 # itself never drops a message (every image sent must be counted by the node)
-LIGHT = ["refinement.steps:=2", "window_size:=4", "window_stride:=4", "sfm.max_image_size:=320",
-         "sfm.max_num_features:=1024", "min_supervision_points:=10", "idle_flush_s:=1.0",
-         "qos_depth:=2000", "max_pending:=40", "overload_pending:=12",
-         "diagnostics_period_s:=0.5", "publish_colored:=false", "publish_points:=false"]
+LIGHT = ["refinement.steps=2", "window_size=4", "window_stride=4", "sfm.max_image_size=320",
+         "sfm.max_num_features=1024", "min_supervision_points=10", "idle_flush_s=1.0",
+         "qos_depth=2000", "max_pending=40", "overload_pending=12",
+         "diagnostics_period_s=0.5", "publish_colored=false", "publish_points=false"]
 PAD = 3
 
 
@@ -412,8 +414,7 @@ def run(args: argparse.Namespace) -> dict:
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / "refiner.log"
     cmd = [args.exe, "--ros-args", "--params-file", args.params_file]
-    for o in LIGHT + list(args.param or []):
-        cmd += ["-p", o]
+    cmd += node_arguments(LIGHT + list(args.set or []))
     t0 = time.monotonic()
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=log_dir,
@@ -553,7 +554,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"),
                     help="the installed refiner (default: the one next to this Python)")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
-    ap.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE",
+    ap.add_argument("--set", dest="set", action="append", metavar="NAME=VALUE",
                     help="extra node parameter (after the light overrides)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--domain-id", type=int, default=0, help="ROS_DOMAIN_ID (0 = random)")

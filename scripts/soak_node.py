@@ -47,7 +47,10 @@ REPO = Path(__file__).resolve().parents[1]
 RSS_BUCKET_S = 30.0
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
+
 from fuzz_node import rss_mib  # noqa: E402
+
+from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
 
 KITTI_W, KITTI_H = 1242, 375
 
@@ -260,8 +263,7 @@ def run(args: argparse.Namespace) -> dict:
     # the node runs in the output folder: paths of the command made absolute first
     exe = [str(Path(t).absolute()) if Path(t).exists() else t for t in shlex.split(args.exe)]
     cmd = [*exe, "--ros-args", "--params-file", args.params_file]
-    for o in args.param or []:
-        cmd += ["-p", o]
+    cmd += node_arguments(list(args.set or []))
     log_path = out / "refiner.log"
     with open(log_path, "w") as log:
         node_env = dict(kv.split("=", 1) for kv in args.node_env or [])
@@ -440,7 +442,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="the node's command (split like a shell line), e.g. "
                     "'.venv/bin/python scripts/studies/heap_probe.py' for the heap probe")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
-    ap.add_argument("-p", "--param", action="append", metavar="NAME:=VALUE")
+    ap.add_argument("--set", dest="set", action="append", metavar="NAME=VALUE",
+                    help="a node parameter over --params-file, as in sfm-ttr (repeatable)")
     ap.add_argument("--drive-frames", type=int, default=30, help="length of the looped drive")
     ap.add_argument("--rss-period", type=float, default=2.0)
     ap.add_argument("--drain-timeout", type=float, default=600.0)

@@ -160,20 +160,22 @@ def refiner_command(params_file: Path, overrides: list[str],
         cmd += ["-p", "image_transport:=compressed"]
     # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
     cmd += ["-p", "republish_unrefined:=true"]
-    for name, value in node_overrides(overrides).items():
-        cmd += ["-p", f"{name}:={schema.ros_literal(value)}"]
-    return cmd
+    return cmd + node_arguments(overrides)
 
 
-def node_overrides(items: list[str]) -> dict[str, object]:
-    """``--set NAME=VALUE`` items checked and typed by the one schema, as ``sfm-ttr run`` and
-    ``benchmark`` take them (:class:`InputError` before the node starts for an unknown name, a
-    wrong type or a value out of range); only the node's own parameters."""
+def node_arguments(items: list[str]) -> list[str]:
+    """``--set NAME=VALUE`` items as the node's ``-p NAME:=VALUE`` arguments: checked and typed
+    by the one schema, as ``sfm-ttr run`` and ``benchmark`` take them (:class:`InputError`
+    before the node starts for an unknown name, a wrong type or a value out of range; only the
+    node's own parameters); the scripts that start the node take ``--set`` through this too."""
     values = schema.parse_overrides(items)
     unknown = [n for n in values if n not in schema.SCHEMA]
     if unknown:
         raise InputError(f"--set {unknown[0]}: not a parameter of the refiner node")
-    return values
+    out: list[str] = []
+    for name, value in values.items():
+        out += ["-p", f"{name}:={schema.ros_literal(value)}"]
+    return out
 
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
