@@ -94,6 +94,9 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--save-depth", action="store_true",
                    help="also write every depth as OUT/depth/<mode>/<frame>.npy")
     _add_eval_args(b)
+    from sfm_ttr_ros.tools.split.command import add_split_args
+
+    add_split_args(b)
     b.set_defaults(func=cmd_benchmark)
     return b
 
@@ -107,16 +110,41 @@ def benchmark_values(args: argparse.Namespace) -> tuple[Path, dict]:
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
-    import torch
-
     from sfm_ttr_ros.core.params import build
-    from sfm_ttr_ros.tools.benchmark import results_markdown, run_benchmark
+    from sfm_ttr_ros.tools.benchmark import results_markdown
 
+    if getattr(args, "split", None):
+        from sfm_ttr_ros.tools.split.command import run_split_command
+
+        return run_split_command(args, "benchmark")
     params_path, values = benchmark_values(args)
     settings = build(values)
+    check_benchmark_options(args)
+    seq = open_sequence(args)
+    results = benchmark_sequence(seq, settings, args, args.out, start=args.start,
+                                 max_frames=args.max_frames, params_path=params_path,
+                                 command=command_line())
+    print(results_markdown(results).split("Command:")[0].rstrip())
+    print(f"\nresults in {args.out}")
+    return 0
+
+
+def check_benchmark_options(args: argparse.Namespace) -> None:
     if args.offline_max_frames < 0 or args.figure_frames < 0:
         raise InputError("--offline-max-frames and --figure-frames must be >= 0")
-    seq = open_sequence(args)
+
+
+def benchmark_sequence(seq, settings, args: argparse.Namespace, out, *, start: int,
+                       max_frames: int, params_path, command: str,
+                       quiet: bool = False) -> dict:
+    """:func:`~sfm_ttr_ros.tools.benchmark.run_benchmark` of ``seq`` with the network and
+    settings of ``settings`` and the benchmark options of ``args`` (modes, rate, offline chunks,
+    figure frames, depth files, evaluation): what ``sfm-ttr benchmark`` does for one sequence,
+    also each task of ``--split`` (``quiet``: no progress lines)."""
+    import torch
+
+    from sfm_ttr_ros.tools.benchmark import run_benchmark
+
     base = build_model_for(settings)
 
     def factory():
@@ -126,18 +154,15 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     description = {"type": model_config.type, "encoder_path": model_config.encoder_path,
                    "decoder_path": model_config.decoder_path, "device": model_config.device,
                    "load_weights_path": settings.node.load_weights_path}
-    results = run_benchmark(
-        seq, factory, settings.ttr, settings.stream, args.out, args.modes,
+    return run_benchmark(
+        seq, factory, settings.ttr, settings.stream, out, args.modes,
         _eval_config(args, base),
-        start=args.start, max_frames=args.max_frames,
+        start=start, max_frames=max_frames,
         offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
         save_depth=args.save_depth, model_description=description, rate=args.rate,
         settings_info={"params_file": str(params_path),
                        "torch_threads": torch.get_num_threads()},
-        command=command_line())
-    print(results_markdown(results).split("Command:")[0].rstrip())
-    print(f"\nresults in {args.out}")
-    return 0
+        command=command, **({"progress": None} if quiet else {}))
 
 
 # ---------------------------------------------------------------------------------------------
