@@ -399,3 +399,48 @@ def test_pooled_metrics_weigh_every_frame():
     pooled = pooled_metrics([row(1, 0.4), row(3, 0.2), row(0, float("nan"))], ["no_ttr"])
     assert pooled["no_ttr"]["abs_rel"] == pytest.approx((0.4 + 3 * 0.2) / 4)
     assert pooled["no_ttr"]["frames"] == 4 and pooled["no_ttr"]["sequences"] == 2
+
+
+class _Terminal:
+    """A stream that says it is a terminal (what tqdm draws on)."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    def write(self, s: str) -> int:
+        self.text += s
+        return len(s)
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_on_a_terminal_lines_otherwise():
+    import io
+
+    from sfm_ttr_ros.tools.split.progress import SplitProgress
+
+    done = {"id": "a", "status": "done", "seconds": 2.0, "attempts": 2,
+            "row": {"frames_total": 30}}
+    failed = {"id": "b", "status": "failed", "reason": "no ground truth", "seconds": 0.1,
+              "row": {}}
+    log = io.StringIO()
+    p = SplitProgress(3, reused=1, stream=log, label="benchmark")
+    p.update(done)
+    p.update(failed)
+    p.close()
+    lines = log.getvalue().splitlines()
+    assert lines[0] == "sfm-ttr benchmark: 1 of 3 sequences already done (resumed)"
+    assert lines[1].startswith("sfm-ttr benchmark: [2/3] a: done in 2.0 s, 30 frames, 1 retry;")
+    assert "ETA" in lines[1] and "30 frames so far, 0 failed" in lines[1]
+    assert "[3/3] b: FAILED (no ground truth)" in lines[2] and "ETA" not in lines[2]
+    term = _Terminal()
+    p = SplitProgress(3, reused=1, stream=term)
+    p.update(done)
+    p.update(failed)
+    p.close()
+    assert "3/3" in term.text and "frames=30" in term.text and "failed=1" in term.text
+    assert "b: failed: no ground truth" in term.text

@@ -29,8 +29,11 @@ class SplitProgress:
         self.tty = enabled and bool(getattr(self.stream, "isatty", lambda: False)())
         self.bar = None
         if self.tty:
-            from tqdm import tqdm
-
+            try:
+                from tqdm import tqdm
+            except ImportError:  # the [cluster] extra brings it; without it, log lines
+                self.tty = False
+        if self.tty:
             self.bar = tqdm(total=total, initial=reused, unit="seq", desc=label,
                             file=self.stream, dynamic_ncols=True)
         elif enabled and reused:

@@ -172,9 +172,11 @@ def results_markdown(res: Mapping[str, Any]) -> str:
               "|---|---|---:|---:|" + "---:|" * len(modes) + "---:|---:|---:|---|"]
     for q in res["sequences"]:
         if q["status"] != "done":
-            lines.append(f"| {q['id']} | {q['status']}: {q.get('reason', '')} | | | "
-                         + " | " * len(modes) + f" | {q.get('attempts', '')} | "
-                         f"{q.get('host', '')} |")
+            reason = str(q.get("reason", "")).replace("|", "/").replace("\n", " ")
+            cells = [q["id"], f"{q['status']}: {reason}", "", "", *([""] * len(modes)), "",
+                     f"{q.get('seconds', 0):.1f}" if "seconds" in q else "",
+                     str(q.get("attempts", "")), q.get("host", "")]
+            lines.append("| " + " | ".join(cells) + " |")
             continue
         cells = [f"{_f(q['modes'][m].get('abs_rel'))} / {_f(q['modes'][m].get('rmse'), '.3f')}"
                  for m in modes]
