@@ -20,7 +20,7 @@ log = logging.getLogger("sfm_ttr_ros")
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Offline SfM-TTR over a whole sequence (the paper's setting) and write the results."""
-    from sfm_ttr_ros.tools.offline_run import run_whole_sequence
+    from sfm_ttr_ros.tools.one_sequence import run_whole_sequence
 
     if getattr(args, "split", None):
         from sfm_ttr_ros.tools.split.command import run_split_command

@@ -10,7 +10,6 @@ the command line override the file's values (:mod:`sfm_ttr_ros.tools.cli_args`).
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 from pathlib import Path
@@ -21,11 +20,15 @@ from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 from sfm_ttr_ros.tools.cli_args import (
     add_parameter_args,
     add_sequence_args,
-    build_model_for,
     command_line,
     open_sequence,
-    parameter_values,
 )
+from sfm_ttr_ros.tools.one_sequence import (
+    benchmark_sequence,
+    benchmark_values,
+    check_benchmark_options,
+)
+from sfm_ttr_ros.tools.one_sequence import eval_config as _eval_config
 
 
 def _add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -42,21 +45,6 @@ def _add_eval_args(p: argparse.ArgumentParser) -> None:
                         "inverse depth (a per-frame least-squares scale and shift to 1/GT, the "
                         "MiDaS protocol); auto: the network's output kind (benchmark), depth "
                         "(evaluate)")
-
-
-def _eval_config(args: argparse.Namespace, model=None):
-    """The evaluation options of the flags; ``--prediction auto`` follows ``model``'s output
-    (relative inverse depth for affine-invariant networks, else depth)."""
-    from sfm_ttr_ros.core.alignment_affine import is_affine_output
-    from sfm_ttr_ros.core.evaluation import EvalConfig
-
-    kind = args.prediction
-    if kind == "auto":
-        affine = model is not None and is_affine_output(model)
-        kind = "relative_inverse_depth" if affine else "depth"
-    return EvalConfig(min_depth=args.min_depth, max_depth=args.max_depth,
-                      eigen_crop=args.eigen_crop, median_scaling=args.median_scaling,
-                      prediction=kind)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -101,14 +89,6 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
     return b
 
 
-def benchmark_values(args: argparse.Namespace) -> tuple[Path, dict]:
-    """(parameter file, parameter values): the file's, then the flags, then ``--set``."""
-    from sfm_ttr_ros.tools.benchmark import default_params_file
-
-    path, values = parameter_values(args, None if args.params_file else default_params_file())
-    return path, values
-
-
 def cmd_benchmark(args: argparse.Namespace) -> int:
     from sfm_ttr_ros.core.params import build
     from sfm_ttr_ros.tools.benchmark import results_markdown
@@ -127,42 +107,6 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     print(results_markdown(results).split("Command:")[0].rstrip())
     print(f"\nresults in {args.out}")
     return 0
-
-
-def check_benchmark_options(args: argparse.Namespace) -> None:
-    if args.offline_max_frames < 0 or args.figure_frames < 0:
-        raise InputError("--offline-max-frames and --figure-frames must be >= 0")
-
-
-def benchmark_sequence(seq, settings, args: argparse.Namespace, out, *, start: int,
-                       max_frames: int, params_path, command: str,
-                       quiet: bool = False) -> dict:
-    """:func:`~sfm_ttr_ros.tools.benchmark.run_benchmark` of ``seq`` with the network and
-    settings of ``settings`` and the benchmark options of ``args`` (modes, rate, offline chunks,
-    figure frames, depth files, evaluation): what ``sfm-ttr benchmark`` does for one sequence,
-    also each task of ``--split`` (``quiet``: no progress lines)."""
-    import torch
-
-    from sfm_ttr_ros.tools.benchmark import run_benchmark
-
-    base = build_model_for(settings)
-
-    def factory():
-        return copy.deepcopy(base)  # the original weights, untouched by earlier modes
-
-    model_config = settings.model
-    description = {"type": model_config.type, "encoder_path": model_config.encoder_path,
-                   "decoder_path": model_config.decoder_path, "device": model_config.device,
-                   "load_weights_path": settings.node.load_weights_path}
-    return run_benchmark(
-        seq, factory, settings.ttr, settings.stream, out, args.modes,
-        _eval_config(args, base),
-        start=start, max_frames=max_frames,
-        offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
-        save_depth=args.save_depth, model_description=description, rate=args.rate,
-        settings_info={"params_file": str(params_path),
-                       "torch_threads": torch.get_num_threads()},
-        command=command, **({"progress": None} if quiet else {}))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -111,7 +111,7 @@ def run_split_command(args: argparse.Namespace, kind: str) -> int:
 
     check_split_args(args)
     if kind == "benchmark":
-        from sfm_ttr_ros.tools.cli_benchmark import benchmark_values, check_benchmark_options
+        from sfm_ttr_ros.tools.one_sequence import benchmark_values, check_benchmark_options
 
         params_path, values = benchmark_values(args)
         check_benchmark_options(args)
@@ -191,7 +191,7 @@ def run_split_command(args: argparse.Namespace, kind: str) -> int:
 def _modes(kind: str, options: dict[str, Any]) -> list[str]:
     if kind == "benchmark":
         return list(dict.fromkeys(options["modes"]))
-    from sfm_ttr_ros.tools.offline_run import METHODS
+    from sfm_ttr_ros.tools.one_sequence import METHODS
 
     return list(METHODS.values())
 

@@ -1,9 +1,9 @@
 """One sequence of a split, start to end: what a worker executes (:func:`run_sequence`).
 
 The work itself is the single-sequence commands' own: ``benchmark`` runs
-:func:`~sfm_ttr_ros.tools.cli_benchmark.benchmark_sequence` (all modes of the sequence in one
+:func:`~sfm_ttr_ros.tools.one_sequence.benchmark_sequence` (all modes of the sequence in one
 task: they share the opened sequence and the network), ``run`` runs
-:func:`~sfm_ttr_ros.tools.offline_run.run_whole_sequence`. Both write into a scratch folder on
+:func:`~sfm_ttr_ros.tools.one_sequence.run_whole_sequence`. Both write into a scratch folder on
 the worker; the files come back in the :class:`SequenceOutcome` and the driver alone writes the
 output folder (a worker that dies leaves nothing half-written there, and the output folder need
 not be shared between the nodes).
@@ -89,7 +89,7 @@ def benchmark_row(results: dict[str, Any]) -> dict[str, Any]:
 def run_row(summary: dict[str, Any]) -> dict[str, Any]:
     """A sequence's row from ``run``'s ``summary.json`` (methods ``no_ttr`` = before,
     ``sfm_ttr`` = after the one window)."""
-    from sfm_ttr_ros.tools.offline_run import METHODS
+    from sfm_ttr_ros.tools.one_sequence import METHODS
 
     metrics = summary.get("metrics") or {}
     n = summary["frames_total"]
@@ -137,7 +137,7 @@ def run_sequence(spec: SequenceSpec, job: SplitJob) -> SequenceOutcome:
             out = Path(tmp) / "out"
             args = argparse.Namespace(**job.options)
             if job.command == "benchmark":
-                from sfm_ttr_ros.tools.cli_benchmark import benchmark_sequence
+                from sfm_ttr_ros.tools.one_sequence import benchmark_sequence
 
                 results = benchmark_sequence(
                     opened.seq, settings, args, out, start=opened.start,
@@ -145,7 +145,7 @@ def run_sequence(spec: SequenceSpec, job: SplitJob) -> SequenceOutcome:
                     command=job.command_line, quiet=True)
                 row = benchmark_row(results)
             else:
-                from sfm_ttr_ros.tools.offline_run import run_whole_sequence
+                from sfm_ttr_ros.tools.one_sequence import run_whole_sequence
 
                 summary = run_whole_sequence(opened.seq, settings, out, start=opened.start,
                                              max_frames=opened.max_frames,
