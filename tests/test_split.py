@@ -444,3 +444,33 @@ def test_progress_bar_on_a_terminal_lines_otherwise():
     p.close()
     assert "3/3" in term.text and "frames=30" in term.text and "failed=1" in term.text
     assert "b: failed: no ground truth" in term.text
+
+
+def test_bag_default_topics():
+    """The node's own topics first, else KITTI's, else the only colour image topic; the
+    CameraInfo and the ground truth beside the image."""
+    from sfm_ttr_ros.ros.bag import BagTopic
+    from sfm_ttr_ros.ros.bag_sequence import default_topics
+
+    def bag(**topics):
+        return {t: BagTopic(t, kind, 1) for t, kind in topics.items()}
+
+    img, info, cmp = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo",
+                      "sensor_msgs/msg/CompressedImage")
+    node = bag(**{"/image": img, "/camera_info": info, "/kitti/camera_color_left/image_raw": img,
+                  "/kitti/camera_color_left/camera_info": info})
+    assert default_topics(node) == ("/image", "/camera_info", None)
+    kitti = bag(**{"/kitti/camera_color_left/image_raw/compressed": cmp,
+                   "/kitti/camera_color_left/camera_info": info,
+                   "/kitti/camera_color_left/depth_gt": img})
+    assert default_topics(kitti) == ("/kitti/camera_color_left/image_raw/compressed",
+                                     "/kitti/camera_color_left/camera_info",
+                                     "/kitti/camera_color_left/depth_gt")
+    other = bag(**{"/cam/rgb": img, "/cam/camera_info": info, "/cam/depth": img})
+    assert default_topics(other) == ("/cam/rgb", "/cam/camera_info", None)
+    with pytest.raises(InputError, match="cannot tell the image topic"):
+        default_topics(bag(**{"/a/rgb": img, "/b/rgb": img}))
+    with pytest.raises(InputError, match="no CameraInfo topic /cam/camera_info"):
+        default_topics(bag(**{"/cam/rgb": img}))
+    with pytest.raises(InputError, match="not in the bag"):
+        default_topics(other, gt="/cam/gt")

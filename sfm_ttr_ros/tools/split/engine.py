@@ -120,7 +120,8 @@ def _start(ray, config: EngineConfig) -> str:
                              f"a task needs {config.gpus:g} (device cuda)")
         return (f"Ray cluster {config.address}: {res.get('CPU', 0):g} CPUs, "
                 f"{res.get('GPU', 0):g} GPUs, {len(ray.nodes())} node(s)")
-    ray.init(num_cpus=config.workers * config.threads, **common)
+    # address="local": a new instance even where RAY_ADDRESS names a running cluster
+    ray.init(address="local", num_cpus=config.workers * config.threads, **common)
     res = ray.cluster_resources()
     if config.gpus and res.get("GPU", 0) < config.gpus:
         raise InputError(f"device cuda: this machine's Ray instance sees {res.get('GPU', 0):g} "
