@@ -15,7 +15,9 @@ without ground truth:
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import os
 import re
@@ -225,13 +227,18 @@ def on_cluster(data):
                              "--retries", "2"))
         stop.set()
         killer.join(timeout=5)
+        # a task on a CUDA device declares a GPU: this cluster has none
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            rc_gpu = main(split_args(data, "good.txt", data / "gpu", "--ray-address",
+                                     cluster.address, "--device", "cuda"))
     finally:
         cluster.shutdown()
         if saved is None:
             os.environ.pop("PYTHONPATH", None)
         else:
             os.environ["PYTHONPATH"] = saved
-    return {"rc": rc, "out": out, "killed": killed,
+    return {"rc": rc, "out": out, "killed": killed, "gpu": (rc_gpu, err.getvalue()),
             "results": json.loads((out / "results.json").read_text())}
 
 
@@ -264,6 +271,12 @@ def test_killed_worker_is_retried_and_the_split_completes(on_cluster):
     rows = per_sequence(on_cluster["out"])
     assert sorted(q["attempts"] for q in rows.values()) == [1, 1, 1, 2]
     assert on_cluster["results"]["engine"]["where"].startswith("Ray cluster")
+
+
+@pytest.mark.slow
+def test_cuda_tasks_declare_a_gpu(on_cluster):
+    rc, err = on_cluster["gpu"]
+    assert rc == 2 and "has 0 GPUs: a task needs 1 (device cuda)" in err, err
 
 
 @pytest.mark.slow
@@ -419,8 +432,6 @@ class _Terminal:
 
 
 def test_progress_bar_on_a_terminal_lines_otherwise():
-    import io
-
     from sfm_ttr_ros.tools.split.progress import SplitProgress
 
     done = {"id": "a", "status": "done", "seconds": 2.0, "attempts": 2,
