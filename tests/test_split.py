@@ -188,20 +188,24 @@ def test_changed_settings_or_overwrite_recompute(sequential, data):
 # ---------------------------------------------------------------------------------------------
 
 
-def kill_one_task_worker(stop: threading.Event, killed: list) -> None:
-    """SIGKILL the first process running a split task (title ``ray::sequence_task``)."""
+def kill_one_task_worker(title: str, stop: threading.Event, killed: list) -> None:
+    """SIGKILL the worker process while it runs the task of that process title."""
     import psutil
 
+    def running(p) -> bool:
+        try:
+            return " ".join(p.cmdline()).startswith(title)
+        except psutil.Error:
+            return False
+
     while not stop.is_set() and not killed:
-        for p in psutil.process_iter(["pid", "cmdline"]):
-            cmd = " ".join(p.info.get("cmdline") or [])
-            if cmd.startswith("ray::sequence_task"):
+        for p in psutil.process_iter():
+            if running(p):
                 time.sleep(0.3)  # inside the task's work, not at its very start
-                try:
-                    p.kill()
-                except psutil.Error:
+                if not running(p):
                     continue
-                killed.append(p.info["pid"])
+                p.kill()
+                killed.append(p.pid)
                 return
         time.sleep(0.05)
 
@@ -220,7 +224,8 @@ def on_cluster(data):
         cluster.add_node(num_cpus=1)
         cluster.wait_for_nodes()
         stop, killed = threading.Event(), []
-        killer = threading.Thread(target=kill_one_task_worker, args=(stop, killed), daemon=True)
+        killer = threading.Thread(target=kill_one_task_worker, daemon=True,
+                                  args=(f"ray::sequence_task:{drive(2)}", stop, killed))
         killer.start()
         out = data / "cluster"
         rc = main(split_args(data, "mixed.txt", out, "--ray-address", cluster.address,
@@ -269,7 +274,9 @@ def test_killed_worker_is_retried_and_the_split_completes(on_cluster):
     assert c["retried"] == 1 and c["retries"] == 1
     assert c["done"] == 3 and c["not_run"] == 0
     rows = per_sequence(on_cluster["out"])
-    assert sorted(q["attempts"] for q in rows.values()) == [1, 1, 1, 2]
+    assert {sid: q["attempts"] for sid, q in rows.items()} == {
+        drive(1): 1, drive(2): 2, drive(3): 1, drive(4): 1}
+    assert rows[drive(2)]["retries"] == 1 and rows[drive(2)]["status"] == "done"
     assert on_cluster["results"]["engine"]["where"].startswith("Ray cluster")
 
 

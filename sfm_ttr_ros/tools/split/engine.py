@@ -74,7 +74,8 @@ class Interrupted(Exception):  # noqa: N818 - raised for a KeyboardInterrupt, na
 
 
 def sequence_task(spec: SequenceSpec, job: SplitJob) -> SequenceOutcome:
-    """The Ray task (its process title on a worker is ``ray::sequence_task``)."""
+    """The Ray task (named ``sequence_task:<id>``: its worker's process title is
+    ``ray::sequence_task:<id>`` while it runs, as ``ray list tasks`` shows it)."""
     return run_sequence(spec, job)
 
 
@@ -139,13 +140,14 @@ def _run_ray(specs: Sequence[SequenceSpec], job: SplitJob, config: EngineConfig,
     pending: dict = {}
     try:
         stats.where = _start(ray, config)
-        task = ray.remote(sequence_task).options(
-            num_cpus=config.threads, num_gpus=config.gpus, max_retries=0,
-            retry_exceptions=False, name="sequence_task")
+        task = ray.remote(sequence_task)
         job_ref = ray.put(job)
 
         def submit(spec: SequenceSpec, attempt: int) -> None:
-            pending[task.remote(spec, job_ref)] = (spec, attempt)
+            ref = task.options(num_cpus=config.threads, num_gpus=config.gpus, max_retries=0,
+                               retry_exceptions=False, name=f"sequence_task:{spec.id}"
+                               ).remote(spec, job_ref)
+            pending[ref] = (spec, attempt)
 
         for spec in specs:
             submit(spec, 1)
