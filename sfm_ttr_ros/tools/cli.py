@@ -3,20 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
-import time
-from pathlib import Path
-
-import numpy as np
 
 from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.params import build
 from sfm_ttr_ros.tools.cli_args import (
     add_parameter_args,
     add_sequence_args,
-    build_model_for,
     open_sequence,
     parameter_values,
 )
@@ -26,71 +20,26 @@ log = logging.getLogger("sfm_ttr_ros")
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Offline SfM-TTR over a whole sequence (the paper's setting) and write the results."""
-    from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
-    from sfm_ttr_ros.core.pipeline import SfmTTR
-    from sfm_ttr_ros.core.visualize import colorize_depth, write_ply
+    from sfm_ttr_ros.tools.one_sequence import run_whole_sequence
 
+    if getattr(args, "split", None):
+        from sfm_ttr_ros.tools.split.command import run_split_command
+
+        return run_split_command(args, "run")
     _, values = parameter_values(args)  # bad options fail before any image is read
     settings = build(values)
     seq = open_sequence(args)
-    if not 0 <= args.start < len(seq):
-        raise InputError(f"--start {args.start} is outside the sequence's {len(seq)} frames "
-                         f"(0 .. {len(seq) - 1})")
-    stop = len(seq) if args.max_frames <= 0 else min(len(seq), args.start + args.max_frames)
-    frames = seq.frames(args.start, stop)
-    out = Path(args.out)
-    try:
-        for sub in ("before", "after"):
-            (out / sub).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the output folder {out}: {exc}") from exc
-    model = build_model_for(settings)
-    ttr = SfmTTR(model, settings.ttr)
-    t0 = time.perf_counter()
-    try:
-        res = ttr.process_window(frames, seq.intrinsics)
-    finally:
-        ttr.close()
-    seconds = time.perf_counter() - t0
-    import cv2
-
-    evals = {k: Evaluator(EvalConfig(eigen_crop=args.eigen_crop)) for k in ("before", "after")}
-    for f in frames:
-        for key, depths in (("before", res.depths_before), ("after", res.depths)):
-            np.save(out / key / f"{f.name}.npy", depths[f.name].astype(np.float32))
-            cv2.imwrite(str(out / key / f"{f.name}.png"), colorize_depth(depths[f.name]))
-            gt = seq.gt(f.name)
-            if gt is not None:
-                evals[key].add(f.name, depths[f.name], gt)
-    if res.cloud_xyz.size:
-        write_ply(out / "points.ply", res.cloud_xyz,
-                  res.sfm.points_rgb if res.sfm is not None else None,
-                  {"reprojection_error": res.cloud_error})
-    summary = {
-        "sequence": seq.name,
-        **res.summary(),
-        "alignment": res.alignment.stats if res.alignment else {},
-        "loss_history": res.refinement.loss_history if res.refinement else [],
-        "cloud_frame": res.cloud_frame,
-        "timings": res.timings,
-        "seconds": seconds,
-        "seconds_per_frame": seconds / max(1, len(frames)),
-    }
-    if evals["before"].summary()["frames"]:
-        summary["metrics"] = {k: _plain(e.summary()) for k, e in evals.items()}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    print(f"{len(frames)} frames, refined={res.refined} {res.reason}".strip())
+    summary = run_whole_sequence(seq, settings, args.out, start=args.start,
+                                 max_frames=args.max_frames, eigen_crop=args.eigen_crop)
+    print(f"{summary['frames_total']} frames, refined={summary['refined']} "
+          f"{summary['reason']}".strip())
     if "metrics" in summary:
         from sfm_ttr_ros.core.evaluation import format_table
 
         print(format_table({"no_ttr": summary["metrics"]["before"],
                             "sfm_ttr": summary["metrics"]["after"]}))
-    print(f"results in {out}")
+    print(f"results in {args.out}")
     return 0
-
-
-def _plain(summary: dict) -> dict:
-    return {k: v for k, v in summary.items() if k not in ("per_frame",)}
 
 
 STREET_FRAMES = 30  # `generate --frames` default (street scenario)
@@ -143,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "settings")
     r.add_argument("--eigen-crop", action="store_true", help="evaluate inside the Garg crop")
     r.add_argument("--out", required=True, help="output folder")
+    from sfm_ttr_ros.tools.split.command import add_split_args
+
+    add_split_args(r)
     r.set_defaults(func=cmd_run)
 
     g = sub.add_parser("generate", help="write a synthetic KITTI-format drive")

@@ -10,7 +10,6 @@ the command line override the file's values (:mod:`sfm_ttr_ros.tools.cli_args`).
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 from pathlib import Path
@@ -21,11 +20,15 @@ from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 from sfm_ttr_ros.tools.cli_args import (
     add_parameter_args,
     add_sequence_args,
-    build_model_for,
     command_line,
     open_sequence,
-    parameter_values,
 )
+from sfm_ttr_ros.tools.one_sequence import (
+    benchmark_sequence,
+    benchmark_values,
+    check_benchmark_options,
+)
+from sfm_ttr_ros.tools.one_sequence import eval_config as _eval_config
 
 
 def _add_eval_args(p: argparse.ArgumentParser) -> None:
@@ -42,21 +45,6 @@ def _add_eval_args(p: argparse.ArgumentParser) -> None:
                         "inverse depth (a per-frame least-squares scale and shift to 1/GT, the "
                         "MiDaS protocol); auto: the network's output kind (benchmark), depth "
                         "(evaluate)")
-
-
-def _eval_config(args: argparse.Namespace, model=None):
-    """The evaluation options of the flags; ``--prediction auto`` follows ``model``'s output
-    (relative inverse depth for affine-invariant networks, else depth)."""
-    from sfm_ttr_ros.core.alignment_affine import is_affine_output
-    from sfm_ttr_ros.core.evaluation import EvalConfig
-
-    kind = args.prediction
-    if kind == "auto":
-        affine = model is not None and is_affine_output(model)
-        kind = "relative_inverse_depth" if affine else "depth"
-    return EvalConfig(min_depth=args.min_depth, max_depth=args.max_depth,
-                      eigen_crop=args.eigen_crop, median_scaling=args.median_scaling,
-                      prediction=kind)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -97,47 +85,28 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--save-depth", action="store_true",
                    help="also write every depth as OUT/depth/<mode>/<frame>.npy")
     _add_eval_args(b)
+    from sfm_ttr_ros.tools.split.command import add_split_args
+
+    add_split_args(b)
     b.set_defaults(func=cmd_benchmark)
     return b
 
 
-def benchmark_values(args: argparse.Namespace) -> tuple[Path, dict]:
-    """(parameter file, parameter values): the file's, then the flags, then ``--set``."""
-    from sfm_ttr_ros.tools.benchmark import default_params_file
-
-    path, values = parameter_values(args, None if args.params_file else default_params_file())
-    return path, values
-
-
 def cmd_benchmark(args: argparse.Namespace) -> int:
-    import torch
-
     from sfm_ttr_ros.core.params import build
-    from sfm_ttr_ros.tools.benchmark import results_markdown, run_benchmark
+    from sfm_ttr_ros.tools.benchmark import results_markdown
 
+    if getattr(args, "split", None):
+        from sfm_ttr_ros.tools.split.command import run_split_command
+
+        return run_split_command(args, "benchmark")
     params_path, values = benchmark_values(args)
     settings = build(values)
-    if args.offline_max_frames < 0 or args.figure_frames < 0:
-        raise InputError("--offline-max-frames and --figure-frames must be >= 0")
+    check_benchmark_options(args)
     seq = open_sequence(args)
-    base = build_model_for(settings)
-
-    def factory():
-        return copy.deepcopy(base)  # the original weights, untouched by earlier modes
-
-    model_config = settings.model
-    description = {"type": model_config.type, "encoder_path": model_config.encoder_path,
-                   "decoder_path": model_config.decoder_path, "device": model_config.device,
-                   "load_weights_path": settings.node.load_weights_path}
-    results = run_benchmark(
-        seq, factory, settings.ttr, settings.stream, args.out, args.modes,
-        _eval_config(args, base),
-        start=args.start, max_frames=args.max_frames,
-        offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
-        save_depth=args.save_depth, model_description=description, rate=args.rate,
-        settings_info={"params_file": str(params_path),
-                       "torch_threads": torch.get_num_threads()},
-        command=command_line())
+    results = benchmark_sequence(seq, settings, args, args.out, start=args.start,
+                                 max_frames=args.max_frames, params_path=params_path,
+                                 command=command_line())
     print(results_markdown(results).split("Command:")[0].rstrip())
     print(f"\nresults in {args.out}")
     return 0
