@@ -2,7 +2,7 @@
 # The window-check measurements behind docs/decisions.md "Window checks" (the `sfm` loss), params/kitti.yaml:
 #   bash scripts/studies/check_benchmarks.sh [OUT_DIR]        (~90 min on 2 quiet CPU cores)
 # 1. what each window's refinement did to its own frames against GT, and the checks' verdicts
-#    (scripts/check_outcomes.py) on the hard drive, the domain-B drive and hololens_000;
+#    (scripts/studies/check_outcomes.py) on the hard drive, the domain-B drive and hololens_000;
 # 2. sfm-ttr benchmark with the checks on (defaults) and off, reset and continual policies.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -21,7 +21,7 @@ HARD=(--kitti-raw "$OUT/hard/raw" --kitti-gt "$OUT/hard/gt" --drive $DRIVE)
 B40=(--kitti-raw "$OUT/b40/raw" --kitti-gt "$OUT/b40/gt" --drive $DRIVE)
 HOLO=(--images $H/images --intrinsics $H/K.txt --gt-depth $H/depth --gt-scale 1000)
 
-.venv/bin/python scripts/check_outcomes.py "${HARD[@]}" --out "$OUT/hard_outcomes.json"
+.venv/bin/python scripts/studies/check_outcomes.py "${HARD[@]}" --out "$OUT/hard_outcomes.json"
 for seq in hard b40 holo; do
     case $seq in hard) S=("${HARD[@]}");; b40) S=("${B40[@]}");; holo) S=("${HOLO[@]}");; esac
     $SFM_TTR benchmark "${S[@]}" --modes no_ttr sfm_ttr_online --out "$OUT/${seq}_on"

@@ -16,7 +16,7 @@ the confusion numbers of the issue's target:
 With ``--policy reset`` (the default) windows are independent, so one run judges any threshold
 set. Example (BENCHMARKS.md §9)::
 
-    .venv/bin/python scripts/check_outcomes.py --kitti-raw bench/hard/raw \\
+    .venv/bin/python scripts/studies/check_outcomes.py --kitti-raw bench/hard/raw \\
         --kitti-gt bench/hard/gt --drive 2011_09_26_drive_0001_sync --out bench/hard/checks.json
 """
 
