@@ -372,3 +372,25 @@ def test_sfm_begun_ahead_is_the_windows_own_reconstruction(street):
     finally:
         ahead.close()
     assert not ahead.reconstructor.workspace.exists()
+
+
+def test_sfm_begun_ahead_waits_for_its_window_while_the_next_one_starts(street, monkeypatch):
+    """The next window's frames may all be queued before the current window takes its own
+    reconstruction: a finished one is kept (the two newest) until its window takes it."""
+    from sfm_ttr_ros.core.prefetch import SfmPrefetch
+
+    ahead = SfmPrefetch(SfmConfig())
+    monkeypatch.setattr(ahead.reconstructor, "reconstruct",
+                        lambda frames, intr: SfmResult(True, "", len(frames)))
+    a, b, c = street.frames[0:4], street.frames[4:8], street.frames[8:12]
+    try:
+        for window in (a, b):
+            assert ahead.start(window, street.intr)
+            ahead._thread.join()
+        assert ahead.take(a, street.intr).num_frames == 4  # kept while b was reconstructed
+        assert ahead.start(c, street.intr)
+        ahead._thread.join()
+        assert ahead.take(c, street.intr) is not None and ahead.take(b, street.intr) is not None
+        assert ahead.counters() == {"started": 3, "used": 3, "discarded": 0}
+    finally:
+        ahead.close()

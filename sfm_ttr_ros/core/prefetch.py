@@ -31,20 +31,31 @@ from sfm_ttr_ros.core.sfm import SfmCancelled, SfmConfig, SfmReconstructor, SfmR
 log = logging.getLogger(__name__)
 
 
+#: Finished reconstructions kept for their window (the next one, and the one after it when a
+#: window's frames were all queued before the previous one took its own).
+KEEP_DONE = 2
+
+_Key = tuple[tuple[str, ...], Intrinsics]
+
+
 class SfmPrefetch:
-    """One reconstruction ahead, in a background thread (see the module docstring)."""
+    """Reconstructions ahead of their window, one at a time in a background thread (see the
+    module docstring); finished ones wait for :meth:`take` (the :data:`KEEP_DONE` newest)."""
 
     def __init__(self, config: SfmConfig | None = None, nice: int = 0) -> None:
         self.reconstructor = SfmReconstructor(config)
         self.nice = nice
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._key: tuple[tuple[str, ...], Intrinsics] | None = None
-        self._result: SfmResult | None = None
-        self._error: BaseException | None = None
+        self._running: _Key | None = None
+        self._done: dict[_Key, tuple[SfmResult | None, BaseException | None]] = {}
         self.started = 0  # reconstructions begun ahead
         self.used = 0  # ... handed to their window
-        self.discarded = 0  # ... whose window did not come as predicted
+        self.discarded = 0  # ... whose window did not come as predicted, or that failed
+
+    @staticmethod
+    def _key(frames: Sequence[Frame], intrinsics: Intrinsics) -> _Key:
+        return tuple(f.name for f in frames), intrinsics
 
     @property
     def busy(self) -> bool:
@@ -56,51 +67,54 @@ class SfmPrefetch:
 
     def start(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
         """Begin reconstructing ``frames`` now (any thread); False (nothing begun) while one
-        is running or already done for the same frames."""
-        key = (tuple(f.name for f in frames), intrinsics)
+        is running, or when these frames are running or done already."""
+        key = self._key(frames, intrinsics)
         with self._lock:
-            if self.busy or key == self._key:
+            if self.busy or key == self._running or key in self._done:
                 return False
-            if self._key is not None:  # a finished one nobody took
-                self.discarded += 1
-            self._key, self._result, self._error = key, None, None
-            self._thread = threading.Thread(target=self._run, args=(list(frames), intrinsics),
+            self._running = key
+            self._thread = threading.Thread(target=self._run, args=(key, list(frames),
+                                                                      intrinsics),
                                             name="sfm-prefetch", daemon=True)
             self.started += 1
             self._thread.start()
         return True
 
-    def _run(self, frames: list[Frame], intrinsics: Intrinsics) -> None:
+    def _run(self, key: _Key, frames: list[Frame], intrinsics: Intrinsics) -> None:
         lower_thread_priority(self.nice)
+        result, error = None, None
         try:
-            self._result = self.reconstructor.reconstruct(frames, intrinsics)
+            result = self.reconstructor.reconstruct(frames, intrinsics)
         except BaseException as exc:  # noqa: BLE001 - handed to take(), which decides
-            self._error = exc
+            error = exc
+        with self._lock:
+            self._done[key] = (result, error)
+            self._running = None
+            while len(self._done) > KEEP_DONE:  # the oldest: its window has gone by
+                del self._done[next(iter(self._done))]
+                self.discarded += 1
 
     def take(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> SfmResult | None:
         """The reconstruction of exactly ``frames`` with ``intrinsics`` if one was begun
         (waits for it to end), else None. A cancelled or failed run gives None (the window then
         reconstructs itself, and reports a real failure as usual)."""
-        key = (tuple(f.name for f in frames), intrinsics)
+        key = self._key(frames, intrinsics)
         with self._lock:
-            if self._key != key:
+            thread = self._thread if key == self._running else None
+            if thread is None and key not in self._done:
                 return None
-            thread = self._thread
         if thread is not None:
             thread.join()
         with self._lock:
-            result, error = self._result, self._error
-            self._key, self._result, self._error, self._thread = None, None, None, None
-            if error is not None:
+            result, error = self._done.pop(key, (None, None))
+            if error is not None or result is None:
                 self.discarded += 1
             else:
                 self.used += 1
-        if error is not None:
-            if not isinstance(error, SfmCancelled):
-                log.warning("SfM begun ahead failed (%s: %s): the window reconstructs again",
-                            type(error).__name__, error)
-            return None
-        return result
+        if error is not None and not isinstance(error, SfmCancelled):
+            log.warning("SfM begun ahead failed (%s: %s): the window reconstructs again",
+                        type(error).__name__, error)
+        return result if error is None else None
 
     def cancel(self) -> None:
         """Stop a running reconstruction (thread-safe)."""
