@@ -204,6 +204,7 @@ class SfmTTR:
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._prefetch: SfmPrefetch | None = None  # the next window's SfM, see prefetch_sfm
         self.prefetch_nice = 0  # OS priority of that SfM's thread (the window worker's)
+        self._own_sfm_pending = False  # a window runs and its own SfM has not ended yet
         self._prefetch_lock = threading.Lock()
         # where each window starts and what an accepted one leaves to the next (weight policy)
         self.weights = WeightPolicy(self.model, on_reset=self._original_restored)
@@ -275,7 +276,12 @@ class SfmTTR:
     def prefetch_sfm(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
         """Begin the SfM of a coming window now, in the background (:mod:`core/prefetch
         <sfm_ttr_ros.core.prefetch>`); :meth:`process_window` of exactly these frames then
-        takes it instead of reconstructing. False when one is still running."""
+        takes it instead of reconstructing. False when one is still running, or while the
+        current window has not finished its own SfM: on a few cores two reconstructions at once
+        slowed the current window's (a GPU machine held to 2 cores: first weights 6.8 s after
+        the window's last frame instead of 4.2 s); the caller asks again at the next frame."""
+        if self._own_sfm_pending:
+            return False
         with self._prefetch_lock:
             if self._prefetch is None:
                 self._prefetch = SfmPrefetch(self.config.sfm, self.prefetch_nice)
@@ -377,6 +383,7 @@ class SfmTTR:
         the window before and after refining, the weight policy (:class:`WeightPolicy`) says
         where its refinement starts and what an accepted window leaves to the next."""
         check_window(frames, intrinsics)
+        self._own_sfm_pending = True  # no SfM begun ahead until this window's own has ended
         self._stop = False
         cfg = self.config
         self.weights.begin_window(cfg)  # "reset": every window from the start-up weights
@@ -450,12 +457,15 @@ class SfmTTR:
         (:meth:`prefetch_sfm`); why the window stops here ("" = it goes on)."""
         t, res = w.timings, w.result
         t0 = time.perf_counter()
-        sfm = (self._prefetch.take(w.frames, w.intrinsics) if self._prefetch is not None
-               else None)
-        if sfm is not None:
-            t["sfm_ahead"] = 1.0  # reconstructed while the previous window refined
-        else:
-            sfm = self.reconstructor.reconstruct(w.frames, w.intrinsics)
+        try:
+            sfm = (self._prefetch.take(w.frames, w.intrinsics) if self._prefetch is not None
+                   else None)
+            if sfm is not None:
+                t["sfm_ahead"] = 1.0  # reconstructed while the previous window refined
+            else:
+                sfm = self.reconstructor.reconstruct(w.frames, w.intrinsics)
+        finally:
+            self._own_sfm_pending = False
         t["sfm"] = time.perf_counter() - t0
         t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
         res.sfm = sfm

@@ -579,7 +579,9 @@ class StreamProcessor:
         """While a window runs: once the frames of the window after it are all queued (its
         overlap with the running window plus ``window_stride`` new ones, every frame a
         keyframe, same intrinsics and image size, stamps rising), begin their SfM in the
-        background (:meth:`SfmTTR.prefetch_sfm`). Any thread; cheap when there is nothing to do."""
+        background (:meth:`SfmTTR.prefetch_sfm`, which waits until the running window's own SfM
+        has ended: asked again at every frame that arrives). Called by :meth:`submit`; cheap
+        when there is nothing to do."""
         s = self.settings
         if not s.prefetch_sfm or s.min_keyframe_interval_s > 0 or s.min_keyframe_motion > 0:
             return
@@ -634,7 +636,6 @@ class StreamProcessor:
 
         with self._cv:
             self._running = (frames, self._intr)
-        self._prefetch_next()
         try:
             res = self.ttr.process_window(frames, self._intr,
                                           should_stop=lambda: self._cancelled)
