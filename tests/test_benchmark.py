@@ -320,9 +320,13 @@ def test_each_mode_runs_its_own_loss():
             "ph_ttr_offline": "photometric", "hybrid_online": "hybrid",
             "hybrid_offline": "hybrid"}
     assert set(want) <= set(ALL_MODES)
+    cfg.weight_policy = "continue"
     for mode, loss in want.items():
         out = mode_config(mode, cfg)
         assert out.refinement.loss == loss and out.refinement.photometric_weight == 0.3
+        # the paper's modes refine every window from the start-up weights; the others keep
+        # the file's policy
+        assert out.weight_policy == ("reset" if mode.startswith("sfm_ttr") else "continue")
     assert cfg.refinement.loss == "hybrid"  # not modified in place
     assert mode_config("no_ttr", cfg) is cfg
 

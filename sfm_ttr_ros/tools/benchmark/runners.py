@@ -275,13 +275,21 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra["offline_windows"] = info
 
 
+#: The paper's method is refined per sequence from the network's own weights: the
+#: ``sfm_ttr_*`` modes start every window from the start-up weights, whatever the file says.
+PAPER_POLICY = "reset"
+
+
 def mode_config(mode: str, cfg: TTRConfig) -> TTRConfig:
     """``cfg`` with the ``refinement.loss`` of ``mode``'s method (:data:`METHOD_LOSS`: the
-    ``sfm_ttr_*`` modes run Eq. (5) even when the parameter file names another loss);
-    ``no_ttr`` gets ``cfg`` itself."""
+    ``sfm_ttr_*`` modes run the paper's method, Eq. (5) with every window from the start-up
+    weights, even when the parameter file names another loss or policy); ``no_ttr`` and
+    ``node_online`` get ``cfg`` itself."""
     for prefix, loss in METHOD_LOSS.items():
         if mode.startswith(prefix + "_"):
             out = copy.deepcopy(cfg)
             out.refinement.loss = loss
+            if prefix == "sfm_ttr":
+                out.weight_policy = PAPER_POLICY
             return out
     return cfg
