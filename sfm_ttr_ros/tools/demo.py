@@ -59,10 +59,10 @@ class DemoOptions:
     kitti_raw: str | None = None
     kitti_gt: str | None = None
     drive: str | None = None
-    # The synthetic drive and how fast it is played: 45 frames at 0.3 x their 10 Hz (15 s) so
+    # The synthetic drive and how fast it is played: 45 frames at 0.15 x their 10 Hz (30 s) so
     # that on 2 CPU cores the first window's weights reach ~/depth while the drive still
-    # plays (its 15 frames are in after 5 s, its first interim weights ~5 s later): the live
-    # output shows what a robot gets, not only the windowed one (~1.5 minutes in all).
+    # plays (its 15 frames are in after 10 s, its first interim weights ~5 s later): the live
+    # output shows what a robot gets, not only the windowed one (~70 s in all).
     frames: int = 45
     width: int = 1242
     height: int = 375
@@ -72,7 +72,7 @@ class DemoOptions:
     max_frames: int = 0  # real drive: 0 = all
     params_file: str | None = None  # default: params/kitti.yaml
     overrides: list[str] = field(default_factory=list)  # NAME=VALUE, as --set everywhere
-    rate: float = 0.3
+    rate: float = 0.15
     timeout_s: float = 1800.0
     threads: int = 2
     storage: str = "mcap"
