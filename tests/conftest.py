@@ -108,3 +108,28 @@ def write_tiny_plugin(path: Path, height: int, width: int) -> Path:
 def tiny_plugin():
     """:func:`write_tiny_plugin`, for tests that hand the model to a CLI or a subprocess."""
     return write_tiny_plugin
+
+
+def write_small_kitti_params(repo: Path, path: Path) -> Path:
+    """params/kitti.yaml with the windows and thresholds of tiny generated drives (windows of 4
+    every 2, the whole encoder refined, fewer points and features) at ``path``."""
+    import re
+
+    text = (repo / "params" / "kitti.yaml").read_text()
+    for key, value in (("window_size", 4), ("window_stride", 2),
+                       ("refinement.frozen_encoder_levels", 0)):
+        text, n = re.subn(rf"(?m)^(\s+{re.escape(key)}): .*$", rf"\g<1>: {value}", text)
+        assert n == 1, key
+    text += "    min_supervision_points: 20\n    sfm.max_num_features: 2048\n"
+    path.write_text(text)
+    return path
+
+
+def open_hololens(shared: Path):
+    """hololens_000 as an image sequence (GT in mm); the test is skipped without the data."""
+    from sfm_ttr_ros.data.sequence import open_image_folder
+
+    root = shared / "hololens_000"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    return open_image_folder(root / "images", root / "K.txt", root / "depth", gt_scale=1000.0)

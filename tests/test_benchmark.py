@@ -10,7 +10,6 @@ import copy
 import csv
 import json
 import math
-import re
 import shlex
 import sys
 from dataclasses import asdict
@@ -19,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import write_small_kitti_params
 
 from sfm_ttr_ros.core.frames import InputError
 
@@ -62,13 +62,7 @@ def data(tmp_path_factory, tiny_plugin):
     tiny_plugin(root / "bench_tiny_model.py", 64, 192)
     # The node's KITTI file with small windows and a lower point threshold for tiny images.
     # (the tiny plug-in has no staged encoder: its whole encoder is refined)
-    text = (REPO / "params" / "kitti.yaml").read_text()
-    for key, value in (("window_size", 4), ("window_stride", 2),
-                       ("refinement.frozen_encoder_levels", 0)):
-        text, n = re.subn(rf"(?m)^(\s+{re.escape(key)}): .*$", rf"\g<1>: {value}", text)
-        assert n == 1, key
-    text += "    min_supervision_points: 20\n    sfm.max_num_features: 2048\n"
-    (root / "small.yaml").write_text(text)
+    write_small_kitti_params(REPO, root / "small.yaml")
     sys.path.insert(0, str(root))
     yield root
     sys.path.remove(str(root))

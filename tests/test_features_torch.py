@@ -9,6 +9,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from conftest import open_hololens
 
 torch = pytest.importorskip("torch")
 # torch on one thread: on a busy 2-core machine two threads measured several times slower
@@ -244,12 +245,7 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
 
 @pytest.mark.slow
 def test_torch_features_on_real_hololens_frames(shared_data):
-    from sfm_ttr_ros.data.sequence import open_image_folder
-
-    root = shared_data / "hololens_000"
-    if not root.is_dir():
-        pytest.skip(f"{root} not found")
-    seq = open_image_folder(root / "images", root / "K.txt", root / "depth", gt_scale=1000.0)
+    seq = open_hololens(shared_data)
     frames = seq.frames(55, 61)  # 6 frames (files 00058-00063)
     with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
         res = rec.reconstruct(frames, seq.intrinsics)

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pycolmap
 import pytest
+from conftest import open_hololens
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, reconstruct_window
@@ -328,12 +329,7 @@ def test_bad_mapping_attempt_options_are_refused(field, value):
 # -------------------------------------------------------------------------- real data
 @pytest.mark.slow
 def test_real_hololens_window(shared_data):
-    from sfm_ttr_ros.data.sequence import open_image_folder
-
-    root = shared_data / "hololens_000"
-    if not root.is_dir():
-        pytest.skip(f"{root} not found")
-    seq = open_image_folder(root / "images", root / "K.txt", root / "depth", gt_scale=1000.0)
+    seq = open_hololens(shared_data)
     assert (seq.intrinsics.width, seq.intrinsics.height) == (540, 360)
     frames = seq.frames(55, 65)  # files 00058 .. 00067: ~0.95 m of hand-held motion, 23 deg
     gt = {f.name: seq.gt(f.name) for f in frames}

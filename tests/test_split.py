@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import write_small_kitti_params
 
 from sfm_ttr_ros.core.frames import InputError
 
@@ -57,13 +58,7 @@ def data(tmp_path_factory, tiny_plugin):
         write_kitti_drive(seq, root / f"d{k}" / "raw", root / f"d{k}" / "gt" if k != 4 else None,
                           drive_number=k, gt_skip_ends=GT_SKIP)
     tiny_plugin(root / "split_tiny_model.py", 64, 192)
-    text = (REPO / "params" / "kitti.yaml").read_text()
-    for key, value in (("window_size", 4), ("window_stride", 2),
-                       ("refinement.frozen_encoder_levels", 0)):
-        text, n = re.subn(rf"(?m)^(\s+{re.escape(key)}): .*$", rf"\g<1>: {value}", text)
-        assert n == 1, key
-    text += "    min_supervision_points: 20\n    sfm.max_num_features: 2048\n"
-    (root / "small.yaml").write_text(text)
+    write_small_kitti_params(REPO, root / "small.yaml")
     good = "".join(f"kitti {drive(k)} raw=d{k}/raw gt=d{k}/gt\n" for k in DRIVES)
     (root / "good.txt").write_text("# three generated drives\n" + good)
     (root / "mixed.txt").write_text(good + f"kitti {drive(4)} raw=d4/raw gt=d1/gt  # no GT\n")
