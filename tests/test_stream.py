@@ -42,22 +42,20 @@ class ScriptedTTR:
         self.configs: list[TTRConfig] = []
         self.delay = delay
         self.cancelled = False
+        self.prefetched: list[list[str]] = []  # windows whose SfM the stream asked ahead
 
     def set_config(self, config):
         self.config = config
 
-    prefetched: list[list[str]]  # the windows whose SfM the stream asked to begin ahead
-
     def prefetch_sfm(self, frames, intrinsics):  # as SfmPrefetch.start: the same frames once
-        asked = self.__dict__.setdefault("prefetched", [])
-        if asked and asked[-1] == [f.name for f in frames]:
+        if self.prefetched and self.prefetched[-1] == [f.name for f in frames]:
             return False
-        asked.append([f.name for f in frames])
+        self.prefetched.append([f.name for f in frames])
         return True
 
     @property
     def prefetch_counters(self):
-        return {"started": len(self.__dict__.get("prefetched", [])), "used": 0, "discarded": 0}
+        return {"started": len(self.prefetched), "used": 0, "discarded": 0}
 
     def cancel(self):
         self.cancelled = True
@@ -493,7 +491,7 @@ def test_the_next_windows_sfm_begins_while_a_window_runs():
         for k in range(10, 16):
             s.submit(fs[k], INTR)
         worker.join()
-        assert ttr.__dict__.get("prefetched", []) == want, interval
+        assert ttr.prefetched == want, interval
         assert s.counters()["sfm_ahead"]["started"] == len(want)
 
 

@@ -204,7 +204,9 @@ class SfmTTR:
         self.reconstructor = SfmReconstructor(self.config.sfm, workspace)
         self._prefetch: SfmPrefetch | None = None  # the next window's SfM, see prefetch_sfm
         self.prefetch_nice = 0  # OS priority of that SfM's thread (the window worker's)
-        self._own_sfm_pending = False  # a window runs and its own SfM has not ended yet
+        # a window runs and its own SfM has not ended yet (set by process_window, cleared once
+        # its SfM ends; a window that stops before SfM runs none, so nothing waits on it)
+        self._own_sfm_pending = False
         self._prefetch_lock = threading.Lock()
         # where each window starts and what an accepted one leaves to the next (weight policy)
         self.weights = WeightPolicy(self.model, on_reset=self._original_restored)

@@ -12,10 +12,11 @@ overlap entirely. When the next window begins, :meth:`SfmPrefetch.take` hands ov
 reconstruction of exactly those frames (waiting for it if it is still running); anything else
 (other frames, other intrinsics, a failure) is discarded and the window reconstructs as usual.
 
-The stream (:class:`~sfm_ttr_ros.core.stream.StreamProcessor`) begins it from whichever thread
-sees the next window's frames queued (the worker at a window's start, or the input callback
-while a window runs); the thread lowers its own OS priority to the worker's
-(:func:`~sfm_ttr_ros.core.live.lower_thread_priority`), so live serving keeps the cores first.
+The stream (:class:`~sfm_ttr_ros.core.stream.StreamProcessor`) begins it from its input
+callback, at the first frame that finds the next window's frames all queued once the running
+window's own SfM has ended (:meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.prefetch_sfm`); the thread
+lowers its own OS priority to the worker's (:func:`~sfm_ttr_ros.core.live.lower_thread_priority`),
+so live serving keeps the cores first.
 """
 
 from __future__ import annotations

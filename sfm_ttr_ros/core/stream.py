@@ -333,6 +333,7 @@ class StreamProcessor:
         self._window_index = 0
         # the window being processed (frames, intrinsics): what the next one overlaps
         self._running: tuple[list[Frame], Intrinsics] | None = None
+        self._asked_ahead: tuple[str, ...] = ()  # the frames whose SfM was begun ahead last
 
     # -- input (any thread) ----------------------------------------------------------------------
     def submit(self, frame: Frame, intrinsics: Intrinsics) -> None:
@@ -592,13 +593,17 @@ class StreamProcessor:
             queued = list(itertools.islice(self._queue, s.window_stride))
         keep = s.window_size - s.window_stride
         frames = (running[len(running) - keep:] if keep > 0 else []) + [f for f, _ in queued]
+        names = tuple(f.name for f in frames)
+        if names == self._asked_ahead:  # begun already: every later frame finds the same ones
+            return
         if (len(frames) < 2 or any(i != intr for _, i in queued)
                 or any(f.image is RELEASED_IMAGE or f.size != (intr.width, intr.height)
                        for f in frames)
                 or any(b.stamp <= a.stamp for a, b in itertools.pairwise(frames))):
             return
         try:
-            self.ttr.prefetch_sfm(frames, intr)
+            if self.ttr.prefetch_sfm(frames, intr):
+                self._asked_ahead = names
         except Exception as exc:  # noqa: BLE001 - ahead of time only: the window does it itself
             self._warn("prefetch", f"SfM ahead of the next window not begun: {exc}")
 

@@ -147,14 +147,14 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
              run.extra["latency_p95_s"], run.extra["latency_max_s"], forward)
 
 
-def window_timeline(ws: WindowStats, arrivals: Sequence[float],
-                    served: dict[str, float]) -> dict:
+def window_timeline(ws: WindowStats, arrivals: Sequence[float], served: dict) -> dict:
     """One window's time line in seconds after its LAST frame arrived (the stream names frames
     by arrival: name k is the k-th frame fed): when its first frame arrived
     (``first_frame_arrival``, negative), the worker took the window up (``closed``), SfM ended
     (``sfm_done``), the refinement ended (``refined``), its first interim weights or else its
     accepted weights were swapped into serving (``first_served``), its accepted weights were
     (``served``), its outputs were ready (``finished``); None for what did not happen.
+    ``served``: the window's marks of :attr:`OnlineRefiner.served_at`.
     ``since_feed_start`` = ``first_served`` counted from the first frame of the feed."""
     last = arrivals[int(ws.names[-1])] if ws.names else float("nan")
     t = ws.timings
