@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Speed of SfM-TTR on a KITTI-size stream: a naive run against the tuned settings (issue 6).
+"""Speed of SfM-TTR on a KITTI-size stream: a naive run against the tuned settings.
 
 Both configurations run, one after the other in one process, over the SAME generated drive
 (default: synthetic domain B, seed 3, 60 frames of 1242x375, exact ground truth), fed frame by

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Fuzz the INSTALLED refiner node through DDS (issue 17): no single message may stop it.
+"""Fuzz the INSTALLED refiner node through DDS: no single message may stop it.
 
 Starts ``refiner`` (the installed console script, default ``<venv>/bin/refiner``) as a
 subprocess with ``params/kitti.yaml`` (its fallback fx, fy, cx, cy set: the case that once ended

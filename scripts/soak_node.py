@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Soak the INSTALLED refiner (issue 17): a looped generated KITTI-size drive at 10 Hz for
+"""Soak the INSTALLED refiner: a looped generated KITTI-size drive at 10 Hz for
 ``--minutes`` (30 for the figures in BENCHMARKS.md "Soak") through the node started with
 ``params/kitti.yaml``, as an outside rclpy client through DDS.
 
@@ -367,7 +367,7 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
             node_live) -> dict:
     duration = args.minutes * 60.0
     warm = args.warm_s or min(300.0, duration / 6.0)  # "the first 5 minutes" (a sixth of a
-    # shorter run); --warm-s 10 = issue 15's "after frame 100" at 10 Hz
+    # shorter run); --warm-s 10 = the memory target's "after frame 100" at 10 Hz
 
     def num(key):
         return int(d.get(key, 0))

@@ -1,4 +1,4 @@
-"""Issue 18's affine-path target on a generated drive: the default network, and the same network
+"""The affine path's equivalence on a generated drive: the default network, and the same network
 made affine-invariant (sfm_ttr_ros/tools/affine_wrap.py: p = a_j / D + b_j, random per frame),
 refined window by window on the SAME SfM result; both evaluated as depth (the affine path's
 output through each frame's own fit, a / (p − b)), median-scaled, the KITTI protocol.

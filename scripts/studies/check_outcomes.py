@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Does each window check refuse exactly the windows whose refinement hurt? (issue 19)
+"""Does each window check refuse exactly the windows whose refinement hurt?
 
 Runs SfM-TTR window by window over a sequence, in the node's windows (``window_size``,
 ``window_stride`` of the parameter file, every frame a keyframe), measuring every window check

@@ -1,4 +1,4 @@
-"""Live-serving latency with and without the background windows (issue 15 diagnosis).
+"""Live-serving latency with and without the background windows (where live latency goes).
 
 Feeds the first ``--frames`` frames of a KITTI-layout drive at ``--rate`` Hz into an
 :class:`~sfm_ttr_ros.core.online.OnlineRefiner` built from a parameter file, either to the live

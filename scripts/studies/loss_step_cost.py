@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Cost of one refinement step per ``refinement.loss`` (issue 16: a hybrid step ≤ 2x an SfM step).
+"""Cost of one refinement step per ``refinement.loss`` (is a hybrid step ≤ 2x an SfM step?).
 
 The network, its input size and the refinement settings come from the node's parameter file
 (default ``params/kitti.yaml``: the default model, encoder fixed up to its 1/4 map, channels-last)

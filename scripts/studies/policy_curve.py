@@ -1,4 +1,4 @@
-"""Abs rel along a drive for several benchmark runs (issue 15: weight policies over a drive).
+"""Abs rel along a drive for several benchmark runs (weight policies over a drive).
 
 Reads the ``per_frame.csv`` of ``sfm-ttr benchmark`` runs made on the same frames, averages one
 mode's abs rel over consecutive blocks of frames (``--block``, e.g. one window) and draws one

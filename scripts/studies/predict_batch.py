@@ -1,4 +1,4 @@
-"""Time and memory of a window's predictions by ``ttr.predict_batch`` (issue 15's memory).
+"""Time and memory of a window's predictions by ``ttr.predict_batch`` (the node's memory).
 
 A window predicts its frames twice (before and after refinement) through
 :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.predict`, ``predict_batch`` frames per forward pass.

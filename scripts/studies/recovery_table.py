@@ -1,4 +1,4 @@
-"""Live abs rel around a drive's bad segments (issue 19: recovery within two windows).
+"""Live abs rel around a drive's bad segments (recovery within two windows).
 
 Reads ``per_frame.csv`` of ``sfm-ttr benchmark`` runs on generated scenario drives and their
 ``segments.txt`` labels, and for every segment of a ``--bad`` kind lists one mode's mean abs rel

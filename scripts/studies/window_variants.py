@@ -1,4 +1,4 @@
-"""Repeat single windows and compare what the window checks see with what refinement did (issue 19).
+"""Repeat single windows and compare what the window checks see with what refinement did.
 
 pycolmap's multi-threaded mapper does not give the same reconstruction every run: on
 hololens_000 windows 1 and 3 come out in one of two (docs/decisions.md, "Window checks"), one
