@@ -1,9 +1,8 @@
-"""core/allocator.py: the node re-executes itself on mimalloc (default), jemalloc or a named
-library, once; glibc when asked for or when the library is not there."""
+"""core/allocator.py: the node re-executes itself on mimalloc (default) or a named library,
+once; glibc when asked for or when the library is not there."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import subprocess
 import sys
@@ -19,20 +18,17 @@ def fake_execve(calls):
 
 
 @pytest.fixture
-def fake_libraries(tmp_path, monkeypatch):
-    """Both named libraries as empty files under tmp_path; nothing mapped yet."""
-    libs = {name: tmp_path / f"lib{name}.so" for name in ("jemalloc", "mimalloc")}
-    for lib in libs.values():
-        lib.write_bytes(b"")
-    monkeypatch.setattr(allocator, "NAMED", {
-        n: dataclasses.replace(allocator.NAMED[n], find=lambda p=p: str(p))
-        for n, p in libs.items()})
+def fake_mimalloc(tmp_path, monkeypatch):
+    """mimalloc's library as an empty file under tmp_path; nothing mapped yet."""
+    lib = tmp_path / "libmimalloc.so"
+    lib.write_bytes(b"")
+    monkeypatch.setattr(allocator, "find_mimalloc", lambda: str(lib))
     monkeypatch.setattr(allocator, "mapped", lambda preloaded=None: None)
-    return libs
+    return lib
 
 
-def test_mimalloc_is_the_default_and_re_executes_once_with_its_options(fake_libraries):
-    lib = fake_libraries["mimalloc"]
+def test_mimalloc_is_the_default_and_re_executes_once_with_its_options(fake_mimalloc):
+    lib = fake_mimalloc
     calls = []
     note = allocator.preload({"LD_PRELOAD": "/x/other.so"}, ["py", "refiner", "--ros-args"],
                              fake_execve(calls))
@@ -47,35 +43,24 @@ def test_mimalloc_is_the_default_and_re_executes_once_with_its_options(fake_libr
     assert calls == [] and "could not be preloaded" in note and str(lib) in note
 
 
-def test_the_users_mimalloc_options_stand(fake_libraries):
+def test_the_users_mimalloc_options_stand(fake_mimalloc):
     calls = []
     allocator.preload({"MIMALLOC_ALLOW_THP": "1"}, ["py"], fake_execve(calls))
     assert calls[0][2]["MIMALLOC_ALLOW_THP"] == "1"
 
 
-def test_jemalloc_is_preloaded_without_mimallocs_options(fake_libraries):
-    calls = []
-    allocator.preload({allocator.ENV: "jemalloc"}, ["py"], fake_execve(calls))
-    env = calls[0][2]
-    assert env["LD_PRELOAD"] == str(fake_libraries["jemalloc"])
-    assert "MIMALLOC_ALLOW_THP" not in env
-
-
-def test_glibc_a_missing_library_or_a_bad_path_keep_glibc(tmp_path, fake_libraries, monkeypatch):
+def test_glibc_a_missing_library_or_a_bad_path_keep_glibc(tmp_path, fake_mimalloc, monkeypatch):
     calls = []
     assert allocator.preload({allocator.ENV: "glibc"}, ["py"], fake_execve(calls)) == (
         "malloc: glibc (SFM_TTR_MALLOC=glibc)")
-    monkeypatch.setattr(allocator, "NAMED", {
-        n: dataclasses.replace(named, find=lambda: None) for n, named in allocator.NAMED.items()})
-    note = allocator.preload({allocator.ENV: "jemalloc"}, ["py"], fake_execve(calls))
-    assert "not installed: apt install libjemalloc2" in note
+    monkeypatch.setattr(allocator, "find_mimalloc", lambda: None)
     note = allocator.preload({}, ["py"], fake_execve(calls))
     assert note.startswith("malloc: glibc") and "pip install cmeel-mimalloc" in note
     note = allocator.preload({allocator.ENV: str(tmp_path / "x.so")}, ["py"], fake_execve(calls))
     assert "no such file" in note and calls == []
 
 
-def test_an_explicit_path_is_preloaded_and_a_mapped_allocator_is_left(tmp_path, fake_libraries,
+def test_an_explicit_path_is_preloaded_and_a_mapped_allocator_is_left(tmp_path, fake_mimalloc,
                                                                     monkeypatch):
     lib = tmp_path / "libcustom-malloc.so"
     lib.write_bytes(b"")
@@ -83,10 +68,11 @@ def test_an_explicit_path_is_preloaded_and_a_mapped_allocator_is_left(tmp_path, 
     allocator.preload({allocator.ENV: str(lib)}, ["py"], fake_execve(calls))
     assert calls and calls[0][2]["LD_PRELOAD"] == str(lib)
     assert "MIMALLOC_ALLOW_THP" not in calls[0][2]
-    monkeypatch.setattr(allocator, "mapped", lambda preloaded=None: "jemalloc")
+    monkeypatch.setattr(allocator, "mapped", lambda preloaded=None: lib.name)
     calls.clear()
-    note = allocator.preload({allocator.ENV: "jemalloc"}, ["py"], fake_execve(calls))
-    assert note == "malloc: jemalloc (preloaded)" and not calls
+    note = allocator.preload({allocator.ENV: str(lib), allocator.PRELOADED_ENV: str(lib)},
+                             ["py"], fake_execve(calls))
+    assert note == f"malloc: {lib.name} ({lib})" and not calls
 
 
 def test_the_installed_wheel_provides_mimalloc():

@@ -12,7 +12,7 @@ innermost core function on its stack) and the stream's received / queued counter
         --warm-s 10 --drain-timeout 120 --exe ".venv/bin/python scripts/studies/heap_probe.py" \\
         --node-env HEAP_PROBE_OUT=probe.jsonl --out soak_probe
 
-The sampler thread starts before the node's ``limit_arenas`` and so has an arena of its own.
+The sampler thread starts before the node's threads and so has a malloc arena of its own.
 """
 
 from __future__ import annotations

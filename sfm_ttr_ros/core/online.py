@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from sfm_ttr_ros.core import heap, openmp
+from sfm_ttr_ros.core import openmp
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.live import WARM_UP_WAIT_S, LiveOutput, LiveServer, lower_thread_priority
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
@@ -194,8 +194,6 @@ class OnlineRefiner:
             self._revert(stats)
         if self.on_window is not None:
             self.on_window(stats)
-        if "sfm" in stats.timings:  # a window that ran SfM: its working set back to the OS
-            heap.release_free_heap()  # (core/heap.py; skipped windows free next to nothing)
 
     def _mark(self, window: int, what: str) -> None:
         """Note when ``window``'s weights were first swapped into serving (``what``: interim

@@ -77,7 +77,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
-from sfm_ttr_ros.core import allocator, heap
+from sfm_ttr_ros.core import allocator
 from sfm_ttr_ros.core.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
 from sfm_ttr_ros.core.diagnostics import StreamDiagnostics
 from sfm_ttr_ros.core.frames import Frame, InputError
@@ -288,8 +288,7 @@ class RefinerNode(Node):
         that cannot be read (any exception: it is the message that is bad) is dropped and
         counted as ``bad_image``."""
         try:
-            # queued frames live outside the malloc heap (core/heap.py: fragmentation)
-            rgb = heap.in_own_mapping(decode(msg))
+            rgb = decode(msg)
             stamp_ns = stamp_to_ns(msg.header.stamp)
             frame = Frame(index=self.stream.counters()["received"] + self.intrinsics.held,
                           image=rgb, stamp=stamp_to_seconds(msg.header.stamp),
@@ -447,7 +446,6 @@ class RefinerNode(Node):
 def main(args=None) -> int:
     """Entry point of ``ros2 run sfm_ttr_ros refiner``."""
     malloc_note = allocator.preload()  # mimalloc unless SFM_TTR_MALLOC says: core/allocator.py
-    heap.limit_arenas()  # before any thread starts (core/heap.py)
     dds_note = dds.apply_profile()  # before rclpy.init: Fast DDS reads it when it starts
     # Our own signal handling: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread, so the
     # worker is stopped BEFORE the context goes down (the executor spins with a timeout).
