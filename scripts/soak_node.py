@@ -401,7 +401,8 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
         "clean_exit": code == 0,
     }
     report = {
-        "command": " ".join(cmd), "minutes": args.minutes, "rate_hz": args.rate,
+        "command": " ".join(cmd), "node_env": args.node_env or [], "minutes": args.minutes,
+        "rate_hz": args.rate,
         "frames_sent": sent, "depth_refined_back": len(refined), "depth_live_back": len(live),
         "warm_up_s": warm, "rss_mib": {"at_warm_up": rss_at_warm, "peak_in_warm_up": peak_warm,
                                        "peak_after_warm_up": peak_after,
