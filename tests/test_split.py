@@ -57,7 +57,8 @@ def data(tmp_path_factory, tiny_plugin):
         seq = make_sequence(seed=k, domain="B", num_frames=N_FRAMES, width=320, height=96)
         write_kitti_drive(seq, root / f"d{k}" / "raw", root / f"d{k}" / "gt" if k != 4 else None,
                           drive_number=k, gt_skip_ends=GT_SKIP)
-    tiny_plugin(root / "split_tiny_model.py", 64, 192)
+    plugin = tiny_plugin(root / "split_tiny_model.py", 64, 192)
+    plugin.write_text(plugin.read_text() + PAUSING_FACTORY)
     write_small_kitti_params(REPO, root / "small.yaml")
     good = "".join(f"kitti {drive(k)} raw=d{k}/raw gt=d{k}/gt\n" for k in DRIVES)
     (root / "good.txt").write_text("# three generated drives\n" + good)
@@ -102,35 +103,34 @@ def frame_rows(out: Path) -> dict[tuple[str, str], dict]:
 # ---------------------------------------------------------------------------------------------
 
 
-#: Shadows the tiny model in the interrupted subprocess only (same model spec, so the same resume
-#: key): every model built after the first one waits, so that the SIGINT sent once the first
-#: sequence is stored lands while the split still runs, however fast the tiny sequences are.
-PAUSING_MODEL = """import importlib.util, time
-_spec = importlib.util.spec_from_file_location("_tiny_model", {real!r})
-_real = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_real)
-_built = []
+#: Appended to the tiny model's module: in a process whose environment sets
+#: :data:`PAUSE_ENV` (the interrupted subprocess only; same model spec, so the same resume key)
+#: every model built after the first waits, so that the SIGINT sent once the first sequence is
+#: stored lands while the split still runs, however fast the tiny sequences are.
+PAUSE_ENV = "SPLIT_TEST_PAUSE_AFTER_FIRST"
+PAUSING_FACTORY = f"""
 
+import os as _os
+import time as _time
 
-def factory(*args, **kwargs):
-    _built.append(1)
-    if len(_built) > 1:
-        time.sleep(60.0)
-    return _real.factory(*args, **kwargs)
+if _os.environ.get({PAUSE_ENV!r}):
+    _unpaused, _built = factory, []
+
+    def factory(*args, **kwargs):
+        _built.append(1)
+        if len(_built) > 1:
+            _time.sleep(60.0)
+        return _unpaused(*args, **kwargs)
 """
 
 
 @pytest.fixture(scope="module")
 def sequential(data):
     """The good split in a subprocess, SIGINT as soon as its first sequence is stored (its
-    later sequences wait: :data:`PAUSING_MODEL`); then the same command again in this
+    later sequences wait: :data:`PAUSING_FACTORY`); then the same command again in this
     process."""
     out = data / "sequential"
-    pausing = data / "pausing_model"
-    pausing.mkdir(exist_ok=True)
-    (pausing / "split_tiny_model.py").write_text(
-        PAUSING_MODEL.format(real=str(data / "split_tiny_model.py")))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(pausing), str(data), str(REPO)])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(data), str(REPO)]), PAUSE_ENV: "1"}
     proc = subprocess.Popen([sys.executable, "-m", "sfm_ttr_ros",
                              *split_args(data, "good.txt", out)], cwd=data, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
