@@ -133,7 +133,10 @@ def sequential(data):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(data), str(REPO)]), PAUSE_ENV: "1"}
     proc = subprocess.Popen([sys.executable, "-m", "sfm_ttr_ros",
                              *split_args(data, "good.txt", out)], cwd=data, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            # Ctrl-C's default even where this process ignores SIGINT (a child
+                            # inherits SIG_IGN, and Python then raises no KeyboardInterrupt)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     first = out / "sequences" / drive(1) / "sequence.json"
     deadline = time.monotonic() + 120
     while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
