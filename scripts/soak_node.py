@@ -62,6 +62,16 @@ def cpu_times() -> tuple[float, float]:
     return (f[7] if len(f) > 7 else 0.0), sum(f[:8])
 
 
+#: Decimals kept in the report's samples (0.1 ms, 0.0001 MiB): the figures need no more.
+SAMPLE_DECIMALS = 4
+
+
+def rounded(samples: list) -> list:
+    """Each sample (a tuple of numbers) with :data:`SAMPLE_DECIMALS` decimals, one line each."""
+    return [[round(x, SAMPLE_DECIMALS) if isinstance(x, float) else x for x in row]
+            for row in samples]
+
+
 def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
@@ -413,7 +423,8 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
                              "live": percentile([lat for _, lat in live], 50)},
         "diagnostics": d, "checks": checks, "ok": all(checks.values()), "exit_code": code,
         "node_live": _node_live_summary(node_live),
-        "samples": {"rss": rss, "live": live, "refined": refined, "node_live": node_live},
+        "samples": {k: rounded(v) for k, v in (("rss", rss), ("live", live),
+                                               ("refined", refined), ("node_live", node_live))},
         "log": str(log_path),
     }
     (out / "soak.json").write_text(json.dumps(report, indent=1, default=str))
