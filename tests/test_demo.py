@@ -8,12 +8,19 @@ else (node, parameters file, QoS, player, recorder, evaluation) is what `sfm-ttr
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
 
 from sfm_ttr_ros.core.models.registry import default_weights_available
-from sfm_ttr_ros.tools.demo import DemoOptions, _live_accounting, _live_line, run_demo
+from sfm_ttr_ros.tools.demo import (
+    DemoOptions,
+    _gain_by_part,
+    _live_accounting,
+    _live_line,
+    run_demo,
+)
 
 pytestmark = pytest.mark.skipif(not default_weights_available(),
                                 reason="default weights not trained yet")
@@ -43,6 +50,9 @@ def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     assert after["abs_rel"] < before["abs_rel"], (before, after)
     assert after["rmse"] < before["rmse"], (before, after)
     assert res["relative_gain"]["abs_rel"] > 0 and res["relative_gain"]["rmse"] > 0
+    # the live output by third of the drive, each third against no TTR on the same frames
+    thirds = res["relative_gain_live_by_third"]
+    assert len(thirds) == 3 and all(math.isfinite(g["abs_rel"]) for g in thirds), thirds
 
     out = tmp_path / "demo"
     assert json.loads((out / "results.json").read_text())["gt_frames"] == 14
@@ -88,3 +98,22 @@ def test_the_demo_takes_set_as_every_command_does():
                 "ttr.predict_batch=4"):
         with pytest.raises(InputError):
             refiner_command(Path("kitti.yaml"), [bad])
+
+
+def test_the_demo_gives_the_live_gain_by_third_of_the_drive_in_stamp_order():
+    from sfm_ttr_ros.core.evaluation import METRICS
+
+    def row(name, err):
+        return {**{m: err for m in METRICS}, "name": name}
+
+    # nine frames (the bag's order need not be the stamps'); no TTR errs 1.0 everywhere, the
+    # live output 1.0 on the start-up weights, then 0.8, then 0.5; a frame only no TTR has
+    # (skipped live) is left out of both
+    stamps = [f"{sec}.{ns:09d}" for sec, ns in [(9, 5), (10, 0), (10, 100), (10, 200),
+                                                (11, 0), (11, 50), (12, 0), (12, 1), (13, 0)]]
+    base = [row(s, 1.0) for s in stamps] + [row("14.000000000", 1.0)]
+    errors = [1.0] * 3 + [0.8] * 3 + [0.5] * 3
+    live = [row(s, e) for s, e in zip(stamps, errors, strict=True)][::-1]
+    thirds = _gain_by_part(base, live)
+    assert [round(g["abs_rel"], 6) for g in thirds] == [0.0, 0.2, 0.5]
+    assert [round(g["rmse"], 6) for g in thirds] == [0.0, 0.2, 0.5]

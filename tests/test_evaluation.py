@@ -11,6 +11,7 @@ import pytest
 from sfm_ttr_ros.core.evaluation import (
     EIGEN_CROP,
     MAX_DEPTH,
+    METRICS,
     MIN_DEPTH,
     EvalConfig,
     Evaluator,
@@ -19,6 +20,7 @@ from sfm_ttr_ros.core.evaluation import (
     evaluate_folders,
     evaluate_frame,
     format_table,
+    means_by_part,
     relative_gain,
     valid_mask,
 )
@@ -316,3 +318,13 @@ def test_relative_inverse_depth_is_fitted_in_disparity_per_frame():
     assert flat.summary()["skipped_frames"] == {"flat": "no_affine_fit"}
     with pytest.raises(InputError, match="prediction must be one of"):
         EvalConfig(prediction="disparity")
+
+
+def test_means_by_part_cuts_the_frames_in_order_into_nearly_equal_parts():
+    rows = [{m: float(k) for m in METRICS} for k in range(7)]
+    parts = means_by_part(rows, 3)
+    assert [p["frames"] for p in parts] == [2, 2, 3]
+    assert [p["abs_rel"] for p in parts] == [0.5, 2.5, 5.0]
+    assert [p["frames"] for p in means_by_part(rows[:2], 3)] == [1, 1]  # one part per row
+    with pytest.raises(ValueError):
+        means_by_part(rows, 0)

@@ -228,6 +228,16 @@ def mean_over_frames(rows: Sequence[Mapping[str, float]]) -> dict:
     return out
 
 
+def means_by_part(rows: Sequence[Mapping[str, float]], parts: int = 3) -> list[dict]:
+    """:func:`mean_over_frames` of ``rows`` cut, in their order, into ``parts`` consecutive
+    parts of (nearly) equal size, e.g. the first, middle and last third of a drive: how an
+    online output changes as its weights learn. Fewer rows than parts: one part per row."""
+    if parts < 1:
+        raise ValueError(f"parts must be >= 1, got {parts}")
+    n, k = len(rows), min(parts, max(len(rows), 1))
+    return [mean_over_frames(rows[i * n // k:(i + 1) * n // k]) for i in range(k)]
+
+
 @dataclass
 class Evaluator:
     """Accumulates frames and reports the protocol's means over frames."""
