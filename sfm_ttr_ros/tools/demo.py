@@ -337,11 +337,11 @@ def run_demo(opts: DemoOptions) -> dict:
     gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr"])
     # the live output against no TTR on the same frames (a live frame the node skipped, or
     # that was not recorded, is left out of both)
-    live_names = {r["name"] for r in evals["sfm_ttr_live"]["per_frame"]}
+    base_on_live, _ = _paired_by_stamp(evals["no_ttr"]["per_frame"],
+                                       evals["sfm_ttr_live"]["per_frame"])
     live_base = metrics["no_ttr"]
-    if live_names != {r["name"] for r in evals["no_ttr"]["per_frame"]}:
-        live_base = metrics["no_ttr (live's frames)"] = mean_over_frames(
-            [r for r in evals["no_ttr"]["per_frame"] if r["name"] in live_names])
+    if len(base_on_live) != len(evals["no_ttr"]["per_frame"]):
+        live_base = metrics["no_ttr (live's frames)"] = mean_over_frames(base_on_live)
     live_gain = relative_gain(live_base, metrics["sfm_ttr_live"])
     # ... and by third of the drive: the live output starts on the start-up weights and
     # improves as the windows' weights reach it
@@ -405,11 +405,19 @@ def _gain_by_part(base_rows: list[dict], live_rows: list[dict], parts: int = 3) 
     output's frames)."""
     from sfm_ttr_ros.core.evaluation import means_by_part, relative_gain
 
+    base, live = _paired_by_stamp(base_rows, live_rows)
+    return [relative_gain(b, a) for b, a in zip(means_by_part(base, parts),
+                                                means_by_part(live, parts), strict=True)]
+
+
+def _paired_by_stamp(base_rows: list[dict], live_rows: list[dict]) -> tuple[list, list]:
+    """(no TTR's rows, the live output's rows) on the live output's frames that no TTR has too
+    (a live frame the node skipped, or that was not recorded, is left out of both), in stamp
+    order (frames named ``sec.nanosec``)."""
     base = {r["name"]: r for r in base_rows}
     live = sorted((r for r in live_rows if r["name"] in base),
                   key=lambda r: tuple(int(x) for x in r["name"].split(".")))
-    before = means_by_part([base[r["name"]] for r in live], parts)
-    return [relative_gain(b, a) for b, a in zip(before, means_by_part(live, parts), strict=True)]
+    return [base[r["name"]] for r in live], live
 
 
 def _json_default(o):
