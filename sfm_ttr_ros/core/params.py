@@ -282,12 +282,6 @@ PARAMS: tuple[Param, ...] = (
        "so that photometric_weight balances the two terms at every depth; absolute = the "
        "paper's |s*D_sfm - D_nn| (in depth units: far points dominate). Loss sfm is always the "
        "paper's.", choices=SFM_RESIDUALS),
-    _p("refinement.sfm_parallax_boost", "refinement.sfm_parallax_boost", "hybrid loss only: "
-       "tau (pixels at the network's input size) of the SfM term's parallax boost: an SfM point "
-       "whose image motion between its frame and the photometric sources (moving it from its "
-       "SfM depth to infinity) is below tau weighs tau / motion times more, at most 10, so SfM "
-       "leads where the photometric loss cannot see depth (far away, little camera motion); "
-       "0 = off.", 0.0, 1e3),
     _p("weight_policy", "ttr.weight_policy", "Weights across windows: 'reset' (every window "
        "refines from the start-up weights), 'continue' (from the previous window's result), "
        "'continual' (continue, replaying earlier windows' supervision, pulled toward the "

@@ -322,29 +322,6 @@ def parallax(depth_target: torch.Tensor, K, T_source_from_target) -> torch.Tenso
     return _distance(near, far).reshape(n, 1, h, w)
 
 
-def point_parallax(pixels: np.ndarray, depths: np.ndarray, K,
-                   T_sources_from_target: Sequence) -> np.ndarray:
-    """:func:`parallax` at sparse points, the most over the sources: for each pixel p (N x 2, at
-    the size ``K`` is for) with depth z (network units, as the poses' translations),
-    max_s |π(K (R_s z K⁻¹ p̃ + t_s)) − π(K R_s K⁻¹ p̃)|, in pixels; 0 with no source. A point
-    behind a source's camera gets infinity from that source (no parallax bound there)."""
-    pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
-    z = np.asarray(depths, np.float64).reshape(-1)
-    K = np.asarray(K, np.float64)
-    rays = np.linalg.solve(K, np.vstack([pixels.T, np.ones(len(z))]))  # 3 x N
-    best = np.zeros(len(z))
-    for T in T_sources_from_target:
-        T = np.asarray(T, np.float64)
-        far = K @ (T[:3, :3] @ rays)
-        near = K @ (T[:3, :3] @ (rays * z) + T[:3, 3:])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            moved = np.hypot(near[0] / near[2] - far[0] / far[2],
-                             near[1] / near[2] - far[1] / far[2])
-        moved = np.where((near[2] > PROJECTION_EPS) & (far[2] > PROJECTION_EPS), moved, np.inf)
-        best = np.maximum(best, np.nan_to_num(moved, nan=np.inf))
-    return best
-
-
 def _distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """|a − b| of N x 2 x HW pixel positions, N x HW (elementwise: ``norm(dim=1)`` over the
     size-2 axis is ~20x slower on CPU)."""

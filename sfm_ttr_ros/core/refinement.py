@@ -56,7 +56,6 @@ from sfm_ttr_ros.core.photometric import (
     ScaleOutput,
     parse_offsets,
     photometric_objective,
-    point_parallax,
     prepare_frames,
     scale_outputs,
 )
@@ -76,7 +75,6 @@ LOSSES = ("auto", "sfm", "photometric", "hybrid")  # a step's objective, see _st
 #: How the hybrid loss's SfM term measures a point's residual: "absolute" |ŝ·D_sfm − D_nn|
 #: (Eq. (5)) or "relative" |ŝ·D_sfm − D_nn| / (ŝ·D_sfm), the same at 2 m and at 60 m.
 SFM_RESIDUALS = ("absolute", "relative")
-MAX_PARALLAX_BOOST = 10.0  # the most sfm_parallax_boost multiplies a point's weight by
 MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32 stages train
 
 
@@ -119,16 +117,8 @@ class RefinementConfig:
     # alike near and far (Eq. (5)'s term is in depth units and grows with depth); "absolute"
     # = Eq. (5) as it is. Loss "sfm" is always the paper's Eq. (5).
     sfm_residual: str = "relative"
-    # hybrid only: τ (px at the network's size) of the SfM term's parallax boost, 0 = off: a
-    # point whose photometric parallax (the most over its frame's sources, point_parallax) is
-    # below τ weighs τ / parallax times more, at most MAX_PARALLAX_BOOST: SfM supervises
-    # where the photometric term cannot see depth (the far field of a forward drive).
-    sfm_parallax_boost: float = 0.0
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.sfm_parallax_boost) and self.sfm_parallax_boost >= 0):
-            raise InputError(f"sfm_parallax_boost must be a number of pixels >= 0, got "
-                             f"{self.sfm_parallax_boost!r}")
         if self.sfm_residual not in SFM_RESIDUALS:
             raise InputError(f"sfm_residual must be one of {SFM_RESIDUALS}, got "
                              f"{self.sfm_residual!r}")
@@ -297,10 +287,8 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
         grids.append(normalized_grid(s.pixels, w, h).to(device))
         targets.append(torch.as_tensor(s.target, dtype=torch.float32, device=device))
         residual = cfg.sfm_residual if cfg.loss == "hybrid" else "absolute"
-        w_point = step_weights(s, residual)
-        if cfg.loss == "hybrid" and cfg.sfm_parallax_boost > 0 and s.name in by_name:
-            w_point = w_point * parallax_boost(s, by_name[s.name], cfg.sfm_parallax_boost)
-        weights.append(torch.as_tensor(w_point, dtype=torch.float32, device=device))
+        weights.append(torch.as_tensor(step_weights(s, residual), dtype=torch.float32,
+                                       device=device))
 
     pull = _anchor_pairs(model, params, anchor) if anchor is not None and anchor_weight > 0 \
         else []
@@ -360,21 +348,6 @@ def step_weights(s: FrameSupervision, sfm_residual: str = "absolute") -> np.ndar
     if sfm_residual == "relative":
         return w / np.maximum(np.abs(np.asarray(s.target, np.float64)), 1e-6)
     return w
-
-
-def parallax_boost(s: FrameSupervision, frame: PhotometricFrame, tau: float) -> np.ndarray:
-    """Per point of ``s``: clip(τ / parallax, 1, MAX_PARALLAX_BOOST), the parallax of the
-    point at its target depth ŝ·D_sfm in ``frame``'s sources (:func:`point_parallax`, pixels
-    at the network's size): the photometric term measures a depth by its image motion, SfM's
-    triangulation by the whole window's, so where the first sees under τ px SfM leads."""
-    h, w = s.image.shape[:2]
-    th, tw = frame.target.shape[-2:]
-    px = np.asarray(s.pixels, np.float64).copy()
-    px[:, 0] = (px[:, 0] + 0.5) * tw / w - 0.5
-    px[:, 1] = (px[:, 1] + 0.5) * th / h - 0.5
-    moved = point_parallax(px, s.target, frame.K, frame.poses)
-    with np.errstate(divide="ignore"):
-        return np.clip(tau / moved, 1.0, MAX_PARALLAX_BOOST)
 
 
 def _step_input(model: DepthModel, s: FrameSupervision, frozen_stages: int):
