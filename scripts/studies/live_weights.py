@@ -1,0 +1,117 @@
+"""What a window's weights are worth on the frames after it: the ceiling of the live output.
+
+Runs the node's windows one after another in window mode (``window_size`` frames of the params
+file, side by side, its weight policy and checks) and, before each window k+1, predicts that
+window's frames with the weights the live output would serve them at best (those left by window
+k, as if they arrived the moment window k ended), with those weights shrunk toward the start-up
+ones (θ₀ + α·(θ_k − θ₀) for each ``--alpha``), and with the start-up weights; then the window is
+refined and its own refined depth (the windowed output) is recorded too. Prints one JSON line
+per window and two summaries, over the windows after the first and over the whole sequence
+(abs rel, RMSE per variant and its share of the windowed gain). Not a check of the package: a
+measurement of the live output's ceiling and of a candidate for it.
+
+    H=../shared/data/hololens_000
+    .venv/bin/python scripts/studies/live_weights.py --images $H/images --intrinsics $H/K.txt \\
+        --gt-depth $H/depth --gt-scale 1000 --alpha 0.5 > live_weights.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def blended(theta0: dict, theta: dict, alpha: float) -> dict:
+    """θ₀ + α·(θ − θ₀) for every floating tensor; the others (counters) from θ."""
+    return {k: (theta0[k] + alpha * (v - theta0[k]) if v.is_floating_point() else v)
+            for k, v in theta.items()}
+
+
+def gain_shares(summary: dict[str, list[float]]) -> dict[str, list[float]]:
+    """Each variant's (abs rel, RMSE) gain over ``no_ttr`` as a share of ``windowed``'s."""
+    base, best = summary["no_ttr"], summary["windowed"]
+    return {v: [(base[i] - m[i]) / (base[i] - best[i]) for i in (0, 1)]
+            for v, m in summary.items()}
+
+
+def main() -> int:
+    from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+    from sfm_ttr_ros.core.models.registry import build_model
+    from sfm_ttr_ros.core.params import build, parse_overrides, read_params_file
+    from sfm_ttr_ros.core.pipeline import SfmTTR
+    from sfm_ttr_ros.core.refinement import restore_encoder, snapshot_encoder
+    from sfm_ttr_ros.tools.cli_args import open_sequence
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--kitti-raw")
+    ap.add_argument("--drive", default="2011_09_26_drive_0001_sync")
+    ap.add_argument("--kitti-gt")
+    ap.add_argument("--images")
+    ap.add_argument("--intrinsics")
+    ap.add_argument("--gt-depth")
+    ap.add_argument("--gt-scale", type=float, default=256.0)
+    ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    ap.add_argument("--alpha", type=float, nargs="*", default=[0.5])
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    seq = open_sequence(args)
+    settings = build({**read_params_file(args.params_file, "refiner"),
+                      **parse_overrides(args.set)})
+    size = settings.stream.window_size
+    model = build_model(settings.model)
+    ttr = SfmTTR(model, settings.ttr)
+    theta0 = snapshot_encoder(model)
+    variants = ["no_ttr", "carried"] + [f"alpha_{a:g}" for a in args.alpha] + ["windowed"]
+    after_first = {v: Evaluator(EvalConfig()) for v in variants}
+    whole = {v: Evaluator(EvalConfig()) for v in variants}
+
+    def predict_with(state, frames):
+        current = snapshot_encoder(model)
+        restore_encoder(model, state)
+        ttr.clear_prediction_cache()
+        depths = ttr.predict([f.image for f in frames])
+        restore_encoder(model, current)
+        ttr.clear_prediction_cache()
+        return depths
+
+    for k, start in enumerate(range(0, len(seq), size)):
+        frames = seq.frames(start, min(len(seq), start + size))
+        theta = snapshot_encoder(model)
+        depths = {"no_ttr": predict_with(theta0, frames), "carried": predict_with(theta, frames)}
+        for a in args.alpha:
+            depths[f"alpha_{a:g}"] = predict_with(blended(theta0, theta, a), frames)
+        res = ttr.process_window(frames, seq.intrinsics)
+        depths["windowed"] = [res.depths[f.name] for f in frames]
+        row = {"window": k, "frames": [start, start + len(frames) - 1], "refined": res.refined,
+               "reason": res.reason_key or res.reason}
+        for v in variants:
+            ev = Evaluator(EvalConfig())
+            for f, d in zip(frames, depths[v], strict=True):
+                gt = seq.gt(f.name)
+                if gt is not None:
+                    ev.add(f.name, d, gt)
+                    whole[v].add(f.name, d, gt)
+                    if k > 0:
+                        after_first[v].add(f.name, d, gt)
+            s = ev.summary()
+            row[v] = [s.get("abs_rel"), s.get("rmse")]
+        print(json.dumps(row), flush=True)
+    for name, evaluators in (("windows_after_the_first", after_first), ("whole", whole)):
+        summary = {v: [evaluators[v].summary().get(m) for m in ("abs_rel", "rmse")]
+                   for v in variants}
+        print(json.dumps({"frames": name, "abs_rel_rmse": summary,
+                          "share_of_windowed_gain": gain_shares(summary)}))
+    ttr.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
