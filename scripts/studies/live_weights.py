@@ -22,8 +22,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -42,31 +40,27 @@ def gain_shares(summary: dict[str, list[float]]) -> dict[str, list[float]]:
 
 def main() -> int:
     from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
-    from sfm_ttr_ros.core.models.registry import build_model
-    from sfm_ttr_ros.core.params import build, parse_overrides, read_params_file
+    from sfm_ttr_ros.core.params import build
     from sfm_ttr_ros.core.pipeline import SfmTTR
     from sfm_ttr_ros.core.refinement import restore_encoder, snapshot_encoder
-    from sfm_ttr_ros.tools.cli_args import open_sequence
+    from sfm_ttr_ros.tools.cli_args import (
+        add_parameter_args,
+        add_sequence_args,
+        build_model_for,
+        open_sequence,
+        parameter_values,
+    )
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kitti-raw")
-    ap.add_argument("--drive", default="2011_09_26_drive_0001_sync")
-    ap.add_argument("--kitti-gt")
-    ap.add_argument("--images")
-    ap.add_argument("--intrinsics")
-    ap.add_argument("--gt-depth")
-    ap.add_argument("--gt-scale", type=float, default=256.0)
-    ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
-    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
-    ap.add_argument("--alpha", type=float, nargs="*", default=[0.5])
-    ap.add_argument("--threads", type=int, default=2)
+    add_sequence_args(ap)
+    add_parameter_args(ap, (), "params/kitti.yaml")
+    ap.add_argument("--alpha", type=float, nargs="*", default=[0.5],
+                    help="shrink factors of the carried weights toward the start-up ones")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
     seq = open_sequence(args)
-    settings = build({**read_params_file(args.params_file, "refiner"),
-                      **parse_overrides(args.set)})
+    settings = build(parameter_values(args, REPO / "params" / "kitti.yaml")[1])
     size = settings.stream.window_size
-    model = build_model(settings.model)
+    model = build_model_for(settings)
     ttr = SfmTTR(model, settings.ttr)
     theta0 = snapshot_encoder(model)
     variants = ["no_ttr", "carried"] + [f"alpha_{a:g}" for a in args.alpha] + ["windowed"]
@@ -82,8 +76,9 @@ def main() -> int:
         ttr.clear_prediction_cache()
         return depths
 
-    for k, start in enumerate(range(0, len(seq), size)):
-        frames = seq.frames(start, min(len(seq), start + size))
+    stop = len(seq) if args.max_frames <= 0 else min(len(seq), args.start + args.max_frames)
+    for k, start in enumerate(range(args.start, stop, size)):
+        frames = seq.frames(start, min(stop, start + size))
         theta = snapshot_encoder(model)
         depths = {"no_ttr": predict_with(theta0, frames), "carried": predict_with(theta, frames)}
         for a in args.alpha:
