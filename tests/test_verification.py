@@ -24,6 +24,7 @@ from sfm_ttr_ros.core.verification import (
     frame_unsupported_change,
     held_out_tracks,
     probe_frames,
+    reprojection_refusal,
     sanity_check,
     scale_jump,
     split_supervision,
@@ -263,6 +264,49 @@ def test_the_unsupported_change_ratio_judges_a_window_against_the_streams_accept
     assert not validate({"check.unsupported_change_ratio": 5.0})
     assert cfg.interim_checkable and not CheckConfig().interim_checkable
     assert not CheckConfig(max_unsupported_change=0.1, holdout_fraction=0.2).interim_checkable
+
+
+def test_the_reprojection_ratio_judges_a_window_against_the_streams_accepted_ones():
+    cfg = CheckConfig(max_reprojection_ratio=1.3)
+    right = [0.70, 0.65]  # hololens_000's first two windows; its frames 30-44 came out at 0.92
+    assert "1.3 x 0.675 px (the median of the last 2 accepted" in reprojection_refusal(
+        cfg, 0.92, right)
+    assert reprojection_refusal(cfg, 0.87, right) == ""  # 1.29x: within the factor
+    assert reprojection_refusal(cfg, 0.92, [0.70]) == ""  # one window is no reference yet
+    assert reprojection_refusal(cfg, 0.92, [0.70, float("nan")]) == ""
+    assert reprojection_refusal(cfg, float("nan"), right) == ""
+    assert reprojection_refusal(CheckConfig(max_reprojection_ratio=0.0), 5.0, right) == ""
+    assert validate({"check.max_reprojection_ratio": 0.5})  # a factor >= 1 or 0
+    assert not validate({"check.max_reprojection_ratio": 1.3})
+    assert build({}).ttr.check.max_reprojection_ratio == 1.3  # the node's default
+
+
+def test_a_window_is_judged_against_the_reprojection_errors_of_accepted_windows_only():
+    from sfm_ttr_ros.core.alignment import AlignmentResult
+    from sfm_ttr_ros.core.checks import WindowChecks
+    from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
+
+    checks, cfg = WindowChecks(), CheckConfig(max_reprojection_ratio=1.3)
+    empty = np.zeros(0)
+    align = AlignmentResult(1.0, empty.astype(bool), empty.astype(bool))
+
+    def window(error: float) -> WindowCheck:
+        n = 5
+        obs = FrameObservations("a", np.zeros((n, 2)), np.full(n, 10.0), np.full(n, error),
+                                np.full(n, error), np.arange(n), np.eye(4))
+        sfm = SfmResult(True, "", 1, frames={"a": obs})
+        checks.begin_window()
+        return checks.before_refining(cfg, sfm, ["a"], empty, empty, align, scaled=False)
+
+    for error in (0.70, 0.65):
+        c = window(error)
+        assert c.reason_key == "" and c.reprojection_error == pytest.approx(error)
+        checks.accept(c, SfmResult(True, "", 1), [], 1.0, scaled=False)
+    wrong = window(0.92)
+    assert wrong.reason_key == "check_reprojection" and "0.675 px" in wrong.reason
+    # a refused window is no reference: the next is judged against the accepted two
+    assert window(0.88).reason_key == "check_reprojection"
+    assert window(0.80).reason_key == ""
 
 
 def test_interim_weights_are_checked_on_frames_spread_over_the_window():

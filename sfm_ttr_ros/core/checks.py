@@ -33,6 +33,7 @@ from sfm_ttr_ros.core.serving import finite_state
 from sfm_ttr_ros.core.sfm import SfmResult
 from sfm_ttr_ros.core.supervision import FrameSupervision
 from sfm_ttr_ros.core.verification import (
+    REPROJECTION_HISTORY,
     UNSUPPORTED_HISTORY,
     CheckConfig,
     PathReference,
@@ -43,6 +44,7 @@ from sfm_ttr_ros.core.verification import (
     parallax,
     path_reference,
     probe_frames,
+    reprojection_refusal,
     sanity_check,
     scale_jump,
     split_supervision,
@@ -63,6 +65,8 @@ class WindowChecks:
         self._previous: PathReference | None = None  # the reference of the running window
         # U of the last accepted windows: the reference of check.unsupported_change_ratio
         self.unsupported: deque[float] = deque(maxlen=UNSUPPORTED_HISTORY)
+        # mean reprojection errors of the last accepted windows (check.max_reprojection_ratio)
+        self.reprojection: deque[float] = deque(maxlen=REPROJECTION_HISTORY)
         self._interim: Callable[[], str] | None = None  # see interim_refusal()
         self.interim_unsupported = float("nan")  # U of the last interim weights checked
         self.interim_seconds = 0.0  # the window's time in interim checks (in its "refine")
@@ -94,6 +98,9 @@ class WindowChecks:
             c.scale_jump = scale_jump(path_reference(sfm, registered, align.scale),
                                       self._previous)
         sanity_check(config, c)
+        if not c.reason_key and (why := reprojection_refusal(config, c.reprojection_error,
+                                                             self.reprojection)):
+            c.reason_key, c.reason = "check_reprojection", why
         c.seconds = time.perf_counter() - t0
         return c
 
@@ -196,8 +203,10 @@ class WindowChecks:
     # -- 5. the reference of the next window -------------------------------------------------
     def accept(self, check: WindowCheck, sfm: SfmResult, registered: list[str], scale: float,
                scaled: bool) -> None:
-        """An accepted window: its camera path (``scaled`` only) and its unsupported change are
-        what the next windows are compared with."""
+        """An accepted window: its camera path (``scaled`` only), its unsupported change and its
+        mean reprojection error are what the next windows are compared with."""
         self.path = path_reference(sfm, registered, scale) if scaled else None
         if math.isfinite(check.unsupported_change):
             self.unsupported.append(check.unsupported_change)
+        if math.isfinite(check.reprojection_error):
+            self.reprojection.append(check.reprojection_error)

@@ -310,6 +310,11 @@ PARAMS: tuple[Param, ...] = (
     _p("check.max_reprojection_error", "check.max_reprojection_error", "Refuse a window "
        "whose mean SfM reprojection error exceeds this (px) before refining "
        "('check_reprojection'); 0 = off.", 0.0, 1e3),
+    _p("check.max_reprojection_ratio", "check.max_reprojection_ratio", "Refuse a window whose "
+       "mean SfM reprojection error exceeds this factor x the median of the stream's last 10 "
+       "accepted windows' (from the third window on; a reconstruction still wrong after the "
+       "mapper's retries: 'check_reprojection'); its frames keep the weights before it; 0 = "
+       "off.", 0.0, 1e3, constraints="0 or >= 1"),
     _p("check.min_track_length", "check.min_track_length", "Refuse a window whose 3D points "
        "are seen by fewer registered frames than this on average ('check_track_length'); 0 = "
        "off.", 0.0, 1e3),

@@ -9,7 +9,13 @@ served or kept. Not in the paper.
 1. Sanity checks (cheap, before any refinement step; :func:`sanity_check`), each with a threshold
    in :class:`CheckConfig` (0 = off) and a reason key of :data:`CHECK_REASONS`:
 
-   * mean reprojection error of the window's observations  r̄ = mean r_lj  ≤ max (px);
+   * mean reprojection error of the window's observations  r̄ = mean r_lj  ≤ max (px), and
+     relative to the stream (``max_reprojection_ratio`` k > 0, :func:`reprojection_refusal`):
+     r̄ ≤ k · median r̄ of its last REPROJECTION_HISTORY accepted windows (at least
+     REPROJECTION_MIN_HISTORY of them): a reconstruction that stays wrong after the mapper's
+     retries fits its observations worse than the stream's right ones (hololens_000: 1.36–1.55x
+     against ≤ 1.2x for right ones, indoors and driving), and refined on it the network gets
+     worse, while the window's frames keep the weights before it;
    * mean track length (observations per 3D point inside the window)  ≥ min;
    * parallax: the diameter of the registered camera centres over the median SfM depth,
      max_jk ‖C_j − C_k‖ / median D_sfm  ≥ min (scale-free; the paper's low-parallax weak spot:
@@ -114,6 +120,10 @@ UNSUPPORTED_HISTORY = 10
 #: the demo drive moved 4-10x the first's U, 0.025-0.046 against 0.0046-0.0063, and was refused
 #: when the reference was that one window; BENCHMARKS.md "Window checks")
 UNSUPPORTED_MIN_HISTORY = 3
+#: accepted windows whose mean reprojection error is the reference of max_reprojection_ratio
+REPROJECTION_HISTORY = 10
+#: accepted windows that reference needs before the ratio refuses any
+REPROJECTION_MIN_HISTORY = 2
 #: registered frames on which interim weights are checked before they are served (one network
 #: forward each per preview: 2 x 7 previews x ~45 ms on one core, ~6 % of a KITTI window)
 INTERIM_PROBE_FRAMES = 2
@@ -126,6 +136,7 @@ class CheckConfig:
     holdout_fraction: float = 0.0  # share of the window's tracks held out of refinement
     holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
+    max_reprojection_ratio: float = 1.3  # x the median error of the stream's accepted windows
     min_track_length: float = 0.0  # mean observations per 3D point
     min_parallax: float = 0.1  # camera-centre diameter / median SfM depth
     min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
@@ -137,8 +148,9 @@ class CheckConfig:
 
     def __post_init__(self) -> None:
         for name in ("holdout_fraction", "holdout_margin", "max_reprojection_error",
-                     "min_track_length", "min_parallax", "min_inlier_ratio", "max_scale_spread",
-                     "max_scale_jump", "max_unsupported_change", "unsupported_change_ratio"):
+                     "max_reprojection_ratio", "min_track_length", "min_parallax",
+                     "min_inlier_ratio", "max_scale_spread", "max_scale_jump",
+                     "max_unsupported_change", "unsupported_change_ratio"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"check.{name} must be a finite number >= 0, got {v}")
@@ -154,7 +166,8 @@ class CheckConfig:
         if self.min_inlier_ratio > 1:
             raise InputError(f"check.min_inlier_ratio must lie in [0, 1], got "
                              f"{self.min_inlier_ratio}")
-        for name in ("max_scale_spread", "max_scale_jump", "unsupported_change_ratio"):
+        for name in ("max_scale_spread", "max_scale_jump", "unsupported_change_ratio",
+                     "max_reprojection_ratio"):
             v = float(getattr(self, name))
             if 0 < v < 1:
                 raise InputError(f"check.{name} is a factor >= 1 (or 0 = off), got {v}")
@@ -402,6 +415,23 @@ def unsupported_change(before: Mapping[str, np.ndarray], after: Mapping[str, np.
               for n, p in pixels.items() if n in before and n in after]
     values = [v for v in values if math.isfinite(v)]
     return float(np.mean(values)) if values else float("nan")
+
+
+def reprojection_refusal(config: CheckConfig, value: float,
+                         history: Sequence[float] = ()) -> str:
+    """Why the window's mean reprojection error ``value`` refuses it against the stream ("" =
+    accepted): above ``max_reprojection_ratio`` x the median of ``history``, the errors of the
+    stream's last accepted windows; nothing is refused with the ratio 0, a NaN value or fewer
+    than REPROJECTION_MIN_HISTORY of them."""
+    k = config.max_reprojection_ratio
+    past = [v for v in history if math.isfinite(v)]
+    if k <= 0 or not math.isfinite(value) or len(past) < REPROJECTION_MIN_HISTORY:
+        return ""
+    reference = float(np.median(past))
+    if value <= k * reference:
+        return ""
+    return (f"mean reprojection error {value:.3g} px > check.max_reprojection_ratio {k:g} x "
+            f"{reference:.3g} px (the median of the last {len(past)} accepted windows)")
 
 
 def unsupported_refusal(config: CheckConfig, value: float,
