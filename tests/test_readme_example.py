@@ -37,7 +37,9 @@ def test_the_readme_python_example_runs_on_a_small_generated_drive(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=180, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]
-    lines = out.stdout.splitlines()
-    assert re.search(r"frames registered$", lines[0]), out.stdout
+    # numpy's OpenBLAS now and then prints its own "BLAS : Bad memory unallocation!" to stdout
+    # (seen once in CI, exit code 0, the example's output intact): not the example's output
+    lines = [line for line in out.stdout.splitlines() if not line.startswith("BLAS : ")]
+    assert lines and re.search(r"frames registered$", lines[0]), out.stdout
     for name in ("before", "after"):
         assert any(re.fullmatch(rf"{name} abs rel 0\.\d+", line) for line in lines), out.stdout
