@@ -13,8 +13,8 @@ served or kept. Not in the paper.
      relative to the stream (``max_reprojection_ratio`` k > 0, :func:`reprojection_refusal`):
      r̄ ≤ k · median r̄ of its last REPROJECTION_HISTORY accepted windows (at least
      REPROJECTION_MIN_HISTORY of them): a reconstruction that stays wrong after the mapper's
-     retries fits its observations worse than the stream's right ones (hololens_000: 1.36–1.55x
-     against ≤ 1.2x for right ones, indoors and driving), and refined on it the network gets
+     retries fits its observations worse than the stream's right ones (hololens_000: 1.31–1.40x
+     against ≤ 1.18x for right ones, indoors and driving), and refined on it the network gets
      worse, while the window's frames keep the weights before it;
    * mean track length (observations per 3D point inside the window)  ≥ min;
    * parallax: the diameter of the registered camera centres over the median SfM depth,
@@ -136,7 +136,7 @@ class CheckConfig:
     holdout_fraction: float = 0.0  # share of the window's tracks held out of refinement
     holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
-    max_reprojection_ratio: float = 1.3  # x the median error of the stream's accepted windows
+    max_reprojection_ratio: float = 1.25  # x the median error of the stream's accepted windows
     min_track_length: float = 0.0  # mean observations per 3D point
     min_parallax: float = 0.1  # camera-centre diameter / median SfM depth
     min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
