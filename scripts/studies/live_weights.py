@@ -39,7 +39,7 @@ def gain_shares(summary: dict[str, list[float]]) -> dict[str, list[float]]:
 
 
 def main() -> int:
-    from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+    from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator, mean_over_frames
     from sfm_ttr_ros.core.params import build
     from sfm_ttr_ros.core.pipeline import SfmTTR
     from sfm_ttr_ros.core.refinement import restore_encoder, snapshot_encoder
@@ -64,8 +64,9 @@ def main() -> int:
     ttr = SfmTTR(model, settings.ttr)
     theta0 = snapshot_encoder(model)
     variants = ["no_ttr", "carried"] + [f"alpha_{a:g}" for a in args.alpha] + ["windowed"]
-    after_first = {v: Evaluator(EvalConfig()) for v in variants}
-    whole = {v: Evaluator(EvalConfig()) for v in variants}
+    evaluator = Evaluator(EvalConfig())
+    # per variant, each GT frame's metrics once: (window index, metrics)
+    frame_metrics: dict[str, list[tuple[int, dict]]] = {v: [] for v in variants}
 
     def predict_with(state, frames):
         current = snapshot_encoder(model)
@@ -88,20 +89,18 @@ def main() -> int:
         row = {"window": k, "frames": [start, start + len(frames) - 1], "refined": res.refined,
                "reason": res.reason_key or res.reason}
         for v in variants:
-            ev = Evaluator(EvalConfig())
             for f, d in zip(frames, depths[v], strict=True):
                 gt = seq.gt(f.name)
-                if gt is not None:
-                    ev.add(f.name, d, gt)
-                    whole[v].add(f.name, d, gt)
-                    if k > 0:
-                        after_first[v].add(f.name, d, gt)
-            s = ev.summary()
-            row[v] = [s.get("abs_rel"), s.get("rmse")]
+                r = evaluator.add(f.name, d, gt) if gt is not None else None
+                if r is not None:
+                    frame_metrics[v].append((k, r.metrics))
+            s = mean_over_frames([m for w, m in frame_metrics[v] if w == k])
+            row[v] = [s["abs_rel"], s["rmse"]]
         print(json.dumps(row), flush=True)
-    for name, evaluators in (("windows_after_the_first", after_first), ("whole", whole)):
-        summary = {v: [evaluators[v].summary().get(m) for m in ("abs_rel", "rmse")]
-                   for v in variants}
+    for name, first in (("windows_after_the_first", 1), ("whole", 0)):
+        means = {v: mean_over_frames([m for w, m in frame_metrics[v] if w >= first])
+                 for v in variants}
+        summary = {v: [means[v]["abs_rel"], means[v]["rmse"]] for v in variants}
         print(json.dumps({"frames": name, "abs_rel_rmse": summary,
                           "share_of_windowed_gain": gain_shares(summary)}))
     ttr.close()

@@ -417,11 +417,13 @@ def unsupported_change(before: Mapping[str, np.ndarray], after: Mapping[str, np.
     return float(np.mean(values)) if values else float("nan")
 
 
-def stream_reference(history: Sequence[float], min_history: int) -> float:
-    """The median of the finite values of ``history`` (a statistic of the stream's last
-    accepted windows); NaN with fewer than ``min_history`` of them (no reference yet)."""
+def stream_reference(history: Sequence[float], min_history: int) -> tuple[float, int]:
+    """(the median of the finite values of ``history``, a statistic of the stream's last
+    accepted windows; how many there are): the median is NaN with fewer than ``min_history``
+    of them (no reference yet)."""
     past = [v for v in history if math.isfinite(v)]
-    return float(np.median(past)) if past and len(past) >= min_history else float("nan")
+    n = len(past)
+    return (float(np.median(past)) if past and n >= min_history else float("nan")), n
 
 
 def reprojection_refusal(config: CheckConfig, value: float,
@@ -431,10 +433,9 @@ def reprojection_refusal(config: CheckConfig, value: float,
     stream's last accepted windows; nothing is refused with the ratio 0, a NaN value or fewer
     than REPROJECTION_MIN_HISTORY of them."""
     k = config.max_reprojection_ratio
-    reference = stream_reference(history, REPROJECTION_MIN_HISTORY)
+    reference, n = stream_reference(history, REPROJECTION_MIN_HISTORY)
     if k <= 0 or not (value > k * reference):  # NaN value or no reference: not refused
         return ""
-    n = sum(math.isfinite(v) for v in history)
     return (f"mean reprojection error {value:.3g} px > check.max_reprojection_ratio {k:g} x "
             f"{reference:.3g} px (the median of the last {n} accepted windows)")
 
@@ -453,10 +454,9 @@ def unsupported_refusal(config: CheckConfig, value: float,
     k = config.unsupported_change_ratio
     if k <= 0:
         return why
-    reference = stream_reference(history, UNSUPPORTED_MIN_HISTORY)
+    reference, n = stream_reference(history, UNSUPPORTED_MIN_HISTORY)
     if not (value > k * reference):  # no reference yet: not refused
         return ""
-    n = sum(math.isfinite(v) for v in history)
     return (f"{why} and > check.unsupported_change_ratio {k:g} x {reference:.3g} (the median "
             f"of the last {n} accepted windows)")
 
