@@ -70,8 +70,10 @@ def test_fallback_uses_the_image_centre_for_zero_cx_cy_and_yields_to_camera_info
     params.update(cx=10.0, cy=20.0)
     assert r.intrinsics_for((W, H), None).cx == 10.0
     assert r.intrinsics_for((W, H), None).cy == 20.0
+    assert f.fallback_intrinsics  # marked: the stream lets received intrinsics replace them
     r.add_intrinsics(CAM_A, 5 * S)  # any CameraInfo beats the fallback from now on
-    assert r.add_frame(frame(2), 6 * S).ready[0][1] == CAM_A
+    (f, intr), = r.add_frame(frame(2), 6 * S).ready
+    assert intr == CAM_A and not f.fallback_intrinsics
 
 
 def test_frames_without_intrinsics_are_held_bounded_and_released_oldest_first():

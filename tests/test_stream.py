@@ -326,6 +326,27 @@ def test_resolution_change_flushes_pending_frames():
     check_accounting(stream, outs, 8)
 
 
+def test_the_first_received_intrinsics_replace_the_fallback_for_pending_frames():
+    """Images that came before their camera's first CameraInfo (on the fallback fx, fy) stay in
+    their window and take the received intrinsics; a later change still starts a new window."""
+    ttr = ScriptedTTR()
+    stream = StreamProcessor(ttr, StreamSettings(window_size=3, window_stride=3))
+    early = frames(2)
+    for f in early:
+        f.fallback_intrinsics = True
+    fallback = Intrinsics(70.0, 70.0, 31.5, 15.5, W, H)
+    outs = run(stream, early, fallback)
+    outs += run(stream, frames(4, start=1.0), INTR)
+    assert [o.reason_key for o in outs] == [""] * 6
+    assert ttr.windows[0] == ["0000000000", "0000000001", "0000000002"]
+    assert stream._intr == INTR
+    # once received intrinsics are in use, another camera is a change: a new window
+    outs += run(stream, frames(1, start=2.0), INTR)
+    outs += run(stream, frames(1, start=3.0), fallback)
+    assert [o.reason_key for o in outs[6:]] == ["intrinsics_change"]
+    check_accounting(stream, outs, 8)
+
+
 def test_duplicate_and_non_monotonic_stamps():
     ttr = ScriptedTTR()
     stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))

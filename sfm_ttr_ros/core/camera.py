@@ -4,7 +4,9 @@ For each frame, the first that applies:
 
 1. the intrinsics received with the frame's exact stamp (the last ``keep_by_stamp`` = 64 kept);
 2. the latest intrinsics received;
-3. the fallback fx, fy (both > 0; cx, cy = 0 mean the image centre, ``(size - 1) / 2``);
+3. the fallback fx, fy (both > 0; cx, cy = 0 mean the image centre, ``(size - 1) / 2``): the
+   frame is marked (``Frame.fallback_intrinsics``), and the stream lets the first received
+   intrinsics of the same image size replace them for the frames it still holds;
 4. none: the frame is HELD, at most ``max_held`` of them (beyond that the oldest is dropped,
    reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known.
 
@@ -99,16 +101,22 @@ class IntrinsicsResolver:
     def intrinsics_for(self, size: tuple[int, int], stamp_ns: int | None) -> Intrinsics | None:
         """The intrinsics of a ``size`` = (width, height) frame stamped ``stamp_ns`` (rules 1-3),
         or None (the frame would be held)."""
+        return self._resolve(size, stamp_ns)[0]
+
+    def _resolve(self, size: tuple[int, int],
+                 stamp_ns: int | None) -> tuple[Intrinsics | None, bool]:
+        """(intrinsics or None, whether they are the fallback's: rule 3)."""
         if stamp_ns is not None:
             intr = self._by_stamp.get(int(stamp_ns))
             if intr is not None:
-                return intr
+                return intr, False
         if self._latest is not None:
-            return self._latest
+            return self._latest, False
         try:
-            return self._fallback().for_size(*size)
+            intr = self._fallback().for_size(*size)
         except InputError:  # a fallback that cannot describe any image: as if unset (held)
-            return None
+            return None, False
+        return intr, intr is not None
 
     def add_intrinsics(self, intr: Intrinsics, stamp_ns: int) -> Resolved:
         """Intrinsics received (a CameraInfo) for ``stamp_ns``: remembered, held frames released."""
@@ -138,7 +146,7 @@ class IntrinsicsResolver:
         ready = []
         while self._held:
             frame, stamp_ns = self._held[0]
-            intr = self.intrinsics_for(frame.size, stamp_ns)
+            intr, frame.fallback_intrinsics = self._resolve(frame.size, stamp_ns)
             if intr is None:
                 break
             self._held.popleft()

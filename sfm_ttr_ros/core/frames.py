@@ -104,6 +104,9 @@ class Frame:
     # set by the live server (core/live.py) once the frame's depth went out on the live output:
     # the stream then need not predict it again when no window refines it (republish_unrefined)
     served_live: bool = field(default=False, repr=False, compare=False)
+    # set by the intrinsics resolver (core/camera.py) when the frame got the fallback fx, fy:
+    # the stream lets the first received intrinsics replace them while it holds the frame
+    fallback_intrinsics: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.name:

@@ -41,6 +41,9 @@ Model of the stream
   while a window refines (~90 frames arrive meanwhile at 10 Hz, 1.4 MB each at 1242x375).
 * Resolution / intrinsics change: every unpublished keyframe is published unrefined
   (``resolution_change`` / ``intrinsics_change``) and a new window starts with the new frame.
+  Not when the first received intrinsics replace the fallback's (``Frame.fallback_intrinsics``)
+  for an image of the same size: the pending frames take them (logged), since the fallback only
+  stood in for the camera's CameraInfo.
   A frame whose intrinsics are for another image size is published unrefined
   (``intrinsics_mismatch``) and kept out of the windows.
 * Stamps: a frame with the same stamp as the previous frame is rejected (a duplicated message):
@@ -327,6 +330,7 @@ class StreamProcessor:
         # worker-side state (only touched by the thread that calls step / push / flush)
         self._buffer: list[_Entry] = []
         self._intr: Intrinsics | None = None
+        self._intr_fallback = False  # self._intr are the fallback's (replaced by received ones)
         self._last_stamp: float | None = None
         self._kf_stamp: float | None = None
         self._kf_thumb: np.ndarray | None = None
@@ -540,15 +544,12 @@ class StreamProcessor:
             return outs
         if self._intr is not None and intr != self._intr:
             size_changed = (intr.width, intr.height) != (self._intr.width, self._intr.height)
-            key = "resolution_change" if size_changed else "intrinsics_change"
-            what = (f"image size changed from {self._intr.width}x{self._intr.height} to "
-                    f"{intr.width}x{intr.height}" if size_changed else
-                    f"intrinsics changed from {self._intr} to {intr}")
-            self.log.warning(f"{what}: {self._n_unpublished} pending frame(s) published "
-                             "unrefined and a new window started")
-            outs += self._flush_unrefined(key, what)
-            self._kf_stamp = self._kf_thumb = None
-        self._intr = intr
+            if self._intr_fallback and not frame.fallback_intrinsics and not size_changed:
+                self.log.info(f"intrinsics received: {intr} replace the fallback {self._intr} "
+                              f"for the {self._n_unpublished} pending frame(s)")
+            else:
+                outs += self._intrinsics_changed(intr, size_changed)
+        self._intr, self._intr_fallback = intr, frame.fallback_intrinsics
 
         if not self._is_keyframe(frame, s):
             outs += self._unrefined([frame], "not_keyframe", "not a keyframe")
@@ -561,6 +562,18 @@ class StreamProcessor:
             outs += self._run_window(self._buffer[-max(size, n_new):])
             keep = s.window_size - s.window_stride
             self._buffer = self._buffer[len(self._buffer) - keep:] if keep > 0 else []
+        return outs
+
+    def _intrinsics_changed(self, intr: Intrinsics, size_changed: bool) -> list[FrameOutput]:
+        """The camera changed: the pending frames are published unrefined, a new window starts."""
+        key = "resolution_change" if size_changed else "intrinsics_change"
+        what = (f"image size changed from {self._intr.width}x{self._intr.height} to "
+                f"{intr.width}x{intr.height}" if size_changed else
+                f"intrinsics changed from {self._intr} to {intr}")
+        self.log.warning(f"{what}: {self._n_unpublished} pending frame(s) published "
+                         "unrefined and a new window started")
+        outs = self._flush_unrefined(key, what)
+        self._kf_stamp = self._kf_thumb = None
         return outs
 
     def _is_keyframe(self, frame: Frame, s: StreamSettings) -> bool:
