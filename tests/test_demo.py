@@ -117,3 +117,38 @@ def test_the_demo_gives_the_live_gain_by_third_of_the_drive_in_stamp_order():
     thirds = _gain_by_part(base, live)
     assert [round(g["abs_rel"], 6) for g in thirds] == [0.0, 0.2, 0.5]
     assert [round(g["rmse"], 6) for g in thirds] == [0.0, 0.2, 0.5]
+
+
+def test_the_demo_writes_an_image_folder_as_a_kitti_drive(tmp_path):
+    """``--images/--intrinsics/--gt-depth``: the folder's frames, K and GT reach the KITTI
+    layouts the rest of the demo reads; a frame without GT gets none."""
+    import cv2
+    import numpy as np
+
+    from sfm_ttr_ros.core.frames import InputError
+    from sfm_ttr_ros.data.sequence import open_kitti
+    from sfm_ttr_ros.tools.demo import _image_folder_drive
+
+    rng = np.random.default_rng(0)
+    images, gt_dir = tmp_path / "images", tmp_path / "depth"
+    images.mkdir()
+    gt_dir.mkdir()
+    rgb = [rng.integers(0, 255, (48, 64, 3), np.uint8) for _ in range(3)]
+    depth_mm = rng.integers(500, 9000, (48, 64)).astype(np.uint16)
+    for i, img in enumerate(rgb):
+        cv2.imwrite(str(images / f"{i + 7:05d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        if i != 1:  # frame 1 has no GT
+            cv2.imwrite(str(gt_dir / f"{i + 7:05d}.png"), depth_mm)
+    (tmp_path / "K.txt").write_text("50 0 31.5\n0 51 23.5\n0 0 1\n")
+    opts = DemoOptions(images=str(images), intrinsics=str(tmp_path / "K.txt"),
+                       gt_depth=str(gt_dir), gt_scale=1000.0)
+    raw, gt, drive = _image_folder_drive(opts, tmp_path / "out")
+
+    seq = open_kitti(raw, drive, gt)
+    assert (seq.intrinsics.fx, seq.intrinsics.fy, seq.intrinsics.cx) == (50.0, 51.0, 31.5)
+    assert all(np.array_equal(f.image, img) for f, img in zip(seq.frames(), rgb, strict=True))
+    assert seq.gt(seq.names[1]) is None
+    np.testing.assert_allclose(seq.gt(seq.names[2]), depth_mm / 1000.0, atol=1 / 256)
+    with pytest.raises(InputError, match="--gt-depth"):
+        _image_folder_drive(DemoOptions(images=str(images), intrinsics=str(tmp_path / "K.txt")),
+                            tmp_path / "out2")

@@ -394,6 +394,32 @@ def test_live_settings_and_config_take_effect_at_the_next_window():
     check_accounting(stream, outs, 5)
 
 
+def test_a_camera_slower_than_idle_flush_s_is_not_taken_for_a_stopped_one():
+    """Frames every 0.25 s with ``idle_flush_s`` 0.1: windows stay whole (the flush waits 3
+    frame intervals); once the frames stop, the rest is flushed as a final window."""
+    ttr = ScriptedTTR(delay=0.0)
+    outs: list[FrameOutput] = []
+    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4,
+                                                 idle_flush_s=0.1), on_output=outs.append)
+    stop = threading.Event()
+    t = threading.Thread(target=lambda: [stream.step(timeout=0.02) for _ in iter(stop.is_set,
+                                                                             True)])
+    t.start()
+    try:
+        for f in frames(6):
+            stream.submit(f, INTR)
+            time.sleep(0.25)
+        deadline = time.monotonic() + 10
+        while len(outs) < 6 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        t.join(5)
+    assert [len(w) for w in ttr.windows] == [4, 2], ttr.windows
+    assert stream._idle_after() == pytest.approx(0.75, rel=0.3)
+    check_accounting(stream, outs, 6)
+
+
 def test_idle_flush_and_worker_thread_cancel():
     ttr = ScriptedTTR(delay=0.0)
     outs: list[FrameOutput] = []

@@ -170,8 +170,11 @@ class WindowChecks:
         encoder weight, or a loss after refinement above ``max_loss_ratio`` x the loss before
         (the refinement exploded)."""
         history = np.asarray(loss_history, np.float64)
-        if not np.all(np.isfinite(history)) or not math.isfinite(loss_after):
-            return "non-finite loss"
+        bad = np.flatnonzero(~np.isfinite(history))
+        if bad.size:
+            return f"non-finite loss from step {bad[0] + 1} of {history.size}"
+        if not math.isfinite(loss_after):
+            return "non-finite loss after refining"
         if not finite_state(encoder.state_dict()):
             return "non-finite weights"
         if max_loss_ratio > 0 and loss_after > max_loss_ratio * loss_before:

@@ -146,9 +146,10 @@ PARAMS: tuple[Param, ...] = (
     _p("max_pending", "stream.max_pending", "Bound of the input queue (and of the frames held "
        "while no intrinsics are known); when full the OLDEST pending frame is dropped and "
        "counted.", 1, 1_000_000, **_START_UP),
-    _p("idle_flush_s", "stream.idle_flush_s", "After this long without input, frames waiting in "
-       "an incomplete window are processed as a final partial window; 0 = wait for more "
-       "frames.", 0.0, 3600.0),
+    _p("idle_flush_s", "stream.idle_flush_s", "After this long without input, and at least 3 "
+       "of the stream's median frame intervals (a slow camera is not a stopped one), frames "
+       "waiting in an incomplete window are processed as a final partial window; 0 = wait for "
+       "more frames.", 0.0, 3600.0),
     _p("live_max_queue", "stream.live_max_queue", "Bound of the live-serving queue: when a "
        "frame arrives while this many wait for their live depth, the OLDEST is skipped and "
        "counted.", 1, 10_000, **_START_UP),

@@ -50,8 +50,11 @@ Model of the stream
   dropped and counted (``dropped["duplicate_stamp"]``). A stamp earlier than the previous one
   (a bag restarted, a clock reset) is counted (``non_monotonic_stamps``), logged, the unpublished
   keyframes are published unrefined (``stamp_jump_back``) and a new window starts with it.
-* Idle flush: when no frame arrived for ``idle_flush_s`` (> 0) and frames are waiting in an
-  incomplete window, :meth:`step` runs :meth:`flush` (end of a bag, a paused camera).
+* Idle flush: when no frame arrived for ``idle_flush_s`` (> 0), and for at least
+  :data:`IDLE_INTERVALS` of the stream's median frame interval (so a camera slower than
+  ``idle_flush_s`` is not taken for a stopped one; after the first frame IDLE_INTERVALS x
+  ``idle_flush_s``), and frames are waiting in an incomplete window, :meth:`step` runs
+  :meth:`flush` (end of a bag, a paused camera).
 * :meth:`flush` (end of stream) runs a final partial window over the buffer when it holds at
   least 2 frames with something unpublished, else publishes the rest unrefined (``end_of_stream``).
   A node shutting down does NOT flush (it must exit fast): what is still pending then is only
@@ -110,6 +113,10 @@ DROP_REASONS = {
 }
 
 THUMB_WIDTH = 64
+# the idle flush waits at least this many median frame intervals of the last
+# IDLE_CADENCE_FRAMES arrivals (a 0.5 Hz camera with idle_flush_s 2 s: 6 s)
+IDLE_INTERVALS = 3.0
+IDLE_CADENCE_FRAMES = 10
 #: The image of a frame whose pixels are no longer kept: a queued frame released by the backlog
 #: bound (see the module docstring), a window's cloud frame in the history (:class:`WindowStats`).
 RELEASED_IMAGE = np.zeros((0, 0, 3), np.uint8)
@@ -325,6 +332,7 @@ class StreamProcessor:
         self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
         self._cancelled = False
         self._last_input = time.monotonic()
+        self._arrivals: deque[float] = deque(maxlen=IDLE_CADENCE_FRAMES + 1)  # monotonic s
         self._throttle = Throttle()
 
         # worker-side state (only touched by the thread that calls step / push / flush)
@@ -353,6 +361,7 @@ class StreamProcessor:
             self._queue.append((frame, intrinsics))
             self._release_backlog()
             self._last_input = time.monotonic()
+            self._arrivals.append(self._last_input)
             self._cv.notify_all()
         self._prefetch_next()
         if dropped is not None:
@@ -413,10 +422,11 @@ class StreamProcessor:
         got = self._take(timeout)
         if got is not None:
             return self._consume(*got)
-        idle = self.settings.idle_flush_s
-        if (idle > 0 and self._n_unpublished and not self._cancelled
-                and time.monotonic() - self._last_input >= idle):
-            self.log.info(f"no input for {idle:g} s: flushing {self._n_unpublished} pending "
+        if not self._n_unpublished or self._cancelled:
+            return []
+        idle = self._idle_after()
+        if idle > 0 and time.monotonic() - self._last_input >= idle:
+            self.log.info(f"no input for {idle:.3g} s: flushing {self._n_unpublished} pending "
                           "frame(s) as a final window")
             self._last_input = time.monotonic()
             return self.flush()
@@ -489,6 +499,19 @@ class StreamProcessor:
         return self._window_index
 
     # -- internals -------------------------------------------------------------------------------
+    def _idle_after(self) -> float:
+        """Seconds without input before the idle flush: ``idle_flush_s``, or
+        :data:`IDLE_INTERVALS` median frame intervals of the last arrivals when longer (after
+        a single frame, whose camera's interval is not known yet, IDLE_INTERVALS x
+        ``idle_flush_s``)."""
+        idle = self.settings.idle_flush_s
+        with self._cv:
+            arrivals = list(self._arrivals)
+        if idle <= 0 or not arrivals:
+            return idle
+        interval = float(np.median(np.diff(arrivals))) if len(arrivals) >= 2 else idle
+        return max(idle, IDLE_INTERVALS * interval)
+
     def _take(self, timeout: float | None) -> tuple[Frame, Intrinsics] | None:
         with self._cv:
             if not self._queue and not self._cancelled and timeout != 0.0:

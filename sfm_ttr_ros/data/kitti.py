@@ -413,7 +413,7 @@ def write_kitti_drive(
     last ``gt_skip_ends`` frames (like KITTI): dense for ``gt_density`` 1, else sparse LiDAR-like
     (:func:`lidar_like_mask`, seeded by ``gt_seed`` and the frame index). A sequence with
     per-frame ``labels`` (a scenario drive) also gets ``image_02/segments.txt``
-    (:func:`write_segments`).
+    (:func:`write_segments`). A ``None`` depth (a frame without ground truth) writes no GT PNG.
     """
     if not re.fullmatch(r"\d{4}_\d{2}_\d{2}", date):
         raise InputError(f"date must look like 2011_09_26, got {date!r}")
@@ -478,6 +478,8 @@ def write_kitti_drive(
     if gt_dir is not None:
         gt_dir.mkdir(parents=True, exist_ok=True)
         for i in range(gt_skip_ends, n - gt_skip_ends):
+            if seq.depths[i] is None:
+                continue
             depth = np.asarray(seq.depths[i], dtype=np.float32)
             if gt_density < 1.0:
                 rng = np.random.default_rng([int(gt_seed), i])

@@ -5,8 +5,8 @@ Steps (each printed as it runs):
 
 1. the drive: with no arguments a synthetic KITTI-format drive of the held-out domain "B"
    (:mod:`sfm_ttr_ros.data.synthetic`, written in the real KITTI raw + improved-GT layouts),
-   or a real
-   one with ``--kitti-raw/--kitti-gt/--drive``;
+   a real one with ``--kitti-raw/--kitti-gt/--drive``, or any image folder with its K and GT
+   depth (``--images/--intrinsics/--gt-depth``, e.g. hololens_000), written in those layouts;
 2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`);
 3. the unrefined network's depth for every image of the bag (same model, same weights) → a
    ``no_ttr`` bag with the same stamps;
@@ -59,6 +59,11 @@ class DemoOptions:
     kitti_raw: str | None = None
     kitti_gt: str | None = None
     drive: str | None = None
+    images: str | None = None  # an image folder (with intrinsics and gt_depth) instead
+    intrinsics: str | None = None
+    gt_depth: str | None = None
+    gt_scale: float = 256.0
+    start: int = 0  # real drive or image folder: first frame
     # The synthetic drive and how fast it is played: 45 frames at 0.15 x their 10 Hz (30 s) so
     # that on 2 CPU cores the first window's weights reach ~/depth while the drive still
     # plays (its 15 frames are in after 10 s, its first interim weights ~5 s later): the live
@@ -69,7 +74,7 @@ class DemoOptions:
     domain: str = "B"
     seed: int = 0
     gt_skip_ends: int = 5  # synthetic drive: frames without GT at each end (KITTI: 5)
-    max_frames: int = 0  # real drive: 0 = all
+    max_frames: int = 0  # real drive or image folder: 0 = all
     params_file: str | None = None  # default: params/kitti.yaml
     overrides: list[str] = field(default_factory=list)  # NAME=VALUE, as --set everywhere
     rate: float = 0.15
@@ -112,6 +117,9 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
             raise InputError("a real drive needs all of --kitti-raw, --kitti-gt and --drive")
         return opts.kitti_raw, opts.kitti_gt, opts.drive
     from sfm_ttr_ros.data.kitti import write_kitti_drive
+
+    if opts.images or opts.intrinsics or opts.gt_depth:
+        return _image_folder_drive(opts, out)
     from sfm_ttr_ros.data.synthetic import make_sequence
 
     _say(f"1/5 generating a synthetic KITTI drive: {opts.frames} frames {opts.width}x"
@@ -121,6 +129,27 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     raw, gt = out / "kitti_raw", out / "kitti_gt"
     drive = write_kitti_drive(seq, raw, gt, gt_skip_ends=opts.gt_skip_ends)
     return str(raw), str(gt), drive
+
+
+def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
+    """An image folder, its K file and GT depth written as a KITTI drive (stamps at 10 Hz,
+    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them)."""
+    from types import SimpleNamespace
+
+    from sfm_ttr_ros.core.frames import load_rgb
+    from sfm_ttr_ros.data.kitti import write_kitti_drive
+    from sfm_ttr_ros.data.sequence import open_image_folder
+
+    if not (opts.images and opts.intrinsics and opts.gt_depth):
+        raise InputError("an image folder needs all of --images, --intrinsics and --gt-depth "
+                         "(the demo scores the node against the ground truth)")
+    seq = open_image_folder(opts.images, opts.intrinsics, opts.gt_depth, opts.gt_scale)
+    _say(f"1/5 writing {len(seq)} images of {opts.images} as a KITTI drive")
+    drive_seq = SimpleNamespace(images=[load_rgb(p) for p in seq.image_paths],
+                                depths=[seq.gt(n) for n in seq.names], stamps=seq.stamps,
+                                intrinsics=seq.intrinsics)
+    raw, gt = out / "kitti_raw", out / "kitti_gt"
+    return str(raw), str(gt), write_kitti_drive(drive_seq, raw, gt, gt_skip_ends=0)
 
 
 def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str,
@@ -307,7 +336,8 @@ def run_demo(opts: DemoOptions) -> dict:
     _say(f"2/5 converting {drive} to a rosbag2 ({opts.storage})")
     bag = out / "drive_bag"
     conv = kitti_to_bag(raw, drive, bag, gt_root, storage=opts.storage,
-                        max_frames=opts.max_frames, compressed=opts.compressed)
+                        start=opts.start, max_frames=opts.max_frames,
+                        compressed=opts.compressed)
     image_topic = bag_image_topic(opts.compressed)
     expected = bag_topics(bag)[image_topic].count
     _say(f"   {conv.frames} images, {conv.gt_frames} with ground truth")
@@ -432,7 +462,9 @@ def _json_default(o):
 
 def cmd_demo(args: argparse.Namespace) -> int:
     opts = DemoOptions(out=Path(args.out), kitti_raw=args.kitti_raw, kitti_gt=args.kitti_gt,
-                       drive=args.drive, frames=args.frames, width=args.width,
+                       drive=args.drive, images=args.images, intrinsics=args.intrinsics,
+                       gt_depth=args.gt_depth, gt_scale=args.gt_scale, start=args.start,
+                       frames=args.frames, width=args.width,
                        height=args.height, domain=args.domain, seed=args.seed,
                        max_frames=args.max_frames, params_file=args.params_file,
                        overrides=list(args.set or []), rate=args.rate,
@@ -444,14 +476,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub) -> None:
-    d = sub.add_parser("demo", help="generate (or read) a KITTI drive, replay it through refiner "
-                       "and print the before/after table")
+    from sfm_ttr_ros.tools.cli_args import add_sequence_args
+
+    d = sub.add_parser("demo", help="generate (or read) a KITTI drive or an image folder, replay "
+                       "it through refiner and print the before/after table")
     d.add_argument("--out", default="sfm_ttr_demo", help="output folder (default sfm_ttr_demo)")
     d.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
-    d.add_argument("--kitti-raw", help="real drive: KITTI raw root")
-    d.add_argument("--kitti-gt", help="real drive: KITTI depth (improved GT) root")
-    d.add_argument("--drive", help="real drive: <date>_drive_XXXX_sync")
-    d.add_argument("--max-frames", type=int, default=0, help="real drive: first N frames")
+    add_sequence_args(d)  # none given: a synthetic drive
     d.add_argument("--frames", type=int, default=DemoOptions.frames,
                    help="synthetic drive length")
     d.add_argument("--width", type=int, default=1242)
