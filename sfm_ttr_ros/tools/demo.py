@@ -33,6 +33,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -116,10 +117,9 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
         if not (opts.kitti_raw and opts.kitti_gt and opts.drive):
             raise InputError("a real drive needs all of --kitti-raw, --kitti-gt and --drive")
         return opts.kitti_raw, opts.kitti_gt, opts.drive
-    from sfm_ttr_ros.data.kitti import write_kitti_drive
-
     if opts.images or opts.intrinsics or opts.gt_depth:
         return _image_folder_drive(opts, out)
+    from sfm_ttr_ros.data.kitti import write_kitti_drive
     from sfm_ttr_ros.data.synthetic import make_sequence
 
     _say(f"1/5 generating a synthetic KITTI drive: {opts.frames} frames {opts.width}x"
@@ -133,7 +133,8 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
 
 def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     """An image folder, its K file and GT depth written as a KITTI drive (stamps at 10 Hz,
-    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them)."""
+    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them), read one frame
+    at a time (a long folder is never all in memory)."""
     from types import SimpleNamespace
 
     from sfm_ttr_ros.core.frames import load_rgb
@@ -145,11 +146,24 @@ def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
                          "(the demo scores the node against the ground truth)")
     seq = open_image_folder(opts.images, opts.intrinsics, opts.gt_depth, opts.gt_scale)
     _say(f"1/5 writing {len(seq)} images of {opts.images} as a KITTI drive")
-    drive_seq = SimpleNamespace(images=[load_rgb(p) for p in seq.image_paths],
-                                depths=[seq.gt(n) for n in seq.names], stamps=seq.stamps,
+    drive_seq = SimpleNamespace(images=_Lazy(load_rgb, seq.image_paths),
+                                depths=_Lazy(seq.gt, seq.names), stamps=seq.stamps,
                                 intrinsics=seq.intrinsics)
     raw, gt = out / "kitti_raw", out / "kitti_gt"
     return str(raw), str(gt), write_kitti_drive(drive_seq, raw, gt, gt_skip_ends=0)
+
+
+class _Lazy(Sequence):
+    """``[read(k) for k in keys]``, each item read when it is asked for."""
+
+    def __init__(self, read, keys) -> None:
+        self._read, self._keys = read, list(keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __getitem__(self, i):
+        return self._read(self._keys[i])
 
 
 def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str,
