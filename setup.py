@@ -57,7 +57,7 @@ setup(
         "pycolmap>=4.0,<5",
         "pyyaml",
         "rosbags>=0.10",
-        # the node's malloc (core/allocator.py): a shared library in a wheel, MIT
+        # the node's malloc (ros/allocator.py): a shared library in a wheel, MIT
         "cmeel-mimalloc>=3.4,<4; sys_platform == 'linux'",
     ],
     extras_require={

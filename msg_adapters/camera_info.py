@@ -10,7 +10,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msg_adapters.classes import MessageClasses, empty_header, rclpy_classes
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 
 if TYPE_CHECKING:
     from sensor_msgs.msg import CameraInfo

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from msg_adapters.stamp import NS_PER_S
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from msg_adapters.classes import MessageClasses, empty_header, rclpy_classes
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 MAX_PIXELS = 64 * 1024 * 1024  # declared width x height above this: refused before decoding
 JPEG_QUALITY = 95  # compressed_image_transport's (ROS 2) default jpeg_quality

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msg_adapters.classes import MessageClasses, empty_header, rclpy_classes
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.visualize import colorize_depth
 
 if TYPE_CHECKING:  # decoding is duck-typed (rclpy and rosbags messages); only encoding needs ROS

@@ -3,8 +3,8 @@
 
 Both configurations run, one after the other in one process, over the SAME generated drive
 (default: synthetic domain B, seed 3, 60 frames of 1242x375, exact ground truth), fed frame by
-frame through :class:`~sfm_ttr_ros.core.stream.StreamProcessor` exactly as the ROS node feeds
-it, and
+frame through :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor` exactly as the ROS node
+feeds it, and
 every output is converted as the node converts it before publishing (``depth_to_image``,
 ``depth_to_colored_image``, ``numpy_to_pointcloud2`` for the window's cloud,
 ``make_diagnostic_array`` per window, as the node's ``publish_*`` parameters say), then serialised
@@ -100,14 +100,20 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run from a source checkout without installing
     sys.path.insert(0, str(REPO))
 
-from sfm_ttr_ros.core.diagnostics import Status, StreamDiagnostics  # noqa: E402
+from sfm_ttr_ros.core.errors import InputError  # noqa: E402
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator  # noqa: E402
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics  # noqa: E402
+from sfm_ttr_ros.core.frames import Frame, Intrinsics  # noqa: E402
 from sfm_ttr_ros.core.models.registry import ModelConfig, build_model, resolve_device  # noqa: E402
 from sfm_ttr_ros.core.params import TARGETS, build, parse_overrides  # noqa: E402
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
-from sfm_ttr_ros.core.sfm import SfmReconstructor  # noqa: E402
-from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats  # noqa: E402
+from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor  # noqa: E402
+from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics  # noqa: E402
+from sfm_ttr_ros.core.stream.windows import (  # noqa: E402
+    FrameOutput,
+    StreamProcessor,
+    StreamSettings,
+    WindowStats,
+)
 from sfm_ttr_ros.tools.benchmark import (  # noqa: E402
     default_params_file,
     describe_model,

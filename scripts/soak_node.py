@@ -15,7 +15,7 @@ Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
   unrefined + dropped`` and nothing pending after the drain, every frame published on
   ``~/depth_refined`` or counted dropped or live-only (``frames_live_only``);
 * memory: the peak RSS after the first 5 minutes <= 1.10 x the peak in them (RSS is a
-  sawtooth: the allocator gives a window's freed pages back, core/allocator.py);
+  sawtooth: the allocator gives a window's freed pages back, ros/allocator.py);
 * latency: the p95 of ``~/depth_refined`` latency over the last 5 minutes within 20 % of the
   first 5 minutes' (and the same reported for the live ``~/depth``).
 
@@ -383,7 +383,7 @@ def _report(args, out, cmd, sent, alive, code, d, rss, live, refined, log_path,
         return int(d.get(key, 0))
 
     # "peak RSS growth after the first 5 minutes": the peak after them against the peak in them.
-    # Since the allocator gives a window's freed pages back (core/allocator.py) RSS is a
+    # Since the allocator gives a window's freed pages back (ros/allocator.py) RSS is a
     # sawtooth (the window's working set, then back), so the value AT minute 5 is a point
     # anywhere on it.
     rss_at_warm = next((v for t, v in rss if t >= warm), float("nan"))

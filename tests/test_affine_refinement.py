@@ -15,13 +15,13 @@ import pytest
 import test_pipeline
 import torch
 
-from sfm_ttr_ros.core.alignment import AlignmentResult
-from sfm_ttr_ros.core.alignment_affine import (
+from sfm_ttr_ros.core.alignment.affine import (
     FrameAffineAlignment,
     affine_to_depth,
     is_affine_output,
 )
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.alignment.scale import AlignmentResult
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.tools.affine_wrap import AffineInverse
 

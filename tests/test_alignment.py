@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.alignment import (
+from sfm_ttr_ros.core.alignment.scale import (
     AlignmentConfig,
     align_scale,
     least_squares_scale,
     median_scale,
     weighted_ls_scale,
 )
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 TRUE_SCALE = 3.7
 

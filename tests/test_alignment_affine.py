@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.alignment import AlignmentResult, align_scale
-from sfm_ttr_ros.core.alignment_affine import (
+from sfm_ttr_ros.core.alignment.affine import (
     AffineAlignmentConfig,
     affine_targets,
     affine_to_depth,
     align_affine,
     weighted_ls_affine,
 )
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.alignment.scale import AlignmentResult, align_scale
+from sfm_ttr_ros.core.errors import InputError
 
 SCALE, SHIFT = 2.6, 0.4  # network output p = SCALE / D_sfm + SHIFT
 
@@ -147,8 +147,8 @@ def test_the_affine_path_takes_its_own_ransac_iterations():
     """alignment.affine_ransac_iterations, not the one-point model's 20, runs the two-point
     RANSAC: with 1 iteration a 30 %-outlier frame is fitted from one random pair (the inlier
     count of that pair), with the default 200 from the best of many."""
-    from sfm_ttr_ros.core.alignment import AlignmentConfig
-    from sfm_ttr_ros.core.alignment_affine import align_output
+    from sfm_ttr_ros.core.alignment.affine import align_output
+    from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
 
     d_sfm, pred, out = planted(3, n=400)
     kind = "relative_inverse_depth"

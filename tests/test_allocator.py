@@ -1,4 +1,4 @@
-"""core/allocator.py: the node re-executes itself on mimalloc (default) or a named library,
+"""ros/allocator.py: the node re-executes itself on mimalloc (default) or a named library,
 once; glibc when asked for or when the library is not there."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from sfm_ttr_ros.core import allocator
+from sfm_ttr_ros.ros import allocator
 
 
 def fake_execve(calls):
@@ -93,7 +93,7 @@ def _run(code: str, **env_vars: str) -> subprocess.CompletedProcess:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="LD_PRELOAD and /proc")
 def test_a_real_re_execution_runs_on_mimalloc():
     """The real os.execve: the second interpreter has mimalloc mapped and says so."""
-    code = "from sfm_ttr_ros.core import allocator; print('NOTE', allocator.preload())"
+    code = "from sfm_ttr_ros.ros import allocator; print('NOTE', allocator.preload())"
     out = _run(code, **{allocator.ENV: "mimalloc"})
     assert out.returncode == 0, out.stderr
     assert f"NOTE malloc: mimalloc ({allocator.find_mimalloc()})" in out.stdout
@@ -104,7 +104,7 @@ def test_a_library_that_cannot_be_preloaded_runs_on_glibc_in_a_real_re_execution
     process sees the guard and stays on glibc."""
     lib = tmp_path / "not_a_library.so"
     lib.write_bytes(b"not an ELF file")
-    out = _run("from sfm_ttr_ros.core import allocator; print('NOTE', allocator.preload())",
+    out = _run("from sfm_ttr_ros.ros import allocator; print('NOTE', allocator.preload())",
                **{allocator.ENV: str(lib)})
     assert out.returncode == 0, out.stderr
     assert f"NOTE malloc: glibc ({lib} could not be preloaded)" in out.stdout

@@ -14,16 +14,16 @@ import cv2
 import numpy as np
 import pytest
 
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import (
     Frame,
-    InputError,
     Intrinsics,
     check_window,
     list_images,
     load_frames,
     load_rgb,
 )
-from sfm_ttr_ros.core.sfm import SfmReconstructor, reconstruct_window
+from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor, reconstruct_window
 from sfm_ttr_ros.data.sequence import open_image_folder
 from sfm_ttr_ros.tools.cli import main
 
@@ -318,7 +318,7 @@ def test_cli_bad_input_exits_2_with_one_line(case, cli_data, capfd):
 
 
 def test_fallback_principal_point_outside_the_frame_gives_intrinsics_for_another_size():
-    from sfm_ttr_ros.core.camera import FallbackIntrinsics, IntrinsicsResolver
+    from sfm_ttr_ros.ros.camera import FallbackIntrinsics, IntrinsicsResolver
 
     kitti = FallbackIntrinsics(721.5377, 721.5377, 609.5593, 172.854)
     assert kitti.for_size(1242, 375) == Intrinsics(721.5377, 721.5377, 609.5593, 172.854,
@@ -345,7 +345,8 @@ def test_fallback_principal_point_outside_the_frame_gives_intrinsics_for_another
 def test_no_parameter_reaches_a_pycolmap_option_that_ends_the_process():
     import dataclasses
 
-    from sfm_ttr_ros.core import params, sfm
+    from sfm_ttr_ros.core import params
+    from sfm_ttr_ros.core.sfm import reconstruction as sfm
 
     # measured with pycolmap 4.2.1: max_image_size 1 segfaults SIFT extraction; an initial
     # triangulation angle of 0 fails the mapper's options check in every window

@@ -19,8 +19,8 @@ import pytest
 import yaml
 
 from msg_adapters.image import image_to_depth, image_to_numpy
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import EvalConfig
-from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.data.kitti import read_depth_png, write_kitti_drive
 from sfm_ttr_ros.data.synthetic import make_sequence
 from sfm_ttr_ros.ros.bag import STORAGES, BagRecorder, bag_topics, depth_msg, read_bag

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from conftest import write_small_kitti_params
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 DRIVE = "2011_09_26_drive_0001_sync"
@@ -511,7 +511,7 @@ def test_live_frames_skipped_for_overflow_are_counted_not_lost(data, tmp_path, m
     reason, not as a frame that never came out: processed + not published = fed."""
     import time
 
-    from sfm_ttr_ros.core.serving import ServingModel
+    from sfm_ttr_ros.core.stream.serving import ServingModel
 
     real = ServingModel.predict
 

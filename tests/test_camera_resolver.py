@@ -1,16 +1,17 @@
-"""The node's per-frame intrinsics rule, ROS-free (sfm_ttr_ros.core.camera; README "Intrinsics")."""
+"""The node's per-frame intrinsics rule, ROS-free (sfm_ttr_ros.ros.camera; README "Intrinsics")."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.camera import (
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.ros.camera import (
     KEEP_BY_STAMP,
     FallbackIntrinsics,
     IntrinsicsResolver,
 )
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
 
 W, H = 320, 96
 CAM_A = Intrinsics(200.0, 201.0, 160.0, 48.0, W, H)

@@ -87,7 +87,7 @@ def test_the_demo_reads_the_nodes_live_count_from_its_shutdown_line(tmp_path):
 def test_the_demo_takes_set_as_every_command_does():
     """``--set NAME=VALUE`` is checked by the schema before the node starts and reaches the
     node as a typed ``-p`` (a float keeps its dot, a string its quotes)."""
-    from sfm_ttr_ros.core.frames import InputError
+    from sfm_ttr_ros.core.errors import InputError
     from sfm_ttr_ros.tools.demo import refiner_command
 
     cmd = refiner_command(Path("kitti.yaml"), ["refinement.lr=1e-5", "window_size=8",
@@ -125,7 +125,7 @@ def test_the_demo_writes_an_image_folder_as_a_kitti_drive(tmp_path):
     import cv2
     import numpy as np
 
-    from sfm_ttr_ros.core.frames import InputError
+    from sfm_ttr_ros.core.errors import InputError
     from sfm_ttr_ros.data.sequence import open_kitti
     from sfm_ttr_ros.tools.demo import _image_folder_drive
 

@@ -1,14 +1,14 @@
-"""The node's /diagnostics counters and status, ROS-free (sfm_ttr_ros.core.diagnostics), and the
-DiagnosticArray built from them (sfm_ttr_ros.ros.outputs)."""
+"""The node's /diagnostics counters and status, ROS-free (sfm_ttr_ros.core.stream.diagnostics), and
+the DiagnosticArray built from them (sfm_ttr_ros.ros.outputs)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.diagnostics import Status, StreamDiagnostics
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.stream import StreamProcessor, WindowStats
+from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
+from sfm_ttr_ros.core.stream.windows import StreamProcessor, WindowStats
 
 INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
 FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_dropped",

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import (
     EIGEN_CROP,
     MAX_DEPTH,
@@ -24,7 +25,6 @@ from sfm_ttr_ros.core.evaluation import (
     relative_gain,
     valid_mask,
 )
-from sfm_ttr_ros.core.frames import InputError
 
 
 def test_constants():

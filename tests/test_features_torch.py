@@ -15,10 +15,11 @@ torch = pytest.importorskip("torch")
 # torch on one thread: on a busy 2-core machine two threads measured several times slower
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-from sfm_ttr_ros.core.features_torch import TorchSiftConfig, detect_and_describe  # noqa: E402
-from sfm_ttr_ros.core.frames import Frame, InputError  # noqa: E402
-from sfm_ttr_ros.core.matching_torch import MatchConfig, match_mutual_ratio  # noqa: E402
-from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor  # noqa: E402
+from sfm_ttr_ros.core.errors import InputError  # noqa: E402
+from sfm_ttr_ros.core.frames import Frame  # noqa: E402
+from sfm_ttr_ros.core.sfm.features.matching_torch import MatchConfig, match_mutual_ratio  # noqa: E402
+from sfm_ttr_ros.core.sfm.features.sift_torch import TorchSiftConfig, detect_and_describe  # noqa: E402
+from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, SfmReconstructor  # noqa: E402
 
 
 def blobs(size: tuple[int, int], centres, sigmas, bright: bool = True) -> np.ndarray:

@@ -7,11 +7,11 @@ import pytest
 import torch
 from conftest import tiny_model
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
 from sfm_ttr_ros.core.models.monodepth2 import Monodepth2
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement import (
+from sfm_ttr_ros.core.refinement.encoder import (
     FrameSupervision,
     RefinementConfig,
     frozen_stage_count,

@@ -20,11 +20,11 @@ pytest.importorskip("peft", reason="extra 'hf' not installed")
 import test_benchmark  # noqa: E402
 import test_hf_model  # noqa: E402
 
-from sfm_ttr_ros.core import trainable  # noqa: E402
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
-from sfm_ttr_ros.core.refinement import RefinementConfig, refine_encoder  # noqa: E402
-from sfm_ttr_ros.core.serving import ServingModel  # noqa: E402
-from sfm_ttr_ros.core.supervision import FrameSupervision  # noqa: E402
+from sfm_ttr_ros.core.refinement import trainable  # noqa: E402
+from sfm_ttr_ros.core.refinement.encoder import RefinementConfig, refine_encoder  # noqa: E402
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision  # noqa: E402
+from sfm_ttr_ros.core.stream.serving import ServingModel  # noqa: E402
 
 model_dirs, data = test_hf_model.model_dirs, test_benchmark.data  # fixtures shared
 FRAME = test_hf_model.FRAME
@@ -64,7 +64,7 @@ def test_lora_refinement_merges_and_serves_the_refined_weights(model_dirs, block
 
 
 def test_lora_on_a_convolutional_model_is_refused_at_configuration():
-    from sfm_ttr_ros.core.frames import InputError
+    from sfm_ttr_ros.core.errors import InputError
     from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
 
     cfg = TTRConfig()

@@ -15,8 +15,7 @@ import torch  # noqa: E402
 transformers = pytest.importorskip("transformers", reason="extra 'hf' not installed")
 pytest.importorskip("peft", reason="extra 'hf' not installed")
 
-from sfm_ttr_ros.core import trainable  # noqa: E402
-from sfm_ttr_ros.core.frames import InputError  # noqa: E402
+from sfm_ttr_ros.core.errors import InputError  # noqa: E402
 from sfm_ttr_ros.core.models import ModelConfig, ModelLoadError, build_model  # noqa: E402
 from sfm_ttr_ros.core.models.hf import (  # noqa: E402
     HFDepthModel,
@@ -24,13 +23,14 @@ from sfm_ttr_ros.core.models.hf import (  # noqa: E402
     detect_output_kind,
 )
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet  # noqa: E402
-from sfm_ttr_ros.core.refinement import (  # noqa: E402
+from sfm_ttr_ros.core.refinement import trainable  # noqa: E402
+from sfm_ttr_ros.core.refinement.encoder import (  # noqa: E402
     RefinementConfig,
     refine_encoder,
     restore_encoder,
     snapshot_encoder,
 )
-from sfm_ttr_ros.core.supervision import FrameSupervision  # noqa: E402
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision  # noqa: E402
 
 DA_PROCESSOR = {  # what Depth Anything V2's hub preprocessor_config.json holds, at 56 px
     "image_processor_type": "DPTImageProcessor", "do_resize": True,
@@ -295,7 +295,7 @@ def test_staged_depth_anything_matches_its_forward(model_dirs):
     """Depth Anything's blocks as stages (models/hf_stages.py): split at any stage, the staged
     forward gives the model's own output; DPT (no staged form here) keeps its backbone."""
     from sfm_ttr_ros.core.models.hf_stages import Dinov2Stages
-    from sfm_ttr_ros.core.refinement import frozen_stage_count
+    from sfm_ttr_ros.core.refinement.encoder import frozen_stage_count
 
     model = load(model_dirs, "da")
     stages = model.staged_encoder
@@ -322,7 +322,7 @@ def test_trainable_blocks_compute_the_blocks_before_them_once(model_dirs, monkey
     """trainable_blocks = 1 on the 2-block tiny Depth Anything: the embedding and block 0 run
     once per frame, not per step, and the refined network is the one the whole forward at every
     step gives (same steps, same weights up to float rounding)."""
-    from sfm_ttr_ros.core import refinement
+    from sfm_ttr_ros.core.refinement import encoder as refinement
 
     rng = np.random.default_rng(3)
     pixels = np.stack([rng.uniform(0, 129, 60), rng.uniform(0, 39, 60)], axis=1)

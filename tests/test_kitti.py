@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.data.kitti import (
     KittiDrive,
     format_kitti_timestamp,

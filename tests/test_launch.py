@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros import names
 
 REPO = Path(__file__).resolve().parents[1]

@@ -188,7 +188,7 @@ def test_the_checks_see_what_they_check():
     module importing another from inside a function counts."""
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
-    assert _resolve("frames", "sfm_ttr_ros.core.stream", 1, False) == "sfm_ttr_ros.core.frames"
+    assert _resolve("frames", "sfm_ttr_ros.core.pipeline", 1, False) == "sfm_ttr_ros.core.frames"
     assert _resolve("", "sfm_ttr_ros.data.synthetic", 1, True) == "sfm_ttr_ros.data.synthetic"
     # cli_bag imports evaluate_bag inside a function only
     assert "sfm_ttr_ros.ros.bag_evaluation" in package_graph()["sfm_ttr_ros.tools.cli_bag"]

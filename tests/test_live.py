@@ -14,18 +14,19 @@ import pytest
 import torch
 from conftest import tiny_model
 
-from sfm_ttr_ros.core.frames import Frame, InputError
-from sfm_ttr_ros.core.live import LiveServer
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement import RefinementConfig, refine_encoder, snapshot_encoder
-from sfm_ttr_ros.core.serving import ServingModel
-from sfm_ttr_ros.core.stream import reason_key_of
-from sfm_ttr_ros.core.supervision import (
+from sfm_ttr_ros.core.refinement.encoder import RefinementConfig, refine_encoder, snapshot_encoder
+from sfm_ttr_ros.core.refinement.supervision import (
     FrameSupervision,
     at_network_size,
     frame_loss,
     normalized_grid,
 )
+from sfm_ttr_ros.core.stream.live import LiveServer
+from sfm_ttr_ros.core.stream.serving import ServingModel
+from sfm_ttr_ros.core.stream.windows import reason_key_of
 
 small_model = partial(tiny_model, (32, 48), downsample=False)
 IMAGE = np.random.default_rng(0).integers(0, 255, (32, 48, 3), dtype=np.uint8)
@@ -210,7 +211,7 @@ class _FakeSfm:
     """A stand-in for one window's SfM: every frame registered with 300 observations."""
 
     def __init__(self, names, rng):
-        from sfm_ttr_ros.core.sfm import FrameObservations
+        from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations
 
         self.ok, self.reason, self.timings = True, "", {}
         self.frames = {}
@@ -260,7 +261,7 @@ def test_an_exploding_window_is_rolled_back(one_thread):
 
 
 def test_a_rollback_names_the_step_whose_loss_went_non_finite():
-    from sfm_ttr_ros.core.checks import WindowChecks
+    from sfm_ttr_ros.core.checks.window import WindowChecks
 
     enc = torch.nn.Linear(2, 2)
     why = WindowChecks.rollback_reason(2.0, [1.0, 0.9, math.nan, math.nan], 1.0, 0.8, enc)
@@ -307,7 +308,7 @@ def test_live_counters_tell_node_latency_from_publish_time(one_thread):
 def test_the_warm_up_leaves_no_import_for_the_first_window():
     """torch.optim's first step imports torch._dynamo and sympy (~800 modules, ~1 s holding the
     GIL): paid inside the worker it stalled live frames up to 0.6 s. After the warm-up of
-    OnlineRefiner.start, a real refinement step imports nothing (a fresh interpreter: the
+    StreamRefiner.start, a real refinement step imports nothing (a fresh interpreter: the
     imports of this test session would hide it)."""
     import subprocess
     import sys
@@ -317,8 +318,8 @@ import sys
 import numpy as np, torch
 sys.path.insert(0, "tests")
 from conftest import tiny_model
-from sfm_ttr_ros.core.refinement import RefinementConfig, refine_encoder, warm_up_optimiser
-from sfm_ttr_ros.core.supervision import FrameSupervision
+from sfm_ttr_ros.core.refinement.encoder import RefinementConfig, refine_encoder, warm_up_optimiser
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 model = tiny_model((32, 48), downsample=False, seed=0)
 rng = np.random.default_rng(0)
 sup = [FrameSupervision(name="a", image=rng.integers(0, 255, (32, 48, 3), dtype=np.uint8),
@@ -354,15 +355,15 @@ def test_serving_warm_up_is_not_a_prediction(one_thread):
 def test_the_window_worker_runs_its_own_openmp_team(threads):
     """worker_threads sets the worker thread's OpenMP team only (per-thread ICV): measured 35 %
     faster windows with 1 thread on 2 cores; the caller's team size is untouched."""
-    from sfm_ttr_ros.core import openmp
-    from sfm_ttr_ros.core.online import OnlineRefiner
-    from sfm_ttr_ros.core.stream import StreamSettings
+    from sfm_ttr_ros.core.stream import openmp
+    from sfm_ttr_ros.core.stream.refiner import StreamRefiner
+    from sfm_ttr_ros.core.stream.windows import StreamSettings
 
     if openmp.runtime() is None:
         pytest.skip("no OpenMP runtime in this torch")
     before = openmp.thread_team_size()
     ttr = SfmTTR(small_model(seed=0), TTRConfig())
-    online = OnlineRefiner(ttr, StreamSettings(worker_threads=threads, worker_nice=0))
+    online = StreamRefiner(ttr, StreamSettings(worker_threads=threads, worker_nice=0))
     seen = []
     online.stream.step = lambda timeout=None: (seen.append(openmp.thread_team_size()),
                                                time.sleep(0.01))
@@ -400,11 +401,11 @@ def test_serving_previews_are_withdrawn_or_kept_by_the_windows_verdict(one_threa
 
 
 def online_window(lr: float, serve_every: int, holdout: float = 0.0, unsupported: float = 0.0):
-    """One 3-frame window through OnlineRefiner's stream (synchronously), the fake SfM of
+    """One 3-frame window through StreamRefiner's stream (synchronously), the fake SfM of
     window_run; returns the refiner, the previews it served and the start-up prediction."""
     from sfm_ttr_ros.core.frames import Intrinsics
-    from sfm_ttr_ros.core.online import OnlineRefiner
-    from sfm_ttr_ros.core.stream import StreamSettings
+    from sfm_ttr_ros.core.stream.refiner import StreamRefiner
+    from sfm_ttr_ros.core.stream.windows import StreamSettings
 
     cfg = TTRConfig(weight_policy="reset", min_supervision_points=10)
     cfg.refinement.steps, cfg.refinement.lr = 10, lr
@@ -415,7 +416,7 @@ def online_window(lr: float, serve_every: int, holdout: float = 0.0, unsupported
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
     ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
-    online = OnlineRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
+    online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
                                                serve_every_steps=serve_every))
     start = online.serving.predict(IMAGE)[0]
     previews = []
@@ -460,7 +461,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     """With check.max_unsupported_change on interim weights are measured on a few of
     the window's frames before each preview: served when they pass, kept back (counted) when
     not, and the finished window is then refused by the same check."""
-    import sfm_ttr_ros.core.verification as verification
+    import sfm_ttr_ros.core.checks.measures as verification
 
     online, previews, _ = online_window(lr=1e-3, serve_every=4, unsupported=1.0)  # U <= 1
     assert previews == [(1, 4), (1, 8)] and online.stream.last_window.refined
@@ -482,7 +483,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
 def test_the_worker_warm_up_runs_the_configured_steps_on_a_copy(monkeypatch, loss):
     """warm_up_refinement runs WARM_UP_STEPS steps of the configured objective (hybrid: with
     photometric frames) on a throw-away copy; the model's weights and flags stay as they were."""
-    from sfm_ttr_ros.core import refinement
+    from sfm_ttr_ros.core.refinement import encoder as refinement
 
     model = small_model(seed=0)
     before = snapshot_encoder(model)
@@ -527,10 +528,10 @@ def test_the_window_warm_up_predicts_a_batch_and_refines_a_copy(monkeypatch):
 
 
 def test_live_and_worker_warm_ups_run_in_their_own_threads_before_start_returns():
-    """OnlineRefiner.start returns only after the worker's refinement warm-up (in the worker
+    """StreamRefiner.start returns only after the worker's refinement warm-up (in the worker
     thread) and the serving warm-up (in the live-server thread): on CUDA each thread makes its own
     library handles at its first use, which no live frame or first window should pay."""
-    from sfm_ttr_ros.core.online import OnlineRefiner
+    from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 
     threads = []
     ttr = SfmTTR(small_model(seed=0), TTRConfig())
@@ -543,7 +544,7 @@ def test_live_and_worker_warm_ups_run_in_their_own_threads_before_start_returns(
         return 0.2
 
     ttr.warm_up = window_warm_up
-    online = OnlineRefiner(ttr)
+    online = StreamRefiner(ttr)
     real_serving_warm_up = online.serving.warm_up
 
     def serving_warm_up():

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models import (
     DepthDecoder,
     DepthModel,

@@ -37,7 +37,8 @@ from msg_adapters import (  # noqa: E402
     pointcloud2_to_xyz,
     typestore_classes,
 )
-from sfm_ttr_ros.core.frames import InputError, Intrinsics  # noqa: E402
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics  # noqa: E402
 
 RNG = np.random.default_rng(1234)
 # encoding -> (dtype, channels)

@@ -12,8 +12,8 @@ from std_msgs.msg import Header  # noqa: E402
 
 from msg_adapters import image_to_numpy, pointcloud2_to_numpy  # noqa: E402
 from sfm_ttr_ros.core.frames import Frame  # noqa: E402
-from sfm_ttr_ros.core.live import LiveOutput  # noqa: E402
-from sfm_ttr_ros.core.stream import FrameOutput, WindowStats  # noqa: E402
+from sfm_ttr_ros.core.stream.live import LiveOutput  # noqa: E402
+from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats  # noqa: E402
 from sfm_ttr_ros.ros import names, outputs  # noqa: E402
 
 pytestmark = pytest.mark.ros

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from sfm_ttr_ros.core import params as schema
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.params import SECTIONS, Settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -264,7 +264,7 @@ def test_schema_and_cli_parsers_import_without_ros():
 
 
 def test_node_settings_validate_themselves():
-    from sfm_ttr_ros.core.node_settings import NodeSettings
+    from sfm_ttr_ros.core.params.node import NodeSettings
 
     assert NodeSettings().use_projection is None
     for bad, match in (({"fx": -1.0}, "fx"), ({"qos_depth": 0}, "qos_depth"),

@@ -1,5 +1,5 @@
-"""Monodepth2's photometric loss with SfM poses (core/photometric.py): exact geometry on an
-analytic plane, near-zero loss on rendered frames with the true depth and pose, auto-masking,
+"""Monodepth2's photometric loss with SfM poses (core/refinement/photometric.py): exact geometry on
+an analytic plane, near-zero loss on rendered frames with the true depth and pose, auto-masking,
 gradients, pose and intrinsics helpers."""
 
 from __future__ import annotations
@@ -11,9 +11,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
-from sfm_ttr_ros.core.photometric import (
+from sfm_ttr_ros.core.refinement.photometric import (
     PhotometricConfig,
     identity_errors,
     mean_3x3,
@@ -438,7 +439,7 @@ def test_bad_input_is_refused():
 
 def test_the_parallax_gate_is_the_hybrids_only():
     """Ph-TTR stays Monodepth2's loss (the paper's baseline); only ``hybrid`` gates its term."""
-    from sfm_ttr_ros.core.refinement import RefinementConfig
+    from sfm_ttr_ros.core.refinement.encoder import RefinementConfig
 
     assert RefinementConfig(loss="photometric").photometric_config().min_parallax == 0.0
     assert RefinementConfig(loss="hybrid").photometric_config().min_parallax == 0.0  # off

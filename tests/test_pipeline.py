@@ -304,7 +304,7 @@ def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypa
     """The unsupported-change check: measured on every refined window; with τ made
     tiny every pixel far from the SfM points that moved at all counts, and a threshold below
     the measured share refuses the refined weights like the held-out check does."""
-    import sfm_ttr_ros.core.verification as verification
+    import sfm_ttr_ros.core.checks.measures as verification
 
     ttr = pinned(run, monkeypatch)
     ttr.checks.unsupported.clear()  # the accepted windows of the tests before

@@ -18,9 +18,9 @@ from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement import RefinementConfig
-from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
-from sfm_ttr_ros.core.supervision import sample_at
+from sfm_ttr_ros.core.refinement.encoder import RefinementConfig
+from sfm_ttr_ros.core.refinement.supervision import sample_at
+from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
 
 W, H = 160, 64
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)

@@ -33,7 +33,7 @@ def test_the_readme_python_example_runs_on_a_small_generated_drive(tmp_path):
                      "--width", "320", "--height", "96", "--domain", "B", "--seed", "1"]) == 0
     code = code.replace('"data/raw"', repr(str(raw))).replace('"data/gt"', repr(str(gt)))
     code = code.replace("TTRConfig()", "TTRConfig(refinement=RefinementConfig(steps=5))")
-    code = "from sfm_ttr_ros.core.refinement import RefinementConfig\n" + code
+    code = "from sfm_ttr_ros.core.refinement.encoder import RefinementConfig\n" + code
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=180, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]

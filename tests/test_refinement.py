@@ -7,8 +7,8 @@ import pytest
 import torch
 from conftest import tiny_model
 
-from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.refinement import (
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.refinement.encoder import (
     FrameSupervision,
     RefinementConfig,
     frame_loss,

@@ -17,7 +17,12 @@ import pytest
 from conftest import open_hololens
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, reconstruct_window
+from sfm_ttr_ros.core.sfm.reconstruction import (
+    SfmConfig,
+    SfmReconstructor,
+    SfmResult,
+    reconstruct_window,
+)
 
 # 640 x 192 is the smallest size that registered every window we tried: at 416 x 128 seed 1
 # "succeeded" with a wrong reconstruction (camera path 32 degrees off, depth error 33 %),
@@ -252,7 +257,7 @@ def test_every_mapping_attempt_is_recorded_and_the_best_one_kept(street):
 
 
 def fake_result(registered: int, error: float, ok: bool = True) -> SfmResult:
-    from sfm_ttr_ros.core.sfm import FrameObservations
+    from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations
 
     obs = {str(i): FrameObservations(str(i), np.zeros((4, 2), np.float32), np.ones(4),
                                      np.full(4, error), np.full(4, error),
@@ -320,7 +325,7 @@ def test_a_mapping_without_a_model_is_not_repeated(monkeypatch):
                                           ("retry_above_ratio", -0.1),
                                           ("retry_above_error", float("nan"))])
 def test_bad_mapping_attempt_options_are_refused(field, value):
-    from sfm_ttr_ros.core.frames import InputError
+    from sfm_ttr_ros.core.errors import InputError
 
     with pytest.raises(InputError, match=f"sfm.{field}"):
         SfmConfig(**{field: value})
@@ -350,7 +355,7 @@ def test_real_hololens_window(shared_data):
 def test_sfm_begun_ahead_is_the_windows_own_reconstruction(street):
     """SfmPrefetch reconstructs a window's frames in its own thread and workspace; take()
     hands exactly that window's result over (once), other frames get None."""
-    from sfm_ttr_ros.core.prefetch import SfmPrefetch
+    from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
 
     ahead = SfmPrefetch(SfmConfig(seed=0))
     try:
@@ -373,7 +378,7 @@ def test_sfm_begun_ahead_is_the_windows_own_reconstruction(street):
 def test_sfm_begun_ahead_waits_for_its_window_while_the_next_one_starts(street, monkeypatch):
     """The next window's frames may all be queued before the current window takes its own
     reconstruction: a finished one is kept (the two newest) until its window takes it."""
-    from sfm_ttr_ros.core.prefetch import SfmPrefetch
+    from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
 
     ahead = SfmPrefetch(SfmConfig())
     monkeypatch.setattr(ahead.reconstructor, "reconstruct",

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import pytest
 from conftest import write_small_kitti_params
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 N_FRAMES, GT_SKIP = 8, 1

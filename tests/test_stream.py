@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 from conftest import tiny_model
 
+from sfm_ttr_ros.core.checks.measures import WindowCheck
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
-from sfm_ttr_ros.core.sfm import SfmResult
-from sfm_ttr_ros.core.stream import (
+from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.stream.windows import (
     DROP_REASONS,
     RELEASED_IMAGE,
     UNREFINED_REASONS,
@@ -23,7 +24,6 @@ from sfm_ttr_ros.core.stream import (
     StreamProcessor,
     StreamSettings,
 )
-from sfm_ttr_ros.core.verification import WindowCheck
 
 W, H = 64, 32
 INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)
@@ -244,7 +244,7 @@ def test_frames_served_live_are_not_predicted_again_unless_republished():
         fs = frames(8)
         for f in fs:
             stream.submit(f, INTR)
-        for f in fs[:3]:  # the live output served these since (core/live.py sets the flag);
+        for f in fs[:3]:  # the live output served these since (core/stream/live.py sets the flag);
             f.served_live = True  # after the submissions, so the backlog bound took nothing
         outs = stream.process_available()
         assert [o.reason_key for o in outs] == ["overload"] * 4 + [""] * 4

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.synthetic import (
     SceneParams,
     SyntheticSequence,

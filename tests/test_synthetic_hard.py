@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.data.kitti import (
     SEGMENTS_FILE,
     KittiDrive,

@@ -1,4 +1,4 @@
-"""The window checks (sfm_ttr_ros.core.verification), unit by unit: the held-out
+"""The window checks (sfm_ttr_ros.core.checks.measures), unit by unit: the held-out
 split by track, the check error, the verdict, and each sanity statistic on constructed data
 whose right answer is known."""
 
@@ -9,10 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.params import build, validate
-from sfm_ttr_ros.core.supervision import FrameSupervision
-from sfm_ttr_ros.core.verification import (
+from sfm_ttr_ros.core.checks.measures import (
     CHECK_REASONS,
     UNSUPPORTED_MIN_HISTORY,
     CheckConfig,
@@ -31,6 +28,9 @@ from sfm_ttr_ros.core.verification import (
     unsupported_change,
     unsupported_refusal,
 )
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.params import build, validate
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 
 H, W = 24, 32
 
@@ -139,8 +139,8 @@ def test_scale_jump_compares_the_shared_path():
 
 
 def test_parallax_is_the_camera_span_over_the_median_depth():
-    from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
-    from sfm_ttr_ros.core.verification import parallax
+    from sfm_ttr_ros.core.checks.measures import parallax
+    from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
 
     def frame(z: float, depths: np.ndarray) -> FrameObservations:
         T = np.eye(4)
@@ -282,9 +282,9 @@ def test_the_reprojection_ratio_judges_a_window_against_the_streams_accepted_one
 
 
 def test_a_window_is_judged_against_the_reprojection_errors_of_accepted_windows_only():
-    from sfm_ttr_ros.core.alignment import AlignmentResult
-    from sfm_ttr_ros.core.checks import WindowChecks
-    from sfm_ttr_ros.core.sfm import FrameObservations, SfmResult
+    from sfm_ttr_ros.core.alignment.scale import AlignmentResult
+    from sfm_ttr_ros.core.checks.window import WindowChecks
+    from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
 
     checks, cfg = WindowChecks(), CheckConfig(max_reprojection_ratio=1.25)
     empty = np.zeros(0)

@@ -24,7 +24,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from sfm_ttr_ros.core.alignment_affine import affine_to_depth  # noqa: E402
+from sfm_ttr_ros.core.alignment.affine import affine_to_depth  # noqa: E402
 from sfm_ttr_ros.core.evaluation import Evaluator  # noqa: E402
 from sfm_ttr_ros.core.models import build_model  # noqa: E402
 from sfm_ttr_ros.core.pipeline import SfmTTR  # noqa: E402

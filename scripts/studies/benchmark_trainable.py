@@ -52,8 +52,8 @@ def run_mode(name: str, steps: int, rank: int) -> dict:
     import numpy as np
     import torch
 
-    from sfm_ttr_ros.core.refinement import RefinementConfig, refine_encoder
-    from sfm_ttr_ros.core.supervision import FrameSupervision
+    from sfm_ttr_ros.core.refinement.encoder import RefinementConfig, refine_encoder
+    from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 
     torch.manual_seed(0)
     model = build_model()
@@ -86,8 +86,8 @@ def run_mode(name: str, steps: int, rank: int) -> dict:
         short.append(window(FEW))
         long.append(window(FEW + steps))
     step_s = (min(long) - min(short)) / steps
-    from sfm_ttr_ros.core import refinement
-    from sfm_ttr_ros.core.trainable import select_trainable
+    from sfm_ttr_ros.core.refinement import encoder as refinement
+    from sfm_ttr_ros.core.refinement.trainable import select_trainable
 
     n = sum(p.numel() for p in select_trainable(model, mode, rank, blocks=blocks))
     cached = refinement.block_prefix_stages(model, blocks)
@@ -114,7 +114,7 @@ def main() -> int:
 
         torch.set_num_threads(args.threads)
         if args.no_block_cache:
-            from sfm_ttr_ros.core import refinement
+            from sfm_ttr_ros.core.refinement import encoder as refinement
 
             refinement.block_prefix_stages = lambda model, blocks: 0
         print(json.dumps(run_mode(args.one, args.steps, args.rank)))

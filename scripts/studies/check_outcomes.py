@@ -3,7 +3,7 @@
 
 Runs SfM-TTR window by window over a sequence, in the node's windows (``window_size``,
 ``window_stride`` of the parameter file, every frame a keyframe), measuring every window check
-(core/verification.py) but refusing nothing before refinement (the sanity thresholds are set to
+(core/checks/measures.py) but refusing nothing before refinement (the sanity thresholds are set to
 0 for the run; the held-out split stays as configured, and the refined weights' depths are kept
 even when the held-out check refuses them). For every window it then knows what refinement did
 to its own frames against GT (median-scaled abs rel, before -> after), and judges it with the
@@ -33,11 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
-from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.params import build
-from sfm_ttr_ros.core.pipeline import SfmTTR
-from sfm_ttr_ros.core.verification import (
+from sfm_ttr_ros.core.checks.measures import (
     UNSUPPORTED_HISTORY,
     WindowCheck,
     accept,
@@ -45,6 +41,10 @@ from sfm_ttr_ros.core.verification import (
     unsupported_change,
     unsupported_refusal,
 )
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
+from sfm_ttr_ros.core.params import build
+from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.tools.benchmark.run import segment_labels
 from sfm_ttr_ros.tools.benchmark.settings import default_params_file
 from sfm_ttr_ros.tools.cli_args import (

@@ -33,7 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from sfm_ttr_ros.core.frames import Frame  # noqa: E402
-from sfm_ttr_ros.core.sfm import FEATURE_BACKENDS, SfmConfig, SfmReconstructor  # noqa: E402
+from sfm_ttr_ros.core.sfm.reconstruction import FEATURE_BACKENDS, SfmConfig, SfmReconstructor  # noqa: E402
 
 
 def depth_error(result, frames, gt) -> float | None:
@@ -126,9 +126,9 @@ def drive_windows(args):
 
 def warm_up(device: str, frame) -> None:
     """One frame's features and a self-match on the device, untimed (CUDA context, kernels)."""
-    from sfm_ttr_ros.core.features_database import downscale
-    from sfm_ttr_ros.core.features_torch import detect_and_describe
-    from sfm_ttr_ros.core.matching_torch import match_mutual_ratio
+    from sfm_ttr_ros.core.sfm.features.database import downscale
+    from sfm_ttr_ros.core.sfm.features.matching_torch import match_mutual_ratio
+    from sfm_ttr_ros.core.sfm.features.sift_torch import detect_and_describe
 
     f = detect_and_describe(downscale(frame.image, 640)[0], device=device)
     match_mutual_ratio(f.descriptors, f.descriptors)

@@ -24,8 +24,8 @@ import sys
 import threading
 import time
 
-STAGE_FILES = ("sfm.py", "refinement.py", "photometric.py", "alignment.py", "supervision.py",
-               "verification.py", "checks.py", "weights.py", "stream.py", "online.py",
+STAGE_FILES = ("reconstruction.py", "encoder.py", "photometric.py", "scale.py", "supervision.py",
+               "measures.py", "window.py", "weights.py", "windows.py", "refiner.py",
                "pipeline.py")
 
 
@@ -87,7 +87,7 @@ def _trim(period: float) -> None:
 
 
 def main() -> int:
-    from sfm_ttr_ros.core import stream
+    from sfm_ttr_ros.core.stream import windows as stream
 
     init = stream.StreamProcessor.__init__
 

@@ -1,8 +1,8 @@
 """Live-serving latency with and without the background windows (where live latency goes).
 
 Feeds the first ``--frames`` frames of a KITTI-layout drive at ``--rate`` Hz into an
-:class:`~sfm_ttr_ros.core.online.OnlineRefiner` built from a parameter file, either to the live
-server only (``--mode live``) or to the live server and the windows, as the node does
+:class:`~sfm_ttr_ros.core.stream.refiner.StreamRefiner` built from a parameter file, either to the
+live server only (``--mode live``) or to the live server and the windows, as the node does
 (``--mode both``), and prints the latency percentiles, the live skips and the windows done.
 ``--mode windows`` feeds the windows only (the background worker, no live serving) and ``--mode
 main`` steps the same windows in the calling thread (as ``sfm_ttr_online`` does): both print each
@@ -22,8 +22,8 @@ import torch
 
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.models import build_model
-from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR
+from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.data.sequence import open_kitti
 from sfm_ttr_ros.ros.names import NODE_NAME
 
@@ -48,7 +48,7 @@ def main() -> int:
     ttr = SfmTTR(build_model(s.model), s.ttr)
     latencies: list[float] = []
     timings: list[dict] = []
-    online = OnlineRefiner(ttr, s.stream, on_live=lambda o: latencies.append(o.latency_s),
+    online = StreamRefiner(ttr, s.stream, on_live=lambda o: latencies.append(o.latency_s),
                            on_window=lambda ws: timings.append(ws.timings))
     frames = [seq.frame(i) for i in range(min(args.frames, len(seq)))]
     if args.mode == "main":

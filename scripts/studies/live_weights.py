@@ -42,7 +42,7 @@ def main() -> int:
     from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator, mean_over_frames
     from sfm_ttr_ros.core.params import build
     from sfm_ttr_ros.core.pipeline import SfmTTR
-    from sfm_ttr_ros.core.refinement import restore_encoder, snapshot_encoder
+    from sfm_ttr_ros.core.refinement.encoder import restore_encoder, snapshot_encoder
     from sfm_ttr_ros.tools.cli_args import (
         add_parameter_args,
         add_sequence_args,

@@ -25,9 +25,9 @@ import torch
 
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.models import build_model
-from sfm_ttr_ros.core.photometric import prepare_frames
-from sfm_ttr_ros.core.refinement import LOSSES, refine_encoder
-from sfm_ttr_ros.core.supervision import FrameSupervision
+from sfm_ttr_ros.core.refinement.encoder import LOSSES, refine_encoder
+from sfm_ttr_ros.core.refinement.photometric import prepare_frames
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.data.synthetic import make_sequence
 
 

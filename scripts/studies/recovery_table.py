@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts" / "studies"))
 from policy_curve import read_curve  # noqa: E402
 
-from sfm_ttr_ros.core.frames import InputError  # noqa: E402
+from sfm_ttr_ros.core.errors import InputError  # noqa: E402
 from sfm_ttr_ros.data.kitti import read_segments  # noqa: E402
 
 

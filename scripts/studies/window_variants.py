@@ -33,7 +33,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 def photometric_stats(model, frames, res, intrinsics) -> dict[str, float]:
     """identity_won and warp_ratio of the window's reconstruction (module docstring)."""
-    from sfm_ttr_ros.core.photometric import PhotometricConfig, photometric_loss, prepare_frames
+    from sfm_ttr_ros.core.refinement.photometric import (
+        PhotometricConfig,
+        photometric_loss,
+        prepare_frames,
+    )
 
     images = {f.name: f.image for f in frames}
     prepared = prepare_frames(model, [f.name for f in frames], images, res.sfm.frames,

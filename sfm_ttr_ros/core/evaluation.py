@@ -34,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 EIGEN_CROP = (0.40810811, 0.99189189, 0.03594771, 0.96405229)  # fractions of H, H, W, W
 MIN_DEPTH = 1e-3

@@ -16,9 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-
-class InputError(ValueError):
-    """Bad input given to the library (clear message, raised before any heavy work)."""
+from sfm_ttr_ros.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -101,10 +99,11 @@ class Frame:
     stamp: float = 0.0
     name: str = ""
     header: object = field(default=None, repr=False)  # opaque (e.g. a ROS header), passed through
-    # set by the live server (core/live.py) once the frame's depth went out on the live output:
-    # the stream then need not predict it again when no window refines it (republish_unrefined)
+    # set by the live server (core/stream/live.py) once the frame's depth went out on the live
+    # output: the stream then need not predict it again when no window refines it
+    # (republish_unrefined)
     served_live: bool = field(default=False, repr=False, compare=False)
-    # set by the intrinsics resolver (core/camera.py) when the frame got the fallback fx, fy:
+    # set by the intrinsics resolver (ros/camera.py) when the frame got the fallback fx, fy:
     # the stream lets the first received intrinsics replace them while it holds the frame
     fallback_intrinsics: bool = field(default=False, repr=False, compare=False)
 

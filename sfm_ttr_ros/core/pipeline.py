@@ -2,10 +2,10 @@
 refinement → prediction.
 
 :meth:`SfmTTR.process_window` only calls the stages (private helpers here, each in front of the
-module that holds its equations) and two collaborators: :class:`~sfm_ttr_ros.core.checks.
+module that holds its equations) and two collaborators: :class:`~sfm_ttr_ros.core.checks.window.
 WindowChecks` (the window checks before, while and after refining, and rollback) and
-:class:`~sfm_ttr_ros.core.weights.WeightPolicy` (where a window's refinement starts, what an
-accepted window leaves to the next). The same :class:`SfmTTR` object serves the command line
+:class:`~sfm_ttr_ros.core.refinement.weights.WeightPolicy` (where a window's refinement starts,
+what an accepted window leaves to the next). The same :class:`SfmTTR` object serves the command line
 (offline: one window = the whole sequence, as in the paper), the benchmark and the ROS node
 (online: sliding windows, the encoder continued from the previous window or reset to the
 original weights).
@@ -24,18 +24,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.alignment import AlignmentConfig, AlignmentResult
-from sfm_ttr_ros.core.alignment_affine import (
+from sfm_ttr_ros.core.alignment.affine import (
     AffineAlignmentResult,
     align_output,
     is_affine_output,
 )
-from sfm_ttr_ros.core.checks import WindowChecks
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
+from sfm_ttr_ros.core.alignment.scale import AlignmentConfig, AlignmentResult
+from sfm_ttr_ros.core.checks.measures import CheckConfig, WindowCheck
+from sfm_ttr_ros.core.checks.window import WindowChecks
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
-from sfm_ttr_ros.core.photometric import PhotometricFrame, prepare_frames
-from sfm_ttr_ros.core.prefetch import SfmPrefetch
-from sfm_ttr_ros.core.refinement import (
+from sfm_ttr_ros.core.refinement.encoder import (
     RefinementConfig,
     RefinementResult,
     frozen_stage_count,
@@ -43,16 +43,17 @@ from sfm_ttr_ros.core.refinement import (
     resolve_loss,
     warm_up_refinement,
 )
-from sfm_ttr_ros.core.sfm import SfmConfig, SfmReconstructor, SfmResult, image_digest
-from sfm_ttr_ros.core.supervision import (
+from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_frames
+from sfm_ttr_ros.core.refinement.supervision import (
     FrameSupervision,
     build_supervision,
     frame_loss,
     sample_at,
 )
-from sfm_ttr_ros.core.trainable import check_trainable
-from sfm_ttr_ros.core.verification import CheckConfig, WindowCheck
-from sfm_ttr_ros.core.weights import WEIGHT_POLICIES, RefinementPlan, WeightPolicy
+from sfm_ttr_ros.core.refinement.trainable import check_trainable
+from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES, RefinementPlan, WeightPolicy
+from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
+from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, SfmReconstructor, SfmResult, image_digest
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16
@@ -63,7 +64,7 @@ class TTRConfig:
     sfm: SfmConfig = field(default_factory=SfmConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
-    check: CheckConfig = field(default_factory=CheckConfig)  # core/verification.py
+    check: CheckConfig = field(default_factory=CheckConfig)  # core/checks/measures.py
     # Weights across windows (WEIGHT_POLICIES): "continue" every window starts from the last
     # ACCEPTED window's weights (a refused or rolled-back window leaves them as they were;
     # measured best on real video: BENCHMARKS.md); "reset" from the start-up weights (the
@@ -214,7 +215,7 @@ class SfmTTR:
         self._stop = False
         # called with the step count after each refinement step of a window whose current
         # weights may be served before its end (the live server's interim weights,
-        # core/online.py): no check after refinement, or one that interim_refusal() re-runs
+        # core/stream/refiner.py): no check after refinement, or one that interim_refusal() re-runs
         self.on_refine_step: Callable[[int], None] | None = None
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
@@ -237,7 +238,7 @@ class SfmTTR:
 
     def _concrete(self, config: TTRConfig) -> TTRConfig:
         """``config`` with its objective resolved for this model (``refinement.loss`` "auto":
-        :func:`~sfm_ttr_ros.core.refinement.resolve_loss`); the caller's object is not
+        :func:`~sfm_ttr_ros.core.refinement.encoder.resolve_loss`); the caller's object is not
         changed."""
         refinement = resolve_loss(config.refinement, self.model)
         if refinement is config.refinement:
@@ -277,7 +278,7 @@ class SfmTTR:
 
     def prefetch_sfm(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
         """Begin the SfM of a coming window now, in the background (:mod:`core/prefetch
-        <sfm_ttr_ros.core.prefetch>`); :meth:`process_window` of exactly these frames then
+        <sfm_ttr_ros.core.sfm.prefetch>`); :meth:`process_window` of exactly these frames then
         takes it instead of reconstructing. False when one is still running, or while the
         current window has not finished its own SfM: on a few cores two reconstructions at once
         slowed the current window's (a GPU machine held to 2 cores: first weights 6.8 s after
@@ -351,7 +352,7 @@ class SfmTTR:
         its first window; on CUDA kernels load at first use and each thread makes its own
         cuDNN / cuBLAS handles): the network's forward pass on ``predict_batch`` grey frames
         (:meth:`_run_network`, nothing cached) and two refinement steps on a copy of the model
-        (:func:`~sfm_ttr_ros.core.refinement.warm_up_refinement`). Returns the seconds."""
+        (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_refinement`). Returns the seconds."""
         t0 = time.perf_counter()
         self._run_network([warm_up_image(self.model)] * max(1, self.config.predict_batch))
         warm_up_refinement(self.model, self.config.refinement)
@@ -433,7 +434,7 @@ class SfmTTR:
         """Why the refining window's current weights may not be served yet ("" = they may).
         With ``check.max_unsupported_change`` on (and no held-out check), its unsupported change
         measured on :func:`probe_frames` of the window with the weights as they are now, judged
-        as the finished window's will be (core/verification.py, 3.). For ``on_refine_step``
+        as the finished window's will be (core/checks/measures.py, 3.). For ``on_refine_step``
         (the worker thread, between steps)."""
         return self.checks.interim_refusal()
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 #: Percentiles of the valid inverse depths used as the colour range when none is given.
 DEPTH_PERCENTILES = (5.0, 95.0)

@@ -27,7 +27,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, load_rgb
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, load_rgb
 
 KITTI_DEPTH_SCALE = 256.0
 CAMERAS = ("00", "01", "02", "03")

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, list_images, load_rgb
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, list_images, load_rgb
 
 
 @dataclass

@@ -34,7 +34,7 @@ import numpy as np
 from msg_adapters.classes import MessageClasses, make_header, typestore_classes
 from msg_adapters.image import depth_to_image, numpy_to_image
 from msg_adapters.stamp import NS_PER_S, stamp_to_ns
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_MSGTYPE = "sensor_msgs/msg/CameraInfo"

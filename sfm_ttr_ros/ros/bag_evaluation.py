@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from msg_adapters.image import image_to_depth
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import EvalConfig, Evaluator
-from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.ros import names
 from sfm_ttr_ros.ros.bag import (
     IMAGE_MSGTYPE,

@@ -23,7 +23,7 @@ import numpy as np
 from msg_adapters.camera_info import camera_info_to_intrinsics
 from msg_adapters.compressed import compressed_to_rgb8
 from msg_adapters.image import image_to_depth, image_to_rgb8
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.kitti import KITTI_DEPTH_SCALE, write_depth_png
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.ros import names

@@ -33,7 +33,7 @@ import numpy as np
 from msg_adapters.camera_info import camera_info_msg
 from msg_adapters.classes import make_header
 from msg_adapters.compressed import rgb8_to_compressed
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.kitti import KittiDrive, kitti_intrinsics, parse_kitti_timestamp
 from sfm_ttr_ros.ros.bag import (
     CAMERA_INFO_MSGTYPE,

@@ -2,8 +2,8 @@
 
 Threads: the executor (main thread) runs the subscription callbacks, the parameter services and
 the diagnostics timer; callbacks only convert the message (``msg_adapters``) and hand the frame
-to :class:`~sfm_ttr_ros.core.online.OnlineRefiner`: its live server thread answers ``~/depth``
-at once, its worker thread runs the windows (SfM, model, refinement) and publishes their
+to :class:`~sfm_ttr_ros.core.stream.refiner.StreamRefiner`: its live server thread answers
+``~/depth`` at once, its worker thread runs the windows (SfM, model, refinement) and publishes their
 outputs, so the executor never blocks on heavy work.
 
 Topics (names remappable): subscribes ``image`` (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8,
@@ -16,16 +16,16 @@ a reason; a frame no window refined that ``~/depth`` already carried is not pred
 again unless ``republish_unrefined``: counted in ``frames_live_only``), ``~/points``
 (PointCloud2 x, y, z, reprojection_error in the optical frame of the window's newest registered
 image, with that image's header; units = the depth's units) and
-``/diagnostics``. Threads: the live server (core/live.py) predicts and publishes ``~/depth``;
-the worker (core/online.py, at a lower OS priority) runs the windows.
+``/diagnostics``. Threads: the live server (core/stream/live.py) predicts and publishes ``~/depth``;
+the worker (core/stream/refiner.py, at a lower OS priority) runs the windows.
 
 Topic and node names: :mod:`sfm_ttr_ros.ros.names`; the messages: :mod:`sfm_ttr_ros.ros.outputs`.
 
-Intrinsics (:class:`~sfm_ttr_ros.core.camera.IntrinsicsResolver`): the CameraInfo with the
+Intrinsics (:class:`~sfm_ttr_ros.ros.camera.IntrinsicsResolver`): the CameraInfo with the
 image's stamp, else the latest one; without any CameraInfo the fallback parameters fx, fy (cx,
 cy; 0 = image centre); with neither, frames are held (bounded by ``max_pending``, oldest dropped
 and counted) with a throttled warning, and processed once intrinsics are known. Diagnostics:
-:class:`~sfm_ttr_ros.core.diagnostics.StreamDiagnostics`.
+:class:`~sfm_ttr_ros.core.stream.diagnostics.StreamDiagnostics`.
 
 Containment: no single message, parameter or fault can end the process. Every callback the
 executor runs (subscriptions, QoS events, the timer, the parameter check) and the worker's loop
@@ -77,19 +77,20 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
-from sfm_ttr_ros.core import allocator
-from sfm_ttr_ros.core.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
-from sfm_ttr_ros.core.diagnostics import StreamDiagnostics
-from sfm_ttr_ros.core.frames import Frame, InputError
-from sfm_ttr_ros.core.live import LiveOutput
+from sfm_ttr_ros.ros import allocator
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.models.registry import build_model
-from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR
-from sfm_ttr_ros.core.stream import FrameOutput, WindowStats
-from sfm_ttr_ros.core.throttle import WARN_PERIOD_S, Throttle
+from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
+from sfm_ttr_ros.core.stream.live import LiveOutput
+from sfm_ttr_ros.core.stream.refiner import StreamRefiner
+from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S, Throttle
+from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import dds, names, outputs
 from sfm_ttr_ros.ros import params as node_params
+from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
 EXIT_START_UP = 1  # the node could not start (parameters, model, weights)
@@ -126,9 +127,9 @@ class RefinerNode(Node):
     other keyword arguments go to :class:`rclpy.node.Node` (context, parameter_overrides,
     cli_args, namespace).
 
-    ``intrinsics`` (:class:`~sfm_ttr_ros.core.camera.IntrinsicsResolver`) decides each frame's
+    ``intrinsics`` (:class:`~sfm_ttr_ros.ros.camera.IntrinsicsResolver`) decides each frame's
     intrinsics and holds the frames that have none; ``diagnostics``
-    (:class:`~sfm_ttr_ros.core.diagnostics.StreamDiagnostics`) counts and builds the status;
+    (:class:`~sfm_ttr_ros.core.stream.diagnostics.StreamDiagnostics`) counts and builds the status;
     :mod:`sfm_ttr_ros.ros.outputs` builds the messages."""
 
     def __init__(self, *, model: DepthModel | None = None, node_name: str = names.NODE_NAME,
@@ -156,7 +157,7 @@ class RefinerNode(Node):
         if nv["load_weights_path"]:
             self._load_encoder(model, nv["load_weights_path"])
         self.ttr = SfmTTR(model, node_params.build_ttr_config(values))
-        self.online = OnlineRefiner(
+        self.online = StreamRefiner(
             self.ttr, node_params.build_stream_settings(values),
             config_provider=lambda: node_params.build_ttr_config(self._values()),
             settings_provider=lambda: node_params.build_stream_settings(self._values()),
@@ -445,7 +446,7 @@ class RefinerNode(Node):
 
 def main(args=None) -> int:
     """Entry point of ``ros2 run sfm_ttr_ros refiner``."""
-    malloc_note = allocator.preload()  # mimalloc unless SFM_TTR_MALLOC says: core/allocator.py
+    malloc_note = allocator.preload()  # mimalloc unless SFM_TTR_MALLOC says: ros/allocator.py
     dds_note = dds.apply_profile()  # before rclpy.init: Fast DDS reads it when it starts
     # Our own signal handling: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread, so the
     # worker is stopped BEFORE the context goes down (the executor spins with a timeout).

@@ -26,9 +26,9 @@ from msg_adapters import (
     make_diagnostic_array,
     numpy_to_pointcloud2,
 )
-from sfm_ttr_ros.core.diagnostics import Status
-from sfm_ttr_ros.core.live import LiveOutput
-from sfm_ttr_ros.core.stream import FrameOutput, WindowStats
+from sfm_ttr_ros.core.stream.diagnostics import Status
+from sfm_ttr_ros.core.stream.live import LiveOutput
+from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import names
 
 Timings = MutableMapping[str, float]

@@ -4,8 +4,8 @@ declared on the node, read back, and turned into the core's configs.
 
 Live parameters (not read-only) take effect at the next window: the node builds a new
 :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` and
-:class:`~sfm_ttr_ros.core.stream.StreamSettings` from the current values at the start of every
-window (``SfmTTR.set_config``). rclpy itself enforces types, ranges and read-only;
+:class:`~sfm_ttr_ros.core.stream.windows.StreamSettings` from the current values at the start of
+every window (``SfmTTR.set_config``). rclpy itself enforces types, ranges and read-only;
 :func:`validate` adds what descriptors cannot say (choices, ``window_stride <= window_size``,
 ``lr > 0``, both model files or neither, ...). This is the only module that imports
 ``rcl_interfaces``.
@@ -25,10 +25,10 @@ from rcl_interfaces.msg import (
 
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.models.registry import ModelConfig
-from sfm_ttr_ros.core.node_settings import parse_use_projection
 from sfm_ttr_ros.core.params import Param
+from sfm_ttr_ros.core.params.node import parse_use_projection
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.stream import StreamSettings
+from sfm_ttr_ros.core.stream.windows import StreamSettings
 
 __all__ = ["DEFAULTS", "PARAMS", "SPECS", "build_model_config", "build_settings",
            "build_stream_settings", "build_ttr_config", "current_values", "declare",

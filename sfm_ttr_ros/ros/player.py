@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from msg_adapters.stamp import clock_message
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros.bag import BagRecorder, ProgressBar
 
 DEFAULT_QOS_DEPTH = 100

@@ -3,7 +3,7 @@
 :class:`AffineInverse` outputs p = a_j / D + b_j for the wrapped network's depth D, with a scale
 a_j in [0.5, 5] and a shift b_j in [0, 0.3·a_j] drawn at random PER FRAME: what a MiDaS / Depth
 Anything relative head promises and no more. It lets the affine path (per-frame
-scale-and-shift alignment, :mod:`sfm_ttr_ros.core.alignment_affine`) be compared with the paper's
+scale-and-shift alignment, :mod:`sfm_ttr_ros.core.alignment.affine`) be compared with the paper's
 scale-only path on the same network and the same SfM (tests/test_affine_refinement.py,
 scripts/studies/affine_equivalence.py).
 

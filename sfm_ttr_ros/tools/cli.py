@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.params import build
 from sfm_ttr_ros.tools.cli_args import (
     add_parameter_args,

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from sfm_ttr_ros.core import params as schema
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 #: flag → (parameter, group). Groups: ``model``, ``method`` (both commands), ``windows``
 #: (``benchmark`` only: ``run`` is one window over the whole sequence).

@@ -13,7 +13,7 @@ import math
 import sys
 from pathlib import Path
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros.bag import STORAGES
 from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
 from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC

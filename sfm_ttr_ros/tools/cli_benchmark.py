@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
 from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 from sfm_ttr_ros.tools.cli_args import (

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from sfm_ttr_ros.core import params as schema
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros import names
 from sfm_ttr_ros.tools.process import interrupt
 

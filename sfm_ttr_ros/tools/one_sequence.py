@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.tools.cli_args import build_model_for, parameter_values
 
 #: Names of the two predictions in ``summary.json``'s ``metrics`` and their labels as methods.
@@ -30,7 +30,7 @@ METHODS = {"before": "no_ttr", "after": "sfm_ttr"}
 def eval_config(args: argparse.Namespace, model=None):
     """The evaluation options of the flags; ``--prediction auto`` follows ``model``'s output
     (relative inverse depth for affine-invariant networks, else depth)."""
-    from sfm_ttr_ros.core.alignment_affine import is_affine_output
+    from sfm_ttr_ros.core.alignment.affine import is_affine_output
     from sfm_ttr_ros.core.evaluation import EvalConfig
 
     kind = args.prediction

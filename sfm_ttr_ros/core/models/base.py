@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 # Monodepth2's depth range: depth = 1 / (1/max + (1/min - 1/max) * sigmoid).
 MIN_DEPTH = 0.1
@@ -62,7 +62,7 @@ class DepthModel(nn.Module):
 
     @property
     def staged_encoder(self):
-        """What implements the staged-encoder protocol of :mod:`sfm_ttr_ros.core.refinement`
+        """What implements the staged-encoder protocol of :mod:`sfm_ttr_ros.core.refinement.encoder`
         (frozen leading stages computed once per frame) for this model: the encoder itself
         here; a model whose encoder is split elsewhere overrides it."""
         return self.encoder

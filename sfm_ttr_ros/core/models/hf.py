@@ -11,7 +11,7 @@ CVPR 2023, Sec. 3.3: refine the encoder ``g``, keep the decoder ``h``):
   by ``encoder_module``. ``decoder``: every other module (neck, head).
 * ``output_kind``: ``"metric_depth"`` (depth in metres), ``"relative_depth"`` (depth up to scale)
   or ``"relative_inverse_depth"`` (inverse depth up to scale AND shift: MiDaS / DPT / Depth
-  Anything relative heads, aligned by :mod:`sfm_ttr_ros.core.alignment_affine`). Detected from
+  Anything relative heads, aligned by :mod:`sfm_ttr_ros.core.alignment.affine`). Detected from
   the config (:func:`detect_output_kind`), or given. ``forward`` / ``predict`` return the raw
   prediction in that space (depth for the first two, affine inverse depth for the third).
 * Preprocessing in torch (differentiable, no PIL): the model's image-processor rule read from its
@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.base import DepthModel, ModelLoadError
 from sfm_ttr_ros.core.models.hf_stages import Dinov2Stages, dinov2_stages
 

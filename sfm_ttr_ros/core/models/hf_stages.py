@@ -1,7 +1,7 @@
 """The staged-encoder protocol for Depth Anything's DINOv2 backbone (transformers).
 
 SfM-TTR computes an encoder's frozen leading stages once per frame and runs only the rest at
-every step (:mod:`sfm_ttr_ros.core.refinement`, ``frozen_encoder_levels``; with
+every step (:mod:`sfm_ttr_ros.core.refinement.encoder`, ``frozen_encoder_levels``; with
 ``refinement.trainable_blocks = N`` every stage before the first trained block). For a ViT the
 stages are the patch embedding (stage 0) and the transformer blocks (stage i = block i − 1): the
 blocks before the first trained one are the most expensive part of a step's forward pass that
@@ -38,7 +38,7 @@ class PatchGrid(NamedTuple):
 
 class Dinov2Stages:
     """Staged forward of a Depth Anything network ``net`` (see the module docstring); the
-    protocol of :mod:`sfm_ttr_ros.core.refinement`: ``num_stages``, ``level_stages``,
+    protocol of :mod:`sfm_ttr_ros.core.refinement.encoder`: ``num_stages``, ``level_stages``,
     ``stage_modules(i)``, ``forward_stages(x, start, stop, features)``; plus
     :meth:`stages_before_last_blocks` and :meth:`decode`. ``normalise`` maps the [0, 1] input
     batch to the network's pixel values (the model's processor rule)."""

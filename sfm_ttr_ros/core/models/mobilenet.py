@@ -132,7 +132,7 @@ class MobileNetV2Encoder(nn.Module):
         """Run blocks ``start`` … ``stop − 1`` on ``x`` (the [0, 1] image when ``start`` is 0),
         appending the tapped outputs to a copy of ``features``: the staged-encoder protocol
         that lets SfM-TTR compute frozen leading blocks once per frame
-        (:mod:`sfm_ttr_ros.core.refinement`)."""
+        (:mod:`sfm_ttr_ros.core.refinement.encoder`)."""
         out = list(features)
         if start == 0:
             x = (x - self.mean) / self.std

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.base import DepthModel, ModelLoadError
 from sfm_ttr_ros.core.models.mobilenet import (
     MobileDepthNet,

@@ -158,7 +158,7 @@ class ResnetEncoder(nn.Module):
                        features: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Run stages ``start`` … ``stop − 1`` (see :attr:`num_stages`) on ``x`` (the [0, 1]
         image when ``start`` is 0), appending each stage's output to a copy of ``features``
-        (the staged-encoder protocol of :mod:`sfm_ttr_ros.core.refinement`)."""
+        (the staged-encoder protocol of :mod:`sfm_ttr_ros.core.refinement.encoder`)."""
         e = self.encoder
         out = list(features)
         for i in range(start, stop):

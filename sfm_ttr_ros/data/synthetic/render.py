@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.data.synthetic.geometry import _build_scene, _Builder, _Scene, _with_objects
 from sfm_ttr_ros.data.synthetic.raycast import _BATCH_AREA, _cast_batch, _intersect, _screen_rects
 from sfm_ttr_ros.data.synthetic.scene import (

@@ -62,7 +62,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.synthetic.geometry import CAR_COLOURS, _Builder, _car_shape
 from sfm_ttr_ros.data.synthetic.materials import CAR, DARK
 from sfm_ttr_ros.data.synthetic.render import SyntheticSequence, render_frames

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 
 DOMAINS = ("A", "B")
 KITTI_START_STAMP = 1317042145.964389  # 2011-09-26 13:02:25.964389 UTC, a KITTI-like epoch

@@ -1,10 +1,11 @@
 """``sfm-ttr benchmark``: the same frames, the same network, three ways.
 
 * ``no_ttr``: the network's plain prediction (the original weights).
-* ``sfm_ttr_online``: every frame pushed through :class:`~sfm_ttr_ros.core.stream.StreamProcessor`
-  exactly as the ROS node feeds it (same windows, keyframes, overlap and accounting; no ROS
-  transport), then :meth:`~sfm_ttr_ros.core.stream.StreamProcessor.flush` at the end of the stream
-  (the node's idle flush). The depth of each frame is the one the node would publish.
+* ``sfm_ttr_online``: every frame pushed through
+  :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor` exactly as the ROS node feeds it (same
+  windows, keyframes, overlap and accounting; no ROS transport), then
+  :meth:`~sfm_ttr_ros.core.stream.windows.StreamProcessor.flush` at the end of the stream (the
+  node's idle flush). The depth of each frame is the one the node would publish.
 * ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.process_window` over the whole
   sequence, the paper's setting (or consecutive chunks of ``offline_max_frames`` frames, each
   from the original weights, when the sequence is too long for one reconstruction).

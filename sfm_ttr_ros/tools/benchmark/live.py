@@ -1,8 +1,8 @@
 """The benchmark's ``sfm_ttr_live`` mode: the node's live path, timed as a camera would feed it.
 
 Frames arrive in real time at ``rate`` Hz (each is read from disk before its due time, so the
-disk is not measured); each goes to :meth:`OnlineRefiner.submit_live` (served at once by the
-serving copy of the network) and to :meth:`OnlineRefiner.submit` (the background windows that
+disk is not measured); each goes to :meth:`StreamRefiner.submit_live` (served at once by the
+serving copy of the network) and to :meth:`StreamRefiner.submit` (the background windows that
 keep refining it), exactly as the node's image callback does. The depth evaluated for a frame
 is the one served live; its latency is from its arrival to the moment its depth is ready (the
 node then adds the message conversion, about 2-5 ms at KITTI size: BENCHMARKS.md).
@@ -17,10 +17,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sfm_ttr_ros.core.live import LiveOutput
-from sfm_ttr_ros.core.online import OnlineRefiner
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.stream import StreamSettings, WindowStats
+from sfm_ttr_ros.core.stream.live import LiveOutput
+from sfm_ttr_ros.core.stream.refiner import StreamRefiner
+from sfm_ttr_ros.core.stream.windows import StreamSettings, WindowStats
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.runners import ModeRun, log, window_record
 
@@ -46,7 +46,7 @@ def bare_forward_s(model, image: np.ndarray, probes: int = FORWARD_PROBES) -> fl
 
 def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
              cfg: TTRConfig, settings: StreamSettings, progress, rate: float = 10.0) -> None:
-    """Feed ``indices`` at ``rate`` Hz through an :class:`OnlineRefiner`; evaluate live depth."""
+    """Feed ``indices`` at ``rate`` Hz through an :class:`StreamRefiner`; evaluate live depth."""
     if not rate > 0:
         raise ValueError(f"rate must be positive, got {rate}")
     ttr = SfmTTR(model, copy.deepcopy(cfg))
@@ -91,7 +91,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             what = "refined: now served" if ws.refined else f"not refined ({ws.reason})"
             progress(f"sfm_ttr_live: window {ws.index} {what}")
 
-    online = OnlineRefiner(ttr, copy.deepcopy(settings), on_live=on_live, on_window=on_window,
+    online = StreamRefiner(ttr, copy.deepcopy(settings), on_live=on_live, on_window=on_window,
                            logger=log)
     online.start()
     t_start = time.monotonic()
@@ -154,7 +154,7 @@ def window_timeline(ws: WindowStats, arrivals: Sequence[float], served: dict) ->
     (``sfm_done``), the refinement ended (``refined``), its first interim weights or else its
     accepted weights were swapped into serving (``first_served``), its accepted weights were
     (``served``), its outputs were ready (``finished``); None for what did not happen.
-    ``served``: the window's marks of :attr:`OnlineRefiner.served_at`.
+    ``served``: the window's marks of :attr:`StreamRefiner.served_at`.
     ``since_feed_start`` = ``first_served`` counted from the first frame of the feed."""
     last = arrivals[int(ws.names[-1])] if ws.names else float("nan")
     t = ws.timings

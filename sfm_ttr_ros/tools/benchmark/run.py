@@ -12,10 +12,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import EvalConfig, relative_gain
-from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.stream import StreamSettings
+from sfm_ttr_ros.core.stream.windows import StreamSettings
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE, error_by_depth_figure
 from sfm_ttr_ros.tools.benchmark.figure import pick_figure_frames, qualitative_figure

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator
-from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.stream import (
+from sfm_ttr_ros.core.stream.windows import (
     FrameOutput,
     StreamProcessor,
     StreamSettings,
@@ -195,7 +195,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 
     stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
                              on_drop=on_drop, logger=log)
-    # the node's worker pays these before its first frame (OnlineRefiner.start): not timed
+    # the node's worker pays these before its first frame (StreamRefiner.start): not timed
     run.extra["warm_up_s"] = ttr.warm_up()
     try:
         for i in indices:

@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from sfm_ttr_ros.core import params as schema
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.stream import StreamSettings
+from sfm_ttr_ros.core.stream.windows import StreamSettings
 from sfm_ttr_ros.ros.names import NODE_NAME
 from sfm_ttr_ros.ros.share import find_share_file, share_candidates
 

@@ -11,7 +11,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.verification import CHECK_REASONS
+from sfm_ttr_ros.core.checks.measures import CHECK_REASONS
 
 TIMELINE_FIGURE = "windows.png"
 _FONT = cv2.FONT_HERSHEY_SIMPLEX

@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 DEFAULT_RETRIES = 2
 DEFAULT_EIGEN_CONTEXT = 10

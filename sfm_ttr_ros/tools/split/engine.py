@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.tools.split.spec import SequenceSpec
 from sfm_ttr_ros.tools.split.task import SequenceOutcome, SplitJob, run_sequence
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.sequence import ImageSequence, open_image_folder, open_kitti
 from sfm_ttr_ros.tools.split.spec import SequenceSpec
 

@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 KINDS = ("kitti", "images", "bag")
 #: Options each kind accepts (``name``, ``start`` and ``frames`` are common to all).

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import METRICS
-from sfm_ttr_ros.core.frames import InputError
 from sfm_ttr_ros.tools.split.spec import SequenceSpec
 
 COMMANDS = ("benchmark", "run")

@@ -93,9 +93,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError
-from sfm_ttr_ros.core.sfm import SfmResult
-from sfm_ttr_ros.core.supervision import FrameSupervision, sample_at
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, sample_at
+from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 
 #: Reason keys of windows the checks refuse (frames published unrefined with that key).
 CHECK_REASONS = {

@@ -19,8 +19,8 @@
 the last N transformer blocks of the encoder (:func:`encoder_blocks`): the backward pass then
 stops at the first trained block instead of running down to the patch embedding, and on
 Depth Anything the blocks before it run once per frame, not per step
-(:func:`~sfm_ttr_ros.core.refinement.block_prefix_stages`): a ViT-S step ~2.8x cheaper than the
-whole encoder with N = 4, ~3.8x with N = 2 (BENCHMARKS.md "ViT and affine paths"). Convolutional
+(:func:`~sfm_ttr_ros.core.refinement.encoder.block_prefix_stages`): a ViT-S step ~2.8x cheaper than
+the whole encoder with N = 4, ~3.8x with N = 2 (BENCHMARKS.md "ViT and affine paths"). Convolutional
 encoders have no blocks: use ``frozen_encoder_levels`` there.
 
 The decoder h is never trained. Only this module imports ``peft`` (lazily, for ``lora``).
@@ -31,7 +31,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.base import DepthModel, ModelLoadError
 
 TRAINABLE_MODES = ("encoder", "norm", "lora")

@@ -12,11 +12,12 @@ overlap entirely. When the next window begins, :meth:`SfmPrefetch.take` hands ov
 reconstruction of exactly those frames (waiting for it if it is still running); anything else
 (other frames, other intrinsics, a failure) is discarded and the window reconstructs as usual.
 
-The stream (:class:`~sfm_ttr_ros.core.stream.StreamProcessor`) begins it from its input
+The stream (:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`) begins it from its input
 callback, at the first frame that finds the next window's frames all queued once the running
 window's own SfM has ended (:meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.prefetch_sfm`); the thread
-lowers its own OS priority to the worker's (:func:`~sfm_ttr_ros.core.live.lower_thread_priority`),
-so live serving keeps the cores first.
+lowers its own OS priority to the worker's
+(:func:`~sfm_ttr_ros.core.stream.live.lower_thread_priority`), so live serving keeps the cores
+first.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ import threading
 from collections.abc import Sequence
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.live import lower_thread_priority
-from sfm_ttr_ros.core.sfm import SfmCancelled, SfmConfig, SfmReconstructor, SfmResult
+from sfm_ttr_ros.core.sfm.reconstruction import SfmCancelled, SfmConfig, SfmReconstructor, SfmResult
+from sfm_ttr_ros.core.stream.live import lower_thread_priority
 
 log = logging.getLogger(__name__)
 

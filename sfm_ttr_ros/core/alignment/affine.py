@@ -2,7 +2,7 @@
 
 MiDaS / DPT / Depth Anything relative heads predict ``p ≈ a·(1/D) + b``: inverse depth up to an
 unknown scale ``a > 0`` AND shift ``b``. The paper's one-point scale RANSAC (Izquierdo & Civera,
-CVPR 2023, Sec. 3.2; :mod:`sfm_ttr_ros.core.alignment`) assumes ``D_nn = s·D_sfm`` and, with a
+CVPR 2023, Sec. 3.2; :mod:`sfm_ttr_ros.core.alignment.scale`) assumes ``D_nn = s·D_sfm`` and, with a
 shift, picks the wrong points and the wrong targets. This module fits
 
     p = a·u + b,    u = 1/D_sfm,
@@ -27,8 +27,8 @@ with the paper's three steps carried over:
 
 The refinement then compares like with like in the network's own output space: targets
 ``a/D_sfm + b`` (:func:`affine_targets`) against the raw prediction ``p``. The paper's
-scale-only path (:func:`sfm_ttr_ros.core.alignment.align_scale`) is untouched and stays the one
-for depth outputs.
+scale-only path (:func:`sfm_ttr_ros.core.alignment.scale.align_scale`) is untouched and stays the
+one for depth outputs.
 """
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.alignment import (
+from sfm_ttr_ros.core.alignment.scale import (
     AlignmentConfig,
     AlignmentResult,
     _check,
     _valid,
     align_scale,
 )
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 #: Relative spread of SfM inverse depth below which (scale, shift) cannot be told apart.
 MIN_INVERSE_DEPTH_SPREAD = 1e-6
@@ -272,7 +272,7 @@ def align_output(d_sfm: np.ndarray, pred: np.ndarray, output_kind: str,
     :func:`align_affine` per frame (:func:`align_affine_frames`, ``frame_sizes``; the whole
     array as one frame when None; ``config.affine_ransac_iterations`` and its seed, thresholds
     on relative errors, see :class:`AffineAlignmentConfig`), else the paper's
-    :func:`~sfm_ttr_ros.core.alignment.align_scale` with ``config``, unchanged."""
+    :func:`~sfm_ttr_ros.core.alignment.scale.align_scale` with ``config``, unchanged."""
     cfg = config or AlignmentConfig()
     if output_kind in AFFINE_OUTPUT_KINDS:
         sizes = [np.asarray(d_sfm).size] if frame_sizes is None else frame_sizes

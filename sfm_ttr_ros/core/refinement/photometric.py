@@ -68,7 +68,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.models.base import DepthModel
 
 ALPHA = 0.85  # weight of the SSIM term in pe (Monodepth2)

@@ -1,9 +1,9 @@
-"""The torch SIFT features (core/features_torch.py) and their matches (core/matching_torch.py)
-in a COLMAP database, as hloc does with its own features: images imported with pycolmap
-(one camera with the known intrinsics), keypoints and descriptors written per image, raw
-matches per pair of sequential frames, the pairs verified by pycolmap's geometric verification
-(calibrated two-view geometry: essential / fundamental / homography RANSAC, COLMAP's defaults),
-so that pycolmap's
+"""The torch SIFT features (core/sfm/features/sift_torch.py) and their matches
+(core/sfm/features/matching_torch.py) in a COLMAP database, as hloc does with its own features:
+images imported with pycolmap (one camera with the known intrinsics), keypoints and descriptors
+written per image, raw matches per pair of sequential frames, the pairs verified by pycolmap's
+geometric verification (calibrated two-view geometry: essential / fundamental / homography RANSAC,
+COLMAP's defaults), so that pycolmap's
 incremental mapper then runs on the database exactly as after its own SIFT.
 
 Descriptors stay on the feature device for the frames that later frames are matched with (the
@@ -21,8 +21,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.features_torch import SiftFeatures, TorchSiftConfig, detect_and_describe
-from sfm_ttr_ros.core.matching_torch import MatchConfig, match_mutual_ratio
+from sfm_ttr_ros.core.sfm.features.matching_torch import MatchConfig, match_mutual_ratio
+from sfm_ttr_ros.core.sfm.features.sift_torch import (
+    SiftFeatures,
+    TorchSiftConfig,
+    detect_and_describe,
+)
 
 
 def default_device() -> str:
@@ -51,8 +55,8 @@ class _Cached:
 
 class TorchFeatureDatabase:
     """Torch features and matches of the frames of one COLMAP database (one per
-    :class:`~sfm_ttr_ros.core.sfm.SfmReconstructor` generation). ``timings`` accumulates the
-    seconds of the last :meth:`extract` / :meth:`match` calls by step."""
+    :class:`~sfm_ttr_ros.core.sfm.reconstruction.SfmReconstructor` generation). ``timings``
+    accumulates the seconds of the last :meth:`extract` / :meth:`match` calls by step."""
 
     def __init__(self, database_path: Path, device: str | None = None,
                  sift: TorchSiftConfig | None = None, matching: MatchConfig | None = None,

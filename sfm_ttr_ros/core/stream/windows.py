@@ -80,11 +80,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from sfm_ttr_ros.core.checks.measures import CHECK_REASONS
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
-from sfm_ttr_ros.core.sfm import SfmCancelled
-from sfm_ttr_ros.core.throttle import Throttle
-from sfm_ttr_ros.core.verification import CHECK_REASONS
+from sfm_ttr_ros.core.sfm.reconstruction import SfmCancelled
+from sfm_ttr_ros.core.stream.throttle import Throttle
 
 #: Reason keys of frames published without refinement.
 UNREFINED_REASONS = {
@@ -137,20 +138,21 @@ class StreamSettings:
     max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
     overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
     idle_flush_s: float = 2.0  # > 0: flush an incomplete window after this long without input
-    # Live serving (core/online.py): bound of the live queue (oldest skipped when full) and the
-    # nice value added to the background window worker, so live prediction gets the cores first.
+    # Live serving (core/stream/refiner.py): bound of the live queue (oldest skipped when full) and
+    # the nice value added to the background window worker, so live prediction gets the cores first.
     live_max_queue: int = 4
     worker_nice: int = 10
-    # OpenMP threads of the window worker's torch ops (core/openmp.py): 1 measured fastest on
+    # OpenMP threads of the window worker's torch ops (core/stream/openmp.py): 1 measured fastest on
     # 2 cores next to live serving; 0 = the runtime's default
     worker_threads: int = 1
-    # > 0: while a window refines, its weights are served every this many steps (core/online.py)
+    # > 0: while a window refines, its weights are served every this many steps
+    # (core/stream/refiner.py)
     serve_every_steps: int = 0
     # False: a frame no window refines that the live output already served is not predicted
     # again for the windowed output (FrameOutput.depth None; counted under its reason as before)
     republish_unrefined: bool = False
     # While a window runs and the next window's frames are all queued, reconstruct them in the
-    # background (core/prefetch.py): the next window starts with its SfM done. Only when every
+    # background (core/sfm/prefetch.py): the next window starts with its SfM done. Only when every
     # frame is a keyframe (min_keyframe_interval_s and min_keyframe_motion 0).
     prefetch_sfm: bool = True
 
@@ -818,7 +820,7 @@ class StreamProcessor:
             self.on_drop(frame, key, message)
 
     def _warn(self, key: str, message: str) -> None:
-        """Log a warning at most once per :data:`~sfm_ttr_ros.core.throttle.WARN_PERIOD_S` per
-        key."""
+        """Log a warning at most once per :data:`~sfm_ttr_ros.core.stream.throttle.WARN_PERIOD_S`
+        per key."""
         if self._throttle.due(key):
             self.log.warning(message)

@@ -6,14 +6,14 @@ change while the node runs) or start-up (read-only), and its description. Its DE
 are read from the target dataclass field, so they are written once, in the config. Sections:
 
 =========== ====================================================================
-``sfm``       :class:`~sfm_ttr_ros.core.sfm.SfmConfig`
-``alignment`` :class:`~sfm_ttr_ros.core.alignment.AlignmentConfig`
-``refinement``:class:`~sfm_ttr_ros.core.refinement.RefinementConfig`
+``sfm``       :class:`~sfm_ttr_ros.core.sfm.reconstruction.SfmConfig`
+``alignment`` :class:`~sfm_ttr_ros.core.alignment.scale.AlignmentConfig`
+``refinement``:class:`~sfm_ttr_ros.core.refinement.encoder.RefinementConfig`
 ``ttr``       :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` (its own fields)
-``check``     :class:`~sfm_ttr_ros.core.verification.CheckConfig` (the window checks)
-``stream``    :class:`~sfm_ttr_ros.core.stream.StreamSettings`
+``check``     :class:`~sfm_ttr_ros.core.checks.measures.CheckConfig` (the window checks)
+``stream``    :class:`~sfm_ttr_ros.core.stream.windows.StreamSettings`
 ``model``     :class:`~sfm_ttr_ros.core.models.registry.ModelConfig`
-``node``      :class:`~sfm_ttr_ros.core.node_settings.NodeSettings`
+``node``      :class:`~sfm_ttr_ros.core.params.node.NodeSettings`
 =========== ====================================================================
 
 Everything else comes from this table: the node's ROS descriptors (:mod:`sfm_ttr_ros.ros.params`),
@@ -34,28 +34,32 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sfm_ttr_ros.core.alignment import AlignmentConfig
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
+from sfm_ttr_ros.core.checks.measures import (
+    UNSUPPORTED_HISTORY,
+    UNSUPPORTED_MIN_HISTORY,
+    CheckConfig,
+)
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.hf import OUTPUT_KINDS
 from sfm_ttr_ros.core.models.registry import ModelConfig
-from sfm_ttr_ros.core.node_settings import (
+from sfm_ttr_ros.core.params.node import (
     IMAGE_TRANSPORTS,
     QOS_RELIABILITIES,
     USE_PROJECTION_CHOICES,
     NodeSettings,
 )
 from sfm_ttr_ros.core.pipeline import WEIGHT_POLICIES, TTRConfig
-from sfm_ttr_ros.core.refinement import (
+from sfm_ttr_ros.core.refinement.encoder import (
     BN_MODES,
     LOSSES,
     SFM_RESIDUALS,
     WEIGHTINGS,
     RefinementConfig,
 )
-from sfm_ttr_ros.core.sfm import FEATURE_BACKENDS, RETRY_HISTORY, SfmConfig
-from sfm_ttr_ros.core.stream import StreamSettings
-from sfm_ttr_ros.core.trainable import TRAINABLE_MODES
-from sfm_ttr_ros.core.verification import UNSUPPORTED_HISTORY, UNSUPPORTED_MIN_HISTORY, CheckConfig
+from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
+from sfm_ttr_ros.core.sfm.reconstruction import FEATURE_BACKENDS, RETRY_HISTORY, SfmConfig
+from sfm_ttr_ros.core.stream.windows import StreamSettings
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in
@@ -301,7 +305,7 @@ PARAMS: tuple[Param, ...] = (
     _p("max_loss_ratio", "ttr.max_loss_ratio", "Roll a window back to the weights before it "
        "when its loss after refinement exceeds this many times the loss before (non-finite "
        "losses or weights always roll back); 0 = only the non-finite check.", 0.0, 1e6),
-    # -- window checks (core/verification.py; live) -----------------------------------
+    # -- window checks (core/checks/measures.py; live) -----------------------------------
     _p("check.holdout_fraction", "check.holdout_fraction", "Share of a window's supervision "
        "tracks held out of refinement to check it: the refined weights are served and kept only "
        "if the held-out error fell (check.holdout_margin); else the window is published "

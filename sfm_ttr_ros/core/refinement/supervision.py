@@ -1,10 +1,10 @@
 """Stage 3 → 4 of SfM-TTR: the supervision of each registered frame.
 
-After the scale alignment (Sec. 3.2, :mod:`sfm_ttr_ros.core.alignment`) every selected SfM
+After the scale alignment (Sec. 3.2, :mod:`sfm_ttr_ros.core.alignment.scale`) every selected SfM
 observation of frame j gives a pixel p_lj, a target depth ŝ·D_sfm(l, j) in the network's units
 and the confidence weight exp(−r_lj²) of Eq. (5). This module holds that per-frame record, the
 sampling of a depth map at those pixels (D_nn(p_lj)) and Eq. (5) itself, so the refinement
-(:mod:`sfm_ttr_ros.core.refinement`), the pipeline and the checks all read the same numbers.
+(:mod:`sfm_ttr_ros.core.refinement.encoder`), the pipeline and the checks all read the same numbers.
 """
 
 from __future__ import annotations
@@ -17,14 +17,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sfm_ttr_ros.core.alignment import AlignmentResult
-from sfm_ttr_ros.core.alignment_affine import (
+from sfm_ttr_ros.core.alignment.affine import (
     AffineAlignmentResult,
     FrameAffineAlignment,
     affine_targets,
 )
+from sfm_ttr_ros.core.alignment.scale import AlignmentResult
 from sfm_ttr_ros.core.models.base import DepthModel
-from sfm_ttr_ros.core.sfm import SfmResult
+from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 
 
 @dataclass
@@ -125,7 +125,7 @@ def build_supervision(sfm: SfmResult, registered: Sequence[str],
 def supervision_targets(align: AlignmentResult, d_sfm: np.ndarray, frame: int = 0) -> np.ndarray:
     """The targets of Eq. (5) in the network's output space: ŝ·D_sfm for the paper's scale
     fit; a/D_sfm + b for an affine fit of relative inverse depth
-    (:func:`~sfm_ttr_ros.core.alignment_affine.affine_targets`; per-frame fits: frame
+    (:func:`~sfm_ttr_ros.core.alignment.affine.affine_targets`; per-frame fits: frame
     ``frame``'s, none selected where it failed)."""
     if isinstance(align, FrameAffineAlignment):
         if not np.isfinite(align.frame_scale[frame]):

@@ -2,23 +2,23 @@
 
 One object the ROS node and the benchmark's live mode both drive, so they run the same code:
 
-* :meth:`OnlineRefiner.submit_live` — every frame, at once, to the
-  :class:`~sfm_ttr_ros.core.live.LiveServer` (its own thread): depth from the serving copy of
-  the network (:class:`~sfm_ttr_ros.core.serving.ServingModel`), no intrinsics needed.
-* :meth:`OnlineRefiner.submit` — frames with intrinsics to the
-  :class:`~sfm_ttr_ros.core.stream.StreamProcessor`, stepped by a background worker thread at a
-  lower OS priority (``StreamSettings.worker_nice``) with an OpenMP team of its own
-  (``StreamSettings.worker_threads``, :mod:`~sfm_ttr_ros.core.openmp`): keyframes, windows, SfM,
-  alignment, refinement; each window's frames come out again on ``on_refined`` (today's
+* :meth:`StreamRefiner.submit_live` — every frame, at once, to the
+  :class:`~sfm_ttr_ros.core.stream.live.LiveServer` (its own thread): depth from the serving copy of
+  the network (:class:`~sfm_ttr_ros.core.stream.serving.ServingModel`), no intrinsics needed.
+* :meth:`StreamRefiner.submit` — frames with intrinsics to the
+  :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`, stepped by a background worker thread
+  at a lower OS priority (``StreamSettings.worker_nice``) with an OpenMP team of its own
+  (``StreamSettings.worker_threads``, :mod:`~sfm_ttr_ros.core.stream.openmp`): keyframes, windows,
+  SfM, alignment, refinement; each window's frames come out again on ``on_refined`` (today's
   windowed output).
 * When a window is refined (and not rolled back) its encoder is swapped into the serving copy:
   version = window index + 1 (0 = the start-up weights). A window that fails, is skipped or
   is rolled back leaves the served weights unchanged.
 * With ``StreamSettings.serve_every_steps = N`` the refining window's weights are also served
-  after every N steps (:meth:`~sfm_ttr_ros.core.serving.ServingModel.preview`, same version,
+  after every N steps (:meth:`~sfm_ttr_ros.core.stream.serving.ServingModel.preview`, same version,
   ``interim_step`` = the step), so a frame gets part of a window's gain seconds before the window
   ends; when the window then ends without being accepted the weights from before it are served
-  again (:meth:`~sfm_ttr_ros.core.serving.ServingModel.revert`). The pipeline calls the step
+  again (:meth:`~sfm_ttr_ros.core.stream.serving.ServingModel.revert`). The pipeline calls the step
   hook only when no check after refinement can still refuse the window.
 
 Weights across windows follow ``TTRConfig.weight_policy`` (reset, continue, continual: see
@@ -33,19 +33,29 @@ import threading
 import time
 from collections.abc import Callable
 
-from sfm_ttr_ros.core import openmp
+from sfm_ttr_ros.core.stream import openmp
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.live import WARM_UP_WAIT_S, LiveOutput, LiveServer, lower_thread_priority
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement import warm_up_optimiser
-from sfm_ttr_ros.core.serving import ServingModel
-from sfm_ttr_ros.core.stream import FrameOutput, StreamProcessor, StreamSettings, WindowStats
+from sfm_ttr_ros.core.refinement.encoder import warm_up_optimiser
+from sfm_ttr_ros.core.stream.live import (
+    WARM_UP_WAIT_S,
+    LiveOutput,
+    LiveServer,
+    lower_thread_priority,
+)
+from sfm_ttr_ros.core.stream.serving import ServingModel
+from sfm_ttr_ros.core.stream.windows import (
+    FrameOutput,
+    StreamProcessor,
+    StreamSettings,
+    WindowStats,
+)
 
-#: Windows whose serving times :attr:`OnlineRefiner.served_at` keeps.
+#: Windows whose serving times :attr:`StreamRefiner.served_at` keeps.
 SERVED_HISTORY = 1000
 
 
-class OnlineRefiner:
+class StreamRefiner:
     """Live serving plus background windows over one network (see the module docstring).
 
     ``on_live(LiveOutput)``, ``on_refined(FrameOutput)``, ``on_window(WindowStats)`` and
@@ -103,7 +113,8 @@ class OnlineRefiner:
     # -- threads --------------------------------------------------------------------------------
     def start(self) -> None:
         """Start the worker and serving, each after paying its path's one-time costs in its own
-        thread (:func:`~sfm_ttr_ros.core.refinement.warm_up_optimiser` here; then the worker's
+        thread (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_optimiser` here; then the
+        worker's
         :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.warm_up`, then the serving copy's first
         forward pass), so that no live frame and no first window waits behind them. Returns when
         both are ready (``warm_up_s`` holds the worker's seconds)."""
@@ -124,7 +135,7 @@ class OnlineRefiner:
             self.log.warning(f"worker: warm-up failed ({type(exc).__name__}: {exc}); the first "
                              f"window pays the one-time costs")
         finally:
-            # this thread's own OpenMP team (core/openmp.py), set after the warm-up: a path's
+            # this thread's own OpenMP team (core/stream/openmp.py), set after the warm-up: a path's
             # first use in a thread (oneDNN's convolution) resets the team to torch's count
             if self._threads:
                 openmp.set_thread_team(self._threads)

@@ -1,10 +1,10 @@
 """Live depth at camera rate: every frame predicted on arrival by the serving network.
 
 The paper leaves "online and real-time refinement" open; here the two jobs are split. The
-windowed SfM-TTR (:class:`~sfm_ttr_ros.core.stream.StreamProcessor`) reconstructs and refines in
-the background and publishes each keyframe again once its window is done; :class:`LiveServer`
-answers every frame at once from a :class:`~sfm_ttr_ros.core.serving.ServingModel` that holds
-the newest accepted weights.
+windowed SfM-TTR (:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`) reconstructs and
+refines in the background and publishes each keyframe again once its window is done;
+:class:`LiveServer` answers every frame at once from a
+:class:`~sfm_ttr_ros.core.stream.serving.ServingModel` that holds the newest accepted weights.
 
 Threads: :meth:`LiveServer.submit` (any thread, cheap) queues a frame; one serving thread takes
 frames oldest first, predicts, and hands ``(frame, depth, version)`` to ``on_depth``. The queue
@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame
-from sfm_ttr_ros.core.serving import ServingModel
-from sfm_ttr_ros.core.throttle import Throttle
+from sfm_ttr_ros.core.stream.serving import ServingModel
+from sfm_ttr_ros.core.stream.throttle import Throttle
 
 #: Reason keys of live frames that were not published.
 LIVE_SKIP_REASONS = {

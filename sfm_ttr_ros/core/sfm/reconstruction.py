@@ -34,7 +34,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics, check_window
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,7 @@ class SfmConfig:
     seed: int = 0
     verbose: bool = False
     # "colmap": pycolmap's SIFT and sequential matcher on the CPU (the reference); "torch": the
-    # weight-free torch SIFT of core/features_torch.py and mutual nearest-neighbour + ratio
+    # weight-free torch SIFT of core/sfm/features/sift_torch.py and mutual nearest-neighbour + ratio
     # matching on the accelerator when there is one, the matches verified by pycolmap
     features: str = "colmap"
 
@@ -378,8 +379,8 @@ class SfmReconstructor:
         self.frames_extracted += len(frames)
 
     def _torch_features(self):
-        from sfm_ttr_ros.core.features_database import TorchFeatureDatabase
-        from sfm_ttr_ros.core.features_torch import TorchSiftConfig
+        from sfm_ttr_ros.core.sfm.features.database import TorchFeatureDatabase
+        from sfm_ttr_ros.core.sfm.features.sift_torch import TorchSiftConfig
 
         if self._torch_db is None:
             cfg = self.config

@@ -31,8 +31,8 @@ running statistics are updated once per frame, not once per step).
 The objective (``loss``; not in the paper, whose Sec. 5-6 and Fig. 4 compare against
 it): ``sfm`` is Eq. (5); ``photometric`` is photometric test-time refinement (Ph-TTR) with
 Monodepth2's self-supervised loss, the poses taken from the window's SfM and brought into network
-units with ŝ (:mod:`sfm_ttr_ros.core.photometric`); ``hybrid`` adds λ times that loss to Eq. (5)
-(the paper's future work: photometric gradients where SfM has few points, near the camera).
+units with ŝ (:mod:`sfm_ttr_ros.core.refinement.photometric`); ``hybrid`` adds λ times that loss to
+Eq. (5) (the paper's future work: photometric gradients where SfM has few points, near the camera).
 ``loss_history`` records the step objective (without any anchor term).
 """
 
@@ -47,10 +47,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sfm_ttr_ros.core.alignment_affine import is_affine_output
-from sfm_ttr_ros.core.frames import InputError, Intrinsics
+from sfm_ttr_ros.core.alignment.affine import is_affine_output
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
-from sfm_ttr_ros.core.photometric import (
+from sfm_ttr_ros.core.refinement.photometric import (
     PhotometricConfig,
     PhotometricFrame,
     ScaleOutput,
@@ -59,14 +60,14 @@ from sfm_ttr_ros.core.photometric import (
     prepare_frames,
     scale_outputs,
 )
-from sfm_ttr_ros.core.supervision import (  # noqa: F401 - frame_loss: part of this stage's API
+from sfm_ttr_ros.core.refinement.supervision import (  # noqa: F401 - frame_loss: part of this stage's API
     FrameSupervision,
     frame_loss,
     normalized_grid,
     sample_depth,
     weighted_l1,
 )
-from sfm_ttr_ros.core.trainable import TRAINABLE_MODES, merge_lora, select_trainable
+from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES, merge_lora, select_trainable
 
 BN_MODES = ("frozen", "train")
 WEIGHTINGS = ("observation", "track", "none")
@@ -88,7 +89,7 @@ class RefinementConfig:
     min_points: int = 10  # frames with fewer selected points are not used for training
     early_stop_patience: int = 0  # >0: stop when the running loss has not improved for N steps
     frozen_encoder_levels: int = 0  # 1..4: encoder fixed up to its 1/2^L feature map (speed)
-    # Which parameters a step trains (core/trainable.py): "encoder" (the paper),
+    # Which parameters a step trains (core/refinement/trainable.py): "encoder" (the paper),
     # "norm" (normalisation affine weights only) or "lora" (adapters of rank lora_rank on the
     # attention projections, merged into the encoder when the refinement ends);
     # trainable_blocks > 0: only inside the encoder's last N transformer blocks.
@@ -109,8 +110,8 @@ class RefinementConfig:
     photometric_alpha: float = 0.85
     smoothness_weight: float = 1e-3
     photometric_sources: str = "-1,1"
-    # hybrid only: the parallax gate of its photometric term (core/photometric.py), px at the
-    # network's size, 0 = off; Ph-TTR (loss "photometric") stays Monodepth2's loss, ungated.
+    # hybrid only: the parallax gate of its photometric term (core/refinement/photometric.py), px
+    # at the network's size, 0 = off; Ph-TTR (loss "photometric") stays Monodepth2's loss, ungated.
     hybrid_min_parallax: float = 0.0
     # hybrid only: its SfM term's residual (SFM_RESIDUALS): "relative" divides each point's
     # Eq. (5) term by its target ŝ·D_sfm, so that λ weighs the SfM and the photometric terms
@@ -242,9 +243,9 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     """Run SfM-TTR's refinement in place on ``model``'s encoder; returns the loss history.
 
     ``config.loss`` picks a step's objective (:func:`_step_loss`); ``photometric`` holds the
-    window's :class:`~sfm_ttr_ros.core.photometric.PhotometricFrame` s (prepared once per
-    window with the SfM poses, :func:`~sfm_ttr_ros.core.photometric.prepare_frames`), used by
-    ``photometric`` and ``hybrid``.
+    window's :class:`~sfm_ttr_ros.core.refinement.photometric.PhotometricFrame` s (prepared once per
+    window with the SfM poses, :func:`~sfm_ttr_ros.core.refinement.photometric.prepare_frames`),
+    used by ``photometric`` and ``hybrid``.
 
     ``should_stop`` is polled between steps (cancellation); ``on_step(steps_done)`` is called
     after each step (the live server's interim weights). Deterministic for a seed on CPU.
@@ -389,8 +390,8 @@ def _step_loss(model: DepthModel, x, frozen_stages: int,
 
     * ``sfm``: Eq. (5), L_j = mean_l exp(−r_lj²)·|ŝ·D_sfm(l, j) − D_nn(p_lj)| (``sfm_term`` =
       the frame's sampling grid, targets and weights);
-    * ``photometric`` (Ph-TTR): Monodepth2's L_p + w_s·L_s (:mod:`~sfm_ttr_ros.core.photometric`)
-      with the window's SfM poses scaled by ŝ;
+    * ``photometric`` (Ph-TTR): Monodepth2's L_p + w_s·L_s
+      (:mod:`~sfm_ttr_ros.core.refinement.photometric`) with the window's SfM poses scaled by ŝ;
     * ``hybrid``: Eq. (5) + λ·(L_p + w_s·L_s), λ = ``photometric_weight``.
 
     A frame without a photometric term (``frame`` None: no registered neighbour, a replayed
@@ -442,8 +443,9 @@ def warm_up_optimiser() -> None:
     The first ``torch.optim`` step imports ``torch._dynamo`` and with it sympy (~800 modules,
     ~0.9 s of Python holding the GIL on these machines). Paid inside the refinement worker, that
     import stalls every other thread: live frames waited up to 0.6 s behind it. Call this before
-    the worker and the live server start (:meth:`~sfm_ttr_ros.core.online.OnlineRefiner.start`);
-    later calls are cheap. No model's weights are touched.
+    the worker and the live server start
+    (:meth:`~sfm_ttr_ros.core.stream.refiner.StreamRefiner.start`); later calls are cheap. No
+    model's weights are touched.
     """
     param = torch.nn.Parameter(torch.zeros(1, 1, 3, 3))
     optimizer = torch.optim.Adam([param], lr=1e-4)

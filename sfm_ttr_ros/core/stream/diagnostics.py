@@ -27,8 +27,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from sfm_ttr_ros.core.live import LATENCY_KEYS
-from sfm_ttr_ros.core.stream import StreamProcessor
+from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
+from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,8 @@ class StreamDiagnostics:
             "frames_held_no_intrinsics": held,
             # unrefined frames ~/depth already carried, not sent again (republish_unrefined off)
             "frames_live_only": c["live_only"],
-            # among those: queued frames whose image the backlog bound released (core/stream.py)
+            # among those: queued frames whose image the backlog bound released
+            # (core/stream/windows.py)
             "frames_backlog_released": c["backlog_released"],
         }
         v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})

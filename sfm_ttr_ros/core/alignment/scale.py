@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 
 @dataclass

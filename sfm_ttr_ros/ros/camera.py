@@ -29,7 +29,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from sfm_ttr_ros.core.frames import Frame, InputError, Intrinsics
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame, Intrinsics
 
 NO_INTRINSICS = "no_intrinsics"  # the dropped reason of a held frame pushed out by a newer one
 KEEP_BY_STAMP = 64

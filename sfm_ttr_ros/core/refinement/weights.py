@@ -10,7 +10,7 @@ One :class:`WeightPolicy` per :class:`~sfm_ttr_ros.core.pipeline.SfmTTR`, after
 * ``continual``: as ``continue``, with a replay of earlier accepted windows' supervision
   (Eq. (5) terms of ``replay_windows`` windows, ``replay_ratio`` of the steps) and an L2 pull
   λ·Σ‖θ − θ₀‖² toward the start-up encoder (``anchor_weight``), see
-  :func:`~sfm_ttr_ros.core.refinement.refine_encoder`.
+  :func:`~sfm_ttr_ros.core.refinement.encoder.refine_encoder`.
 
 A window that starts from carried weights (``continue`` / ``continual`` after an accepted
 window) runs ``carried_steps`` instead of ``refinement.steps`` when that is set.
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from sfm_ttr_ros.core.models.base import DepthModel
-from sfm_ttr_ros.core.refinement import RefinementConfig, restore_encoder, snapshot_encoder
-from sfm_ttr_ros.core.supervision import FrameSupervision, at_network_size
+from sfm_ttr_ros.core.refinement.encoder import RefinementConfig, restore_encoder, snapshot_encoder
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, at_network_size
 
 WEIGHT_POLICIES = ("reset", "continue", "continual")
 
@@ -113,8 +113,8 @@ class WeightPolicy:
     def _replay_frames(self, sup: list[FrameSupervision]) -> list[FrameSupervision]:
         """A window's supervision as the replay keeps it: with a model whose input is the image
         resized to ``input_size`` (:meth:`DepthModel.preprocess`) each image at that size
-        (:func:`~sfm_ttr_ros.core.supervision.at_network_size`; 3 windows of 15 KITTI frames:
-        7 MB instead of 63 MB); other models' images (normalised, or sized by their own
+        (:func:`~sfm_ttr_ros.core.refinement.supervision.at_network_size`; 3 windows of 15 KITTI
+        frames: 7 MB instead of 63 MB); other models' images (normalised, or sized by their own
         processor) as they are."""
         if (len(tuple(getattr(self.model, "input_size", ()))) != 2
                 or type(self.model).preprocess is not DepthModel.preprocess):

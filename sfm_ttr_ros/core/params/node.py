@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from sfm_ttr_ros.core.frames import InputError
+from sfm_ttr_ros.core.errors import InputError
 
 QOS_RELIABILITIES = ("reliable", "best_effort")
 IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, CompressedImage on

@@ -1,6 +1,6 @@
 """Mutual nearest-neighbour matching with Lowe's ratio test, in torch (on the GPU when the
-descriptors are there): the matcher of the torch SIFT features (core/features_torch.py), with
-COLMAP's SIFT matching thresholds as defaults."""
+descriptors are there): the matcher of the torch SIFT features (core/sfm/features/sift_torch.py),
+with COLMAP's SIFT matching thresholds as defaults."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The window checks as one collaborator of the pipeline: when each runs, what it remembers.
 
 :class:`WindowChecks` judges each window with the measures of :mod:`core/verification
-<sfm_ttr_ros.core.verification>` (whose docstring gives the checks and their formulas) and keeps
+<sfm_ttr_ros.core.checks.measures>` (whose docstring gives the checks and their formulas) and keeps
 what they compare with across windows: the last accepted window's camera path (the scale jump)
 and the unsupported change of the last accepted windows. In the order a window meets them:
 
@@ -9,7 +9,7 @@ and the unsupported change of the last accepted windows. In the order a window m
 2. the held-out split of the supervision by track and the check error before
    (:meth:`WindowChecks.hold_out`);
 3. while refining: the interim gate, the unsupported change of interim weights on
-   :func:`~sfm_ttr_ros.core.verification.probe_frames` (:meth:`WindowChecks.arm_interim`,
+   :func:`~sfm_ttr_ros.core.checks.measures.probe_frames` (:meth:`WindowChecks.arm_interim`,
    :meth:`WindowChecks.interim_refusal`);
 4. after refining: the rollback reasons (non-finite loss or weights, ``max_loss_ratio``;
    :meth:`WindowChecks.rollback_reason`), then the held-out error and the unsupported change
@@ -28,11 +28,8 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 from torch import nn
 
-from sfm_ttr_ros.core.alignment import AlignmentResult
-from sfm_ttr_ros.core.serving import finite_state
-from sfm_ttr_ros.core.sfm import SfmResult
-from sfm_ttr_ros.core.supervision import FrameSupervision
-from sfm_ttr_ros.core.verification import (
+from sfm_ttr_ros.core.alignment.scale import AlignmentResult
+from sfm_ttr_ros.core.checks.measures import (
     REPROJECTION_HISTORY,
     UNSUPPORTED_HISTORY,
     CheckConfig,
@@ -52,6 +49,9 @@ from sfm_ttr_ros.core.verification import (
     unsupported_change,
     unsupported_refusal,
 )
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
+from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.stream.serving import finite_state
 
 Depths = Mapping[str, np.ndarray]
 
@@ -81,7 +81,7 @@ class WindowChecks:
                         d_sfm: np.ndarray, d_nn: np.ndarray, align: AlignmentResult,
                         scaled: bool) -> WindowCheck:
         """The window's statistics and the verdict of the cheap checks
-        (:func:`~sfm_ttr_ros.core.verification.sanity_check`); the scale checks only when
+        (:func:`~sfm_ttr_ros.core.checks.measures.sanity_check`); the scale checks only when
         ``scaled`` (depth up to scale)."""
         t0 = time.perf_counter()
         c = WindowCheck(reprojection_error=sfm.reprojection_error,

@@ -1,0 +1,1 @@
+"""The window checks: a window judged before, while and after it refines."""

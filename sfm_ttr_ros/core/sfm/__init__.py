@@ -1,0 +1,1 @@
+"""Stage 1 of SfM-TTR (Sec. 3.1): sparse SfM of a window with pycolmap."""

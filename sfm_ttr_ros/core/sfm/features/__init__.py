@@ -1,0 +1,1 @@
+"""SfM features in torch (``sfm.features: torch``): SIFT, matching, the COLMAP database."""

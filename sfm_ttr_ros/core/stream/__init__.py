@@ -1,0 +1,1 @@
+"""SfM-TTR over a stream: keyframes, windows, live serving, diagnostics."""
