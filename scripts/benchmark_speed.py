@@ -7,7 +7,7 @@ frame through :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor` exactly 
 feeds it, and
 every output is converted as the node converts it before publishing (``depth_to_image``,
 ``depth_to_colored_image``, ``numpy_to_pointcloud2`` for the window's cloud,
-``make_diagnostic_array`` per window, as the node's ``publish_*`` parameters say), then serialised
+``make_diagnostic_array`` per window, as the node's ``outputs`` parameter says), then serialised
 with ``rclpy.serialization`` (what ``publish`` does to a message before handing it to the
 middleware; no transport). Each input frame arrives as an rgb8 Image message (built beforehand)
 and is decoded with ``image_to_rgb8`` as the node's subscription callback does.
@@ -267,7 +267,7 @@ class RunConfig:
     model: ModelConfig
     feature_cache: bool = True
     overrides: list[str] = field(default_factory=list)
-    # what the node publishes besides ~/depth (its publish_* parameters)
+    # what the node publishes besides ~/depth (its outputs parameter)
     publish: dict[str, bool] = field(default_factory=lambda: {
         "colored": True, "points": True, "diagnostics": True})
 
@@ -304,15 +304,15 @@ def build_configs(params_file: str | Path | None = None, tuned_set: Sequence[str
             overrides = list(tuned_set)
         elif name == "naive":
             forced = {"sfm.max_image_size": int(max(image_size)), "sfm.first_octave": -1,
-                      "refinement.steps": NAIVE_STEPS, "refinement.early_stop_patience": 0,
+                      "refinement.steps": NAIVE_STEPS,
                       "refinement.lr": NAIVE_LR, "refinement.frozen_encoder_levels": 0}
             values = {**base, **forced, **NAIVE_FIELDS, **parse_overrides(naive_set)}
             overrides = [f"{k}={v}" for k, v in forced.items()] + list(naive_set)
         else:
             raise InputError(f"unknown configuration {name!r} (naive, tuned)")
         s = build(values)
-        publish = {k: getattr(s.node, f"publish_{k}") for k in ("colored", "points",
-                                                                "diagnostics")}
+        publish = {k: f"depth_{k}" in s.node.published or k in s.node.published
+                   for k in ("colored", "points", "diagnostics")}
         out.append(RunConfig(name, s.ttr, s.stream, s.model, feature_cache=(name != "naive"),
                              overrides=overrides, publish=publish))
     return out

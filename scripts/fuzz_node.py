@@ -2,7 +2,7 @@
 """Fuzz the INSTALLED refiner node through DDS: no single message may stop it.
 
 Starts ``refiner`` (the installed console script, default ``<venv>/bin/refiner``) as a
-subprocess with ``params/kitti.yaml`` (its fallback fx, fy, cx, cy set: the case that once ended
+subprocess with ``params/kitti.yaml`` (its fallback_intrinsics set: the case that once ended
 the process) plus a few overrides that make windows cheap, then, as an outside rclpy client on
 a private ROS_DOMAIN_ID, sends ``--messages`` hostile and valid messages:
 
@@ -13,7 +13,7 @@ a private ROS_DOMAIN_ID, sends ``--messages`` hostile and valid messages:
   live-only, ``frames_live_only``):
   every supported encoding, padded rows, big- and little-endian 16 bit, blank / noise / static
   frames, tiny (1x1) and extreme-aspect (1x600, 2000x2) images, frames smaller than the fallback
-  principal point before any CameraInfo (and after a live ``cx 5000``), duplicate / backwards /
+  principal point before any CameraInfo (and after a live one at cx 5000), duplicate / backwards /
   absurd stamps, unicode frame ids, mid-stream resolution and intrinsics changes, real windows
   (a 320x96 synthetic drive with its CameraInfo) and a burst far above ``max_pending``;
 * CameraInfos: zeros, NaN, inf, negative focal, zero size, absurd ROI and binning, tiny and
@@ -58,7 +58,7 @@ from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
 LIGHT = ["refinement.steps=2", "window_size=4", "window_stride=4", "sfm.max_image_size=320",
          "sfm.max_num_features=1024", "min_supervision_points=10", "idle_flush_s=1.0",
          "qos_depth=2000", "max_pending=40", "overload_pending=12",
-         "diagnostics_period_s=0.5", "publish_colored=false", "publish_points=false"]
+         "diagnostics_period_s=0.5", "outputs=depth,depth_refined,diagnostics"]
 PAD = 3
 
 
@@ -386,15 +386,17 @@ def invalid_parameter_sets() -> list[tuple[str, object]]:
         ("refinement.steps", 10**12), ("refinement.bn_mode", "banana"),
         ("refinement.bn_mode", ""), ("refinement.weighting", "all"),
         ("refinement.frozen_encoder_levels", 9), ("refinement.frozen_encoder_levels", -1),
-        ("refinement.early_stop_patience", -5), ("sfm.max_image_size", 1),
+        ("sfm.max_image_size", 1),
         ("sfm.max_image_size", -7), ("sfm.init_min_tri_angle", 0.0),
         ("sfm.init_min_tri_angle", 91.0), ("sfm.max_num_features", 0), ("sfm.num_threads", 0),
         ("sfm.overlap", 0), ("sfm.first_octave", -2), ("sfm.mapping_attempts", 0),
-        ("sfm.retry_above_error", -1.0), ("sfm.retry_above_error", nan),
-        ("sfm.retry_above_ratio", -0.5), ("alignment.tau", 0.0),
+        ("alignment.tau", 0.0),
         ("alignment.tau", -1.0), ("alignment.ransac_iterations", 0),
-        ("min_supervision_points", 0), ("fx", -1.0), ("fx", nan), ("fy", 0.0),
-        ("cx", -5.0), ("cy", inf), ("camera_info_use_projection", "maybe"),
+        ("min_supervision_points", 0), ("fallback_intrinsics", "-1 1 0 0"),
+        ("fallback_intrinsics", "nan 1 0 0"), ("fallback_intrinsics", "700 0 1 1"),
+        ("fallback_intrinsics", "700 700 -5 1"), ("fallback_intrinsics", "700 700 1 inf"),
+        ("fallback_intrinsics", 700.0), ("outputs", "depth,everything"),
+        ("check.holdout_fraction", 0.2), ("fx", "700"), ("camera_info_use_projection", "maybe"),
         ("camera_info_use_projection", 3), ("model_type", "mobilenet"), ("device", "cuda:7"),
         ("qos_depth", 5), ("image_transport", "compressed"), ("max_pending", 5),
         ("diagnostics_period_s", 0.1), ("min_keyframe_motion", 300.0),
@@ -442,11 +444,11 @@ def run(args: argparse.Namespace) -> dict:
         for w, h in [(416, 128), (100, 50), (160, 48), (1242, 100), (300, 375)] * 2:
             f.rgb("fallback_pp_outside", npr.integers(0, 255, (h, w, 3), dtype=np.uint8))
             time.sleep(0.02)
-        f.set_param("cx", 5000.0, True)
+        f.set_param("fallback_intrinsics", "721.5377 721.5377 5000 172.854", True)
         for _ in range(3):
             f.rgb("live_cx_5000", npr.integers(0, 255, (375, 1242, 3), dtype=np.uint8))
             time.sleep(0.02)
-        f.set_param("cx", 609.5593, True)
+        f.set_param("fallback_intrinsics", "721.5377 721.5377 609.5593 172.854", True)
         sample()
         rss_first = rss[-1][1]
         # 2. invalid parameter sets (and two valid ones)

@@ -82,7 +82,7 @@ def kitti_args(root: Path, out: Path, *extra: str) -> list[str]:
 def bench(data):
     out = data / "out"
     argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "5",
-                      "--lr", "1e-3", "--set", "refinement.early_stop_patience=50",
+                      "--lr", "1e-3", "--set", "refinement.photometric_weight=5.0",
                       "--save-depth")
     saved, sys.argv = sys.argv, ["sfm-ttr", *argv]  # what results.json records as the command
     try:
@@ -131,7 +131,7 @@ def test_results_json_has_every_mode_and_key(bench, data):
     assert s["stream"]["window_size"] == 4 and s["stream"]["window_stride"] == 2
     assert s["stream"]["overload_pending"] == 50 and s["ttr"]["min_supervision_points"] == 20
     assert s["ttr"]["refinement"]["steps"] == 5 and s["ttr"]["refinement"]["lr"] == 1e-3
-    assert s["ttr"]["refinement"]["early_stop_patience"] == 50  # --set
+    assert s["ttr"]["refinement"]["photometric_weight"] == 5.0  # --set
     assert s["stream"]["idle_flush_s"] == 2.0 and s["torch_threads"] >= 1
     assert res["model"]["type"] == "python:bench_tiny_model:factory"
     assert res["model"]["class"] == "EncoderDecoder"
@@ -158,7 +158,7 @@ def test_markdown_csv_and_figure(bench):
 @pytest.mark.slow
 def test_every_window_is_listed_with_its_checks_and_drawn(bench):
     """each windowed mode lists its windows (frames, outcome, reason key, the
-    checks' statistics and held-out errors); results.md tabulates them; windows.png draws them."""
+    checks' statistics); results.md tabulates them; windows.png draws them."""
     out, res = bench
     online = res["sfm_ttr_online"]
     log = online["window_log"]
@@ -168,8 +168,8 @@ def test_every_window_is_listed_with_its_checks_and_drawn(bench):
         assert w["refined"] == (w["reason_key"] == "")
         if w["check"] is not None:
             assert w["check"]["reprojection_error"] > 0 and w["check"]["track_length"] >= 2
-        if w["refined"]:  # the sanity checks passed; no held-out check by default
-            assert w["check"]["parallax"] >= 0.1 and w["check"]["check_points"] == 0
+        if w["refined"]:  # the sanity checks passed
+            assert w["check"]["parallax"] >= 0.1 and w["check"]["reason_key"] is None
     assert online["refined_frames"] > 0
     md = (out / "results.md").read_text()
     assert "Windows (refused" in md and "| sfm_ttr_online | 0 | 0-3 |" in md
@@ -183,7 +183,7 @@ def test_timeline_marks_refused_windows_in_red():
     abs_rel = {"no_ttr": {i: 0.2 for i in range(10)}, "m": {i: 0.1 for i in range(10)}}
     logs = {"m": [{"frames": list(range(0, 5)), "refined": True, "reason_key": ""},
                   {"frames": list(range(5, 10)), "refined": False,
-                   "reason_key": "rejected_by_check"}]}
+                   "reason_key": "check_unsupported_change"}]}
     img = window_timeline_figure(abs_rel, logs, 0, 9, labels=["drive"] * 5 + ["lead"] * 5)
     red = np.all(img == np.array(_REJECTED, np.uint8), axis=2)
     cols = np.flatnonzero(red.any(axis=0))
@@ -522,7 +522,8 @@ def test_live_frames_skipped_for_overflow_are_counted_not_lost(data, tmp_path, m
     monkeypatch.setattr(ServingModel, "predict", slow)
     out = tmp_path / "live"
     argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "2",
-                      "--modes", "sfm_ttr_live", "--rate", "200", "--set", "live_max_queue=1")
+                      "--modes", "sfm_ttr_live", "--rate", "200",
+                      "--set", "stream.live_max_queue=1")
     assert cli(argv) == 0
     r = json.loads((out / "results.json").read_text())["sfm_ttr_live"]
     skipped = r["live_counters"]["skipped"].get("overflow", 0)

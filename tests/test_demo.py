@@ -91,9 +91,9 @@ def test_the_demo_takes_set_as_every_command_does():
     from sfm_ttr_ros.tools.demo import refiner_command
 
     cmd = refiner_command(Path("kitti.yaml"), ["refinement.lr=1e-5", "window_size=8",
-                                               "refinement.loss=sfm", "publish_points=false"])
+                                               "refinement.loss=sfm", "outputs=depth,points"])
     assert cmd[-8:] == ["-p", "refinement.lr:=1.0e-05", "-p", "window_size:=8", "-p",
-                        'refinement.loss:="sfm"', "-p", "publish_points:=false"]
+                        'refinement.loss:="sfm"', "-p", 'outputs:="depth,points"']
     for bad in ("refinement.lr=fast", "no_such_parameter=1", "window_size=1",
                 "ttr.predict_batch=4"):
         with pytest.raises(InputError):

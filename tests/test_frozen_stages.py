@@ -11,12 +11,11 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
 from sfm_ttr_ros.core.models.monodepth2 import Monodepth2
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement.encoder import (
+from sfm_ttr_ros.core.refinement.config import RefinementConfig
+from sfm_ttr_ros.core.refinement.encoder import frozen_stage_count, refine_encoder
+from sfm_ttr_ros.core.refinement.supervision import (
     FrameSupervision,
-    RefinementConfig,
-    frozen_stage_count,
     normalized_grid,
-    refine_encoder,
     sample_depth,
     weighted_l1,
 )

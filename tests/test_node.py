@@ -339,8 +339,10 @@ def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
 
 def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence):
     intr = sequence.intrinsics
+    # fx, fy: the names of the last release, which still work (translated, with a warning)
     g = graph_factory(window_size=50, window_stride=1, fx=intr.fx, fy=intr.fy,
                       camera_info_use_projection=True)
+    assert g.refiner.settings.fallback == (intr.fx, intr.fy, 0.0, 0.0)
     g.send_image(sequence.images[0], 1.0)
     wait_for(lambda: g.refiner.stream._intr is not None, 10, "frame with fallback intrinsics")
     assert g.refiner.stream._intr.fx == intr.fx
@@ -368,7 +370,8 @@ def test_an_unrefined_frame_already_on_depth_is_counted_not_sent_again(graph_fac
         g.last_diag()), 10, "frames_live_only on /diagnostics")
     assert d["frames_unrefined"] == "1" and d["frames_received"] == "1"
     # without the live output the frame must come back on ~/depth_refined
-    assert g.refiner.set_parameters([Parameter("publish_live", value=False)])[0].successful
+    assert g.refiner.set_parameters([Parameter(
+        "outputs", value="depth_refined,points,diagnostics")])[0].successful
     g.send_info(sequence.intrinsics, 2.0)
     g.send_image(sequence.images[1], 2.0)
     wait_for(lambda: len(g.depths) == 1, 30, "the frame on ~/depth_refined")
@@ -380,8 +383,8 @@ def test_an_unrefined_frame_already_on_depth_is_counted_not_sent_again(graph_fac
 def test_fallback_principal_point_outside_the_frame_is_a_mismatch_not_fatal(graph_factory,
                                                                             sequence):
     # params/kitti.yaml's fallback (cx, cy) on a smaller frame ended the process
-    g = graph_factory(window_size=50, window_stride=1, fx=721.5377, fy=721.5377, cx=609.5593,
-                      cy=172.854)
+    g = graph_factory(window_size=50, window_stride=1,
+                      fallback_intrinsics="721.5377 721.5377 609.5593 172.854")
     small = np.ascontiguousarray(sequence.images[0][:50, :100])
     g.send_image(small, 1.0)
     g.send_image(np.ascontiguousarray(sequence.images[1][:128, :300]), 2.0)
@@ -390,7 +393,8 @@ def test_fallback_principal_point_outside_the_frame_is_a_mismatch_not_fatal(grap
     c = g.refiner.stream.counters()
     assert c["unrefined_by_reason"] == {"intrinsics_mismatch": 2} and c["pending"] == 0
     # a live principal point far outside every frame: accepted, the next frames pass unrefined
-    result = g.refiner.set_parameters([Parameter("cx", value=5000.0)])[0]
+    result = g.refiner.set_parameters([Parameter(
+        "fallback_intrinsics", value="721.5377 721.5377 5000 172.854")])[0]
     assert result.successful, result.reason
     g.send_image(sequence.images[2], 3.0)
     wait_for(lambda: len(g.depths) == 3, 30, "the third frame")
@@ -453,7 +457,7 @@ def test_compressed_transport_decodes_jpeg_and_png_and_drops_the_undecodable(gra
 
     intr = sequence.intrinsics
     g = graph_factory(image_transport="compressed", window_size=50, window_stride=1,
-                      fx=intr.fx, fy=intr.fy)
+                      fallback_intrinsics=f"{intr.fx} {intr.fy} 0 0")
     assert g.refiner.image_topic == "/image/compressed"
     for i, codec in enumerate(("jpeg", "png")):
         g.pub_image.publish(rgb8_to_compressed(sequence.images[i], codec,

@@ -55,6 +55,18 @@ def test_the_defaults_file_lists_every_parameter_with_its_default():
     assert values == node_params.DEFAULTS
 
 
+@pytest.mark.parametrize("path", [f for f in FILES if f.name != "refiner.yaml"],
+                         ids=lambda p: p.name)
+def test_a_profile_lists_only_what_differs_from_the_defaults(path: Path):
+    """A profile says what it changes and nothing else: a key at its default would be noise
+    that goes stale when the default moves."""
+    values = schema.read_params_file(path, "refiner")
+    defaults = schema.defaults()
+    same = sorted(k for k, v in values.items() if k in defaults and v == defaults[k])
+    assert not same, f"{path.name}: at their defaults: {same}"
+    assert not set(values) - set(defaults), f"{path.name}: legacy names in a shipped file"
+
+
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
 def test_every_key_is_declared_typed_and_in_range(path: Path, context):
     params = parameter_dict_from_yaml_file(str(path), target_nodes=["refiner"])

@@ -41,9 +41,9 @@ def test_every_default_is_the_dataclass_field_default():
 def _other_value(p: schema.Param):
     """A valid value of ``p`` that is not its default."""
     special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True,
-               "refinement.photometric_sources": "-2,2",
-               "check.max_scale_spread": 1.5, "check.max_scale_jump": 1.5,  # 0 or >= 1
-               "check.unsupported_change_ratio": 1.5, "first_window_size": 4}
+               "check.max_scale_jump": 1.5,  # 0 or >= 1
+               "check.unsupported_change_ratio": 1.5, "first_window_size": 4,
+               "fallback_intrinsics": "700 700 300 200", "outputs": "depth,points"}
     if p.name in special:
         return special[p.name]
     if p.choices:
@@ -58,8 +58,7 @@ def _other_value(p: schema.Param):
 
 
 def test_every_row_reaches_its_config_fields():
-    companions = {"fx": "fy", "fy": "fx", "encoder_path": "decoder_path",
-                  "decoder_path": "encoder_path"}
+    companions = {"encoder_path": "decoder_path", "decoder_path": "encoder_path"}
     for p in schema.PARAMS:
         value = _other_value(p)
         values = {p.name: value}
@@ -76,10 +75,12 @@ def test_every_row_reaches_its_config_fields():
 def test_set_values_are_typed_by_the_schema():
     values = schema.parse_overrides([
         "refinement.lr=3e-5", "refinement.steps=40", "fx=700", "fy=700.5", "sfm.min_tri_angle=1",
+        "fallback_intrinsics=700 700.5 0 0",
         "model.channels_last=true", "encoder_path=", "decoder_path=", "model_type=python:a.b:f",
         "camera_info_use_projection=false", "refinement.bn_mode='train'", "seed=3", "seed=4"])
     assert values == {
         "refinement.lr": 3e-5, "refinement.steps": 40, "fx": 700.0, "fy": 700.5,
+        "fallback_intrinsics": "700 700.5 0 0",
         "sfm.min_tri_angle": 1.0, "channels_last": True, "encoder_path": "",
         "decoder_path": "", "model_type": "python:a.b:f", "camera_info_use_projection": False,
         "refinement.bn_mode": "train", "seed": 4}
@@ -91,6 +92,8 @@ def test_set_values_are_typed_by_the_schema():
     assert s.ttr.refinement.lr == 3e-5 and s.ttr.sfm.min_tri_angle == 1.0
     assert (s.ttr.sfm.seed, s.ttr.alignment.seed, s.ttr.refinement.seed) == (4, 4, 4)
     assert s.model.channels_last and s.node.use_projection is False
+    assert s.node.fallback == (700.0, 700.5, 0.0, 0.0)
+    assert any("'fx' is deprecated" in w for w in s.warnings)  # a legacy name, translated
 
 
 @pytest.mark.parametrize("item, match", [
@@ -106,9 +109,14 @@ def test_set_values_are_typed_by_the_schema():
     ("refinement.bn_mode=sideways", "must be one of frozen, train"),
     ("weight_policy=maybe", "must be one of"),
     ("window_size=true", "must be an integer"),
-    ("fx=abc", "fx must be a double"),
+    ("fx=abc", "fx must be a double"),  # a legacy name keeps its old type
+    ("check.holdout_fraction=0.2", None),  # removed: accepted by --set, refused by build
 ])
 def test_set_errors_name_the_problem(item, match):
+    if match is None:
+        with pytest.raises(InputError, match="was removed"):
+            schema.build(schema.parse_overrides([item]))
+        return
     with pytest.raises(InputError, match=match):
         schema.parse_overrides([item])
 
@@ -118,14 +126,16 @@ def test_check_value_is_strict_like_rclpy():
     assert "write doubles as 1.0" in schema.check_value("refinement.lr", 1)
     assert "an integer" in schema.check_value("window_size", True)
     assert "an integer" in schema.check_value("window_size", 4.0)
-    assert "one of" in schema.check_value("num_layers", 20)
+    assert "one of" in schema.check_value("refinement.loss", "huber")
     assert schema.check_value("camera_info_use_projection", True) == ""
     assert "unknown parameter" in schema.check_value("no_such", 1)
 
 
 @pytest.mark.parametrize("values, match", [
     ({"window_size": 3, "window_stride": 4}, "window_stride"),
-    ({"fx": 500.0}, "fx and fy"),
+    ({"fallback_intrinsics": "500 0 1 1"}, "fx and fy must be > 0"),
+    ({"fallback_intrinsics": "500 500"}, "four numbers"),
+    ({"outputs": "depth,cloudz"}, "unknown output"),
     ({"encoder_path": "e.pth"}, "both encoder_path and decoder_path"),
     ({"model_type": "resnet"}, "model_type must be"),
     ({"camera_info_use_projection": "sometimes"}, "camera_info_use_projection"),
@@ -267,11 +277,11 @@ def test_node_settings_validate_themselves():
     from sfm_ttr_ros.core.params.node import NodeSettings
 
     assert NodeSettings().use_projection is None
-    for bad, match in (({"fx": -1.0}, "fx"), ({"qos_depth": 0}, "qos_depth"),
+    for bad, match in (({"fallback_intrinsics": "-1 1 0 0"}, "fallback_intrinsics"),
+                       ({"qos_depth": 0}, "qos_depth"), ({"outputs": "depth;points"}, "outputs"),
                        ({"qos_reliability": "sometimes"}, "qos_reliability"),
                        ({"diagnostics_period_s": 0.0}, "diagnostics_period_s"),
-                       ({"torch_num_threads": -1}, "torch_num_threads"),
-                       ({"fy": 3.0}, "fx and fy")):
+                       ({"torch_num_threads": -1}, "torch_num_threads")):
         with pytest.raises(InputError, match=match):
             NodeSettings(**bad)
     # every node setting is a parameter
@@ -279,11 +289,34 @@ def test_node_settings_validate_themselves():
         t.partition(".")[2] for p in schema.PARAMS for t in p.targets if t.startswith("node.")}
 
 
-def test_a_replaced_parameter_names_its_successor(tmp_path):
-    # reset_each_window became weight_policy; an old file says so instead of "unknown"
+def test_legacy_names_still_work_for_one_release_with_a_warning(tmp_path):
+    """A parameter file of the last release still runs: renamed parameters are translated,
+    parameters that became config fields set the field, removed ones are ignored at their old
+    default and refused at any other value; each says what replaces it."""
     old = tmp_path / "old.yaml"
-    old.write_text("refiner:\n  ros__parameters:\n    reset_each_window: false\n")
-    with pytest.raises(InputError, match="replaced by weight_policy"):
-        schema.read_params_file(old, "refiner")
-    with pytest.raises(InputError, match="replaced by weight_policy"):
-        schema.parse_overrides(["reset_each_window=true"])
+    old.write_text("refiner:\n  ros__parameters:\n    reset_each_window: true\n"
+                   "    fx: 721.5\n    fy: 721.5\n    cx: 609.5\n    cy: 172.8\n"
+                   "    publish_colored: false\n    publish_points: false\n"
+                   "    worker_nice: 5\n    refinement.photometric_alpha: 0.8\n"
+                   "    check.holdout_fraction: 0.0\n    carried_steps: 0\n")
+    values = schema.read_params_file(old, "refiner")
+    s = schema.build(values)
+    assert s.ttr.weight_policy == "reset"
+    assert s.node.fallback == (721.5, 721.5, 609.5, 172.8)
+    assert s.node.published == {"depth", "depth_refined", "diagnostics"}
+    assert s.stream.worker_nice == 5 and s.ttr.refinement.photometric_alpha == 0.8
+    text = "\n".join(s.warnings)
+    for name in ("reset_each_window", "fx", "publish_points", "worker_nice",
+                 "check.holdout_fraction", "carried_steps"):
+        assert f"'{name}'" in text, name
+    assert "use weight_policy" in text and "the field stream.worker_nice" in text
+    # the new name wins over a translated legacy one
+    assert schema.build({"publish_points": False, "outputs": "points"}).node.published == \
+        {"points"}
+    # a removed parameter at anything but its old default: the behaviour is gone, refused
+    with pytest.raises(InputError, match="'check.holdout_fraction' was removed"):
+        schema.build({"check.holdout_fraction": 0.2})
+    with pytest.raises(InputError, match="must be a double"):
+        schema.build({"fx": 700})
+    assert schema.build(schema.parse_overrides(["reset_each_window=true"])).ttr.weight_policy \
+        == "reset"

@@ -19,7 +19,6 @@ from sfm_ttr_ros.core.refinement.photometric import (
     identity_errors,
     mean_3x3,
     network_intrinsics,
-    parallax,
     photometric_loss,
     photometric_objective,
     prepare_frames,
@@ -235,49 +234,6 @@ def test_gradient_with_respect_to_depth_is_finite(triplet):
     assert torch.isfinite(disp.grad).all() and float(disp.grad.abs().sum()) > 0
 
 
-# -- parallax gate ------------------------------------------------------------------------------
-
-def test_parallax_is_focal_times_baseline_over_depth_and_zero_for_a_rotation():
-    K = np.array([[100.0, 0, 31.5], [0, 100.0, 15.5], [0, 0, 1]])
-    depth = torch.full((1, 1, 32, 64), 10.0)
-    depth[..., :16, :] = 40.0
-    T = np.eye(4)
-    T[0, 3] = 1.0  # 1 unit sideways: f·b/D = 10 px at depth 10, 2.5 px at 40
-    px = parallax(depth, K, T)
-    np.testing.assert_allclose(px[..., 16:, :].numpy(), 10.0, rtol=1e-4)
-    np.testing.assert_allclose(px[..., :16, :].numpy(), 2.5, rtol=1e-4)
-    R = np.eye(4)
-    R[:3, :3] = y_rotation(0.05)  # a pure rotation: no pixel's depth shows in the image
-    assert float(parallax(depth, K, R).max()) < 1e-3
-
-
-def y_rotation(angle: float) -> np.ndarray:
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def test_parallax_gate_leaves_far_pixels_to_the_sfm_term(triplet):
-    """τ = 0 is Monodepth2's loss bit for bit; a τ above every pixel's parallax leaves only the
-    identity errors (no depth gradient); in between, the far pixels lose their warped terms."""
-    images = triplet["images"]
-    args = (images[1], [images[0], images[2]], triplet["K"], triplet["T"])
-    assert loss_of(triplet, min_parallax=0.0) == loss_of(triplet)
-    px = torch.minimum(parallax(triplet["depth"], triplet["K"], triplet["T"][0]),
-                       parallax(triplet["depth"], triplet["K"], triplet["T"][1]))
-    depth = triplet["depth"].clone().requires_grad_(True)
-    photometric_loss(depth, *args, min_parallax=float(px.max()) * 3).backward()
-    assert float(depth.grad.abs().sum()) == 0.0
-    tau = float(px.median())
-    _, maps = photometric_loss(triplet["depth"], *args, return_maps=True, min_parallax=tau)
-    gated = (parallax(triplet["depth"], triplet["K"], triplet["T"][0]) < tau) & \
-        (parallax(triplet["depth"], triplet["K"], triplet["T"][1]) < tau)
-    assert 0 < int(gated.sum()) < gated.numel()
-    assert bool((maps.source_index[gated] == -1).all())  # only the identity error is left
-    assert float(triplet["depth"][gated].median()) > 2 * float(triplet["depth"][~gated].median())
-    with pytest.raises(InputError, match="min_parallax"):
-        PhotometricConfig(min_parallax=-1.0)
-
-
 # -- auto-masking -------------------------------------------------------------------------------
 
 def test_automask_removes_a_static_copy(triplet):
@@ -436,16 +392,3 @@ def test_bad_input_is_refused():
         with pytest.raises(InputError):
             PhotometricConfig(**kwargs)
 
-
-def test_the_parallax_gate_is_the_hybrids_only():
-    """Ph-TTR stays Monodepth2's loss (the paper's baseline); only ``hybrid`` gates its term."""
-    from sfm_ttr_ros.core.refinement.encoder import RefinementConfig
-
-    assert RefinementConfig(loss="photometric").photometric_config().min_parallax == 0.0
-    assert RefinementConfig(loss="hybrid").photometric_config().min_parallax == 0.0  # off
-    cfg = RefinementConfig(loss="hybrid", hybrid_min_parallax=4.0)
-    assert cfg.photometric_config().min_parallax == 4.0
-    cfg = RefinementConfig(loss="photometric", hybrid_min_parallax=4.0)
-    assert cfg.photometric_config().min_parallax == 0.0
-    with pytest.raises(InputError, match="min_parallax"):
-        RefinementConfig(loss="hybrid", hybrid_min_parallax=-2.0)

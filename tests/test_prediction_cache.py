@@ -18,7 +18,7 @@ from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement.encoder import RefinementConfig
+from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import sample_at
 from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
 

@@ -8,14 +8,9 @@ import torch
 from conftest import tiny_model
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.refinement.encoder import (
-    FrameSupervision,
-    RefinementConfig,
-    frame_loss,
-    refine_encoder,
-    restore_encoder,
-    snapshot_encoder,
-)
+from sfm_ttr_ros.core.refinement.config import RefinementConfig
+from sfm_ttr_ros.core.refinement.encoder import refine_encoder, restore_encoder, snapshot_encoder
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, frame_loss
 
 # full resolution, BatchNorm after both encoder convolutions (the BN modes are tested here)
 bn_model = partial(tiny_model, (32, 48), downsample=False, batch_norm=2)

@@ -143,8 +143,7 @@ def test_overrides(bs, tiny_model):
     # for 200 steps, whatever the file says; the file's windows
     (naive,) = bs.build_configs(None, (), (), tiny_model, names=("naive",))
     r = naive.ttr.refinement
-    assert (r.steps, r.lr, r.frozen_encoder_levels, r.early_stop_patience) == \
-        (200, bs.NAIVE_LR, 0, 0)
+    assert (r.steps, r.lr, r.frozen_encoder_levels) == (200, bs.NAIVE_LR, 0)
     assert cfg.ttr.refinement.lr != bs.NAIVE_LR and naive.stream.window_size == 15
     assert cfg.model.channels_last and not naive.model.channels_last
     (auto,) = bs.build_configs(None, ["refinement.frozen_encoder_levels=0"], (),
@@ -189,7 +188,8 @@ def test_set_is_the_one_syntax_of_the_schema(bs, tiny_model):
     schema (integers become doubles), parameter names or config fields, over the file and the
     model flags; the naive run's forced values under its own --naive-set."""
     (cfg,) = bs.build_configs(None, ["refinement.lr=1", "sfm.min_tri_angle=2",
-                                     "publish_points=false", "model.channels_last=false",
+                                     "outputs=depth,depth_colored,diagnostics",
+                                     "model.channels_last=false",
                                      "model_type=python:tiny_speed_model:factory"], (),
                               {"type": "mobilenet"}, names=("tuned",))
     assert type(cfg.ttr.refinement.lr) is float and cfg.ttr.refinement.lr == 1.0

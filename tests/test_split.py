@@ -72,7 +72,7 @@ def split_args(root: Path, split: str, out: Path, *extra: str) -> list[str]:
     return ["benchmark", "--split", str(root / split), "--out", str(out),
             "--params-file", str(root / "small.yaml"), "--model",
             "python:split_tiny_model:factory", "--steps", "5", "--lr", "1e-3",
-            "--set", "refinement.early_stop_patience=50", "--modes", *MODES,
+            "--set", "refinement.photometric_weight=5.0", "--modes", *MODES,
             "--threads", "1", "--set", "sfm.num_threads=1", "--figure-frames", "0", *extra]
 
 

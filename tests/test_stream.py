@@ -14,12 +14,11 @@ from conftest import tiny_model
 
 from sfm_ttr_ros.core.checks.measures import WindowCheck
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 from sfm_ttr_ros.core.stream.windows import (
-    DROP_REASONS,
     RELEASED_IMAGE,
-    UNREFINED_REASONS,
     FrameOutput,
     StreamProcessor,
     StreamSettings,
@@ -82,12 +81,13 @@ class ScriptedTTR:
                 res.sfm.attempts = [{"seed": 0, "reprojection_error": 1.1, "kept": False},
                                     {"seed": 1, "reprojection_error": 0.6, "kept": True}]
         elif outcome == "sfm":
-            res.reason = "SfM failed: too little motion"
+            res.reason_key, res.reason = Unrefined.SFM_FAILED, "SfM failed: too little motion"
         elif outcome == "rejected":
-            res.reason_key, res.reason = "rejected_by_check", "rejected by check: 0.1 -> 0.2"
-            res.check = WindowCheck(check_points=40, error_before=0.1, error_after=0.2,
-                                    unsupported_change=0.03, reason_key="rejected_by_check")
+            key = Unrefined.CHECK_UNSUPPORTED_CHANGE
+            res.reason_key, res.reason = key, "rejected by check: 0.03 of the pixels moved"
+            res.check = WindowCheck(unsupported_change=0.03, reason_key=key)
         else:
+            res.reason_key = Unrefined.TOO_FEW_POINTS
             res.reason = "too few supervision points: 3 selected of 10 (< 50)"
         return res
 
@@ -106,8 +106,8 @@ def check_accounting(stream: StreamProcessor, outs: list[FrameOutput], sent: int
     assert c["unrefined"] == sum(not o.refined for o in outs)
     names = [o.frame.name for o in outs]
     assert len(names) == len(set(names)), "a frame was published twice"
-    assert set(c["unrefined_by_reason"]) <= set(UNREFINED_REASONS)
-    assert set(c["dropped_by_reason"]) <= set(DROP_REASONS)
+    assert set(c["unrefined_by_reason"]) <= set(Unrefined)
+    assert set(c["dropped_by_reason"]) <= set(Dropped)
     return c
 
 
@@ -160,7 +160,7 @@ def scripted_run(outcomes, n: int):
 
 def test_failed_windows_publish_unrefined_with_reason():
     stream, outs, seen_windows = scripted_run(("sfm", "few", "raise", "ok"), 8)
-    keys = [o.reason_key for o in outs]
+    keys = [o.reason_key or "" for o in outs]
     assert keys == ["sfm_failed"] * 2 + ["too_few_points"] * 2 + ["window_error"] * 2 + [""] * 2
     assert outs[0].reason.startswith("SfM failed: too little motion")
     assert "boom" in outs[4].reason
@@ -170,18 +170,16 @@ def test_failed_windows_publish_unrefined_with_reason():
     assert [w.refined for w in seen_windows] == [False, False, False, True]
 
 
-def test_a_window_refused_by_its_check_is_counted_with_its_check_errors():
+def test_a_window_refused_by_its_check_is_counted_with_what_it_measured():
     stream, outs, seen_windows = scripted_run(("ok", "rejected", "ok"), 6)
-    assert [o.reason_key for o in outs] == ["", "", "rejected_by_check", "rejected_by_check",
-                                            "", ""]
+    refused = Unrefined.CHECK_UNSUPPORTED_CHANGE
+    assert [o.reason_key for o in outs] == [None, None, refused, refused, None, None]
     assert all(float(o.depth.mean()) == 1.0 for o in outs[2:4])  # the weights before it
     c = check_accounting(stream, outs, 6)
-    assert c["unrefined_by_reason"] == {"rejected_by_check": 2}
+    assert c["unrefined_by_reason"] == {"check_unsupported_change": 2}
     assert (c["windows_ok"], c["windows_failed"], c["windows_rejected"]) == (2, 1, 1)
-    w = seen_windows[1]
-    assert (w.check_error_before, w.check_error_after) == (0.1, 0.2)
-    assert w.unsupported_change == 0.03
-    assert np.isnan(seen_windows[0].check_error_before)
+    assert seen_windows[1].unsupported_change == 0.03
+    assert np.isnan(seen_windows[0].unsupported_change)
 
 
 def test_windows_mapped_more_than_once_are_counted():
@@ -217,7 +215,7 @@ def test_overload_skips_refinement_until_the_queue_drains():
     outs = stream.process_available()
     # window at frame 1: 6 frames queued > 2 → skipped; at frame 3: 4 > 2 → skipped;
     # at frame 5: 2 queued (not > 2) → refined; at frame 7 → refined
-    assert [o.reason_key for o in outs] == ["overload"] * 4 + [""] * 4
+    assert [o.reason_key or "" for o in outs] == ["overload"] * 4 + [""] * 4
     assert len(ttr.windows) == 2
     c = check_accounting(stream, outs, 8)
     assert c["windows_skipped"] == 2 and c["unrefined_by_reason"] == {"overload": 4}
@@ -247,7 +245,7 @@ def test_frames_served_live_are_not_predicted_again_unless_republished():
         for f in fs[:3]:  # the live output served these since (core/stream/live.py sets the flag);
             f.served_live = True  # after the submissions, so the backlog bound took nothing
         outs = stream.process_available()
-        assert [o.reason_key for o in outs] == ["overload"] * 4 + [""] * 4
+        assert [o.reason_key or "" for o in outs] == ["overload"] * 4 + [""] * 4
         c = check_accounting(stream, outs, 8)  # counted as before, whatever is published
         assert c["unrefined_by_reason"] == {"overload": 4}
         live_only = [o.frame.index for o in outs if o.live_only]
@@ -278,7 +276,7 @@ def test_the_backlog_keeps_the_images_of_overload_pending_plus_window_size_frame
         assert held == [1, 7, 8, 9] and c["backlog_released"] == 6
         # frame 2 (released) ends the window frame 1 had started: both overload; 7-8 refined
         assert [o.frame.index for o in outs] == list(range(9)) and c["pending"] == 1
-        assert [o.reason_key for o in outs] == ["overload"] * 7 + ["", ""]
+        assert [o.reason_key or "" for o in outs] == ["overload"] * 7 + ["", ""]
         assert [o.frame.index for o in outs if o.live_only] == [0, 2, 3, 4, 5, 6]
         assert outs[1].depth is not None  # frame 1 was never served: predicted
         assert all(o.frame.stamp == fs[o.frame.index].stamp for o in outs)
@@ -303,7 +301,7 @@ def test_keyframe_interval_and_motion():
     fs = [Frame(i, base.copy(), stamp=0.1 * i) for i in range(3)]  # static camera
     fs.append(Frame(3, (255 - base).copy(), stamp=0.3))  # a big change
     outs = run(stream, fs)
-    assert [o.reason_key for o in outs] == ["not_keyframe", "not_keyframe", "", ""]
+    assert [o.reason_key or "" for o in outs] == ["not_keyframe", "not_keyframe", "", ""]
     check_accounting(stream, outs, 4)
 
 
@@ -314,7 +312,7 @@ def test_resolution_change_flushes_pending_frames():
     assert outs == []
     big = Intrinsics(100.0, 100.0, 63.5, 31.5, 2 * W, 2 * H)
     outs += run(stream, frames(3, start=1.0, size=(2 * W, 2 * H)), big)
-    assert [o.reason_key for o in outs] == ["resolution_change"] * 2 + [""] * 3
+    assert [o.reason_key or "" for o in outs] == ["resolution_change"] * 2 + [""] * 3
     assert ttr.windows == [["0000000002", "0000000003", "0000000004"]]
     # intrinsics of another size than the image: published unrefined, kept out of windows
     outs += run(stream, frames(1, start=2.0), big)
@@ -337,13 +335,13 @@ def test_the_first_received_intrinsics_replace_the_fallback_for_pending_frames()
     fallback = Intrinsics(70.0, 70.0, 31.5, 15.5, W, H)
     outs = run(stream, early, fallback)
     outs += run(stream, frames(4, start=1.0), INTR)
-    assert [o.reason_key for o in outs] == [""] * 6
+    assert [o.reason_key or "" for o in outs] == [""] * 6
     assert ttr.windows[0] == ["0000000000", "0000000001", "0000000002"]
     assert stream._intr == INTR
     # once received intrinsics are in use, another camera is a change: a new window
     outs += run(stream, frames(1, start=2.0), INTR)
     outs += run(stream, frames(1, start=3.0), fallback)
-    assert [o.reason_key for o in outs[6:]] == ["intrinsics_change"]
+    assert [o.reason_key or "" for o in outs[6:]] == ["intrinsics_change"]
     check_accounting(stream, outs, 8)
 
 
@@ -358,7 +356,7 @@ def test_duplicate_and_non_monotonic_stamps():
     assert c["dropped_by_reason"] == {"duplicate_stamp": 1}
     assert c["non_monotonic_stamps"] == 1
     assert [o.frame.index for o in outs] == [0, 1, 3]
-    assert {o.reason_key for o in outs} == {"stamp_jump_back"}
+    assert {o.reason_key or "" for o in outs} == {"stamp_jump_back"}
     assert ttr.windows == []  # no window ever had 4 keyframes in order
     assert c["pending"] == 1  # frame 4 starts the new window
     outs += stream.flush()

@@ -10,102 +10,21 @@ import numpy as np
 import pytest
 
 from sfm_ttr_ros.core.checks.measures import (
-    CHECK_REASONS,
     UNSUPPORTED_MIN_HISTORY,
     CheckConfig,
     PathReference,
     WindowCheck,
-    accept,
-    check_error,
     frame_scale_spread,
     frame_unsupported_change,
-    held_out_tracks,
     probe_frames,
     reprojection_refusal,
     sanity_check,
     scale_jump,
-    split_supervision,
     unsupported_change,
     unsupported_refusal,
 )
-from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.outcomes import CHECKS, Unrefined
 from sfm_ttr_ros.core.params import build, validate
-from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
-
-H, W = 24, 32
-
-
-def supervision(frames: int = 4, points: int = 50, seed: int = 0) -> list[FrameSupervision]:
-    """Frames observing overlapping tracks: frame j sees point ids j*10 .. j*10 + points - 1."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for j in range(frames):
-        ids = np.arange(j * 10, j * 10 + points)
-        px = np.c_[rng.uniform(0, W - 1, points), rng.uniform(0, H - 1, points)]
-        out.append(FrameSupervision(f"f{j}", np.zeros((H, W, 3), np.uint8), px,
-                                    rng.uniform(2, 20, points), np.exp(-rng.uniform(0, 1, points)
-                                                                        ** 2), ids))
-    return out
-
-
-def test_held_out_tracks_are_a_seeded_share_never_all():
-    ids = np.repeat(np.arange(100), 3)  # 100 tracks of 3 observations
-    held = held_out_tracks(ids, 0.2, seed=1)
-    assert held.size == 20 and np.all(np.isin(held, ids))
-    assert np.array_equal(held, held_out_tracks(ids, 0.2, seed=1))
-    assert not np.array_equal(held, held_out_tracks(ids, 0.2, seed=2))
-    assert held_out_tracks(ids, 0.0, 1).size == 0
-    assert held_out_tracks(np.array([5, 5]), 0.5, 1).size == 0  # one track: nothing to hold out
-    assert held_out_tracks(np.arange(3), 0.99, 1).size == 2  # never every track
-
-
-def test_split_keeps_every_point_once_and_a_track_on_one_side():
-    sup = supervision()
-    train, check = split_supervision(sup, 0.25, seed=0)
-    ids_train = np.concatenate([s.point_ids for s in train])
-    ids_check = np.concatenate([s.point_ids for s in check])
-    assert not set(ids_train) & set(ids_check)  # a track never on both sides
-    assert len(ids_train) + len(ids_check) == sum(len(s) for s in sup)
-    distinct = np.unique(np.concatenate([s.point_ids for s in sup])).size
-    assert np.unique(ids_check).size == round(0.25 * distinct)
-    # every split point keeps its own pixel, target and weight
-    by_name = {s.name: s for s in sup}
-    for side in (train, check):
-        for s in side:
-            full = by_name[s.name]
-            rows = [int(np.flatnonzero(full.point_ids == i)[0]) for i in s.point_ids]
-            assert np.array_equal(full.pixels[rows], s.pixels)
-            assert np.array_equal(full.target[rows], s.target)
-            assert np.array_equal(full.weights[rows], s.weights)
-    with pytest.raises(InputError, match="point ids"):
-        split_supervision([FrameSupervision("x", sup[0].image, sup[0].pixels, sup[0].target,
-                                            sup[0].weights)], 0.2, 0)
-
-
-def test_check_error_is_scale_invariant_and_relative():
-    s = FrameSupervision("f", np.zeros((H, W, 3), np.uint8),
-                         np.array([[3.0, 4.0], [10.0, 7.0], [20.0, 15.0]]),
-                         np.array([5.0, 5.0, 10.0]), np.array([1.0, 3.0, 1.0]),
-                         np.array([1, 2, 3]))
-    d = np.full((H, W), 5.0, np.float32)
-    d[15, 20] = 10.0
-    assert check_error({"f": d}, [s], mode="nearest") == pytest.approx(0.0)
-    # a global scale is no error (median scaling), in the output space it is
-    assert check_error({"f": 3.0 * d}, [s], mode="nearest") == pytest.approx(0.0, abs=1e-12)
-    assert check_error({"f": 3.0 * d}, [s], mode="nearest", rescale=False) == pytest.approx(2.0)
-    # the second point (weight 3) 100 % off; the median ratio stays 1: (0 + 3 * 1 + 0) / 5
-    d[7, 10] = 10.0
-    assert check_error({"f": d}, [s], mode="nearest") == pytest.approx(0.6)
-    assert math.isnan(check_error({}, []))
-
-
-def test_accept_needs_the_margin():
-    cfg = CheckConfig(holdout_margin=0.1)
-    assert accept(cfg, 0.20, 0.17)
-    assert not accept(cfg, 0.20, 0.19)  # fell, but by 5 % < 10 %
-    assert not accept(CheckConfig(), 0.20, 0.21)  # margin 0: it must not rise
-    assert accept(CheckConfig(), 0.20, 0.20)
-    assert accept(cfg, float("nan"), 0.3)  # nothing held out: nothing to judge
 
 
 def test_frame_scale_spread_finds_the_frame_with_another_scale():
@@ -156,32 +75,35 @@ def test_parallax_is_the_camera_span_over_the_median_depth():
     assert parallax(sfm, ["a", "b"]) == pytest.approx(1.0 / 20.0)
     assert math.isnan(parallax(sfm, ["a"]))
     c = sanity_check(CheckConfig(min_parallax=0.1), WindowCheck(parallax=0.05))
-    assert c.reason_key == "check_parallax" and "0.05" in c.reason
+    assert c.reason_key is Unrefined.CHECK_PARALLAX and "0.05" in c.reason
 
 
 def test_sanity_check_names_the_first_failing_check_and_skips_what_is_off():
-    stats = dict(reprojection_error=0.8, track_length=2.1, inlier_ratio=0.3, scale_spread=1.9,
-                 scale_jump=float("nan"))
-    off = sanity_check(CheckConfig(max_reprojection_error=0.0), WindowCheck(**stats))
-    assert off.reason_key == ""
-    cfg = CheckConfig(max_reprojection_error=2.0, min_track_length=2.5, min_inlier_ratio=0.5,
-                      max_scale_spread=1.5, max_scale_jump=1.2)
-    c = sanity_check(cfg, WindowCheck(**stats))
-    assert c.reason_key == "check_track_length" and "2.1 < check.min_track_length 2.5" in c.reason
-    c = sanity_check(CheckConfig(max_scale_spread=1.5), WindowCheck(**stats))
-    assert c.reason_key == "check_scale_spread"
-    c = sanity_check(CheckConfig(max_scale_jump=1.2), WindowCheck(**stats))
-    assert c.reason_key == ""  # NaN: no shared frames, nothing to judge
-    assert set(CHECK_REASONS) >= {"rejected_by_check", c.reason_key or "check_scale_jump"}
+    stats = dict(reprojection_error=2.5, parallax=0.05, track_length=2.1, inlier_ratio=0.3,
+                 scale_spread=1.9, scale_jump=1.5)
+    off = sanity_check(CheckConfig(max_reprojection_error=0.0, min_parallax=0.0,
+                                   max_scale_jump=0.0), WindowCheck(**stats))
+    assert off.reason_key is None
+    c = sanity_check(CheckConfig(max_reprojection_error=2.0, min_parallax=0.1,
+                                 max_scale_jump=1.2), WindowCheck(**stats))
+    assert c.reason_key is Unrefined.CHECK_REPROJECTION and "2.5 px > " in c.reason
+    c = sanity_check(CheckConfig(max_reprojection_error=0.0, max_scale_jump=1.2),
+                     WindowCheck(**stats))
+    assert c.reason_key is Unrefined.CHECK_PARALLAX
+    c = sanity_check(CheckConfig(min_parallax=0.0, max_scale_jump=1.2), WindowCheck(**{
+        **stats, "reprojection_error": 0.5}))
+    assert c.reason_key is Unrefined.CHECK_SCALE_JUMP and c.reason_key.is_check
+    c = sanity_check(CheckConfig(max_scale_jump=1.2), WindowCheck(scale_jump=float("nan")))
+    assert c.reason_key is None  # NaN: no shared frames, nothing to judge
+    # the statistics without a threshold are still measured and reported
+    assert {"track_length", "inlier_ratio", "scale_spread"} <= set(WindowCheck(**stats).summary())
 
 
 def test_check_parameters_reach_the_config_and_bad_ones_are_refused():
-    cfg = build({"check.holdout_fraction": 0.3, "check.max_scale_spread": 1.8,
-                 "seed": 7}).ttr.check
-    assert (cfg.holdout_fraction, cfg.max_scale_spread, cfg.seed) == (0.3, 1.8, 7)
+    cfg = build({"check.min_parallax": 0.3, "check.max_scale_jump": 1.8}).ttr.check
+    assert (cfg.min_parallax, cfg.max_scale_jump) == (0.3, 1.8)
     assert "factor >= 1" in validate({"check.max_scale_jump": 0.5})
-    assert validate({"check.holdout_fraction": 1.0})
-    assert validate({"check.min_inlier_ratio": -0.1})
+    assert validate({"check.min_parallax": -0.1})
 
 
 def _grid_points(h: int, w: int, hole: tuple[slice, slice], spacing: int = 8) -> np.ndarray:
@@ -239,7 +161,7 @@ def test_window_unsupported_change_is_the_mean_over_frames_and_its_verdict():
     assert unsupported_refusal(CheckConfig(max_unsupported_change=0.5), u) == ""
     assert unsupported_refusal(CheckConfig(), u) == ""  # 0 = off
     assert unsupported_refusal(CheckConfig(max_unsupported_change=0.1), float("nan")) == ""
-    assert "check_unsupported_change" in CHECK_REASONS
+    assert Unrefined.CHECK_UNSUPPORTED_CHANGE in CHECKS
     assert validate({"check.max_unsupported_change": 1.5})
 
 
@@ -262,8 +184,7 @@ def test_the_unsupported_change_ratio_judges_a_window_against_the_streams_accept
     assert unsupported_refusal(plain, 0.3, indoor) and unsupported_refusal(plain, 0.05, [])
     assert validate({"check.unsupported_change_ratio": 0.5})  # a factor >= 1 or 0
     assert not validate({"check.unsupported_change_ratio": 5.0})
-    assert cfg.interim_checkable and not CheckConfig().interim_checkable
-    assert not CheckConfig(max_unsupported_change=0.1, holdout_fraction=0.2).interim_checkable
+    assert cfg.after_refinement and not CheckConfig().after_refinement
 
 
 def test_the_reprojection_ratio_judges_a_window_against_the_streams_accepted_ones():
@@ -300,13 +221,13 @@ def test_a_window_is_judged_against_the_reprojection_errors_of_accepted_windows_
 
     for error in (0.70, 0.65):
         c = window(error)
-        assert c.reason_key == "" and c.reprojection_error == pytest.approx(error)
+        assert c.reason_key is None and c.reprojection_error == pytest.approx(error)
         checks.accept(c, SfmResult(True, "", 1), [], 1.0, scaled=False)
     wrong = window(0.92)
     assert wrong.reason_key == "check_reprojection" and "0.675 px" in wrong.reason
     # a refused window is no reference: the next is judged against the accepted two
     assert window(0.88).reason_key == "check_reprojection"
-    assert window(0.80).reason_key == ""
+    assert window(0.80).reason_key is None
 
 
 def test_interim_weights_are_checked_on_frames_spread_over_the_window():

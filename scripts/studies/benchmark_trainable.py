@@ -52,7 +52,8 @@ def run_mode(name: str, steps: int, rank: int) -> dict:
     import numpy as np
     import torch
 
-    from sfm_ttr_ros.core.refinement.encoder import RefinementConfig, refine_encoder
+    from sfm_ttr_ros.core.refinement.config import RefinementConfig
+    from sfm_ttr_ros.core.refinement.encoder import refine_encoder
     from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 
     torch.manual_seed(0)

@@ -3,14 +3,14 @@
 #   bash scripts/studies/check_benchmarks.sh [OUT_DIR]        (~90 min on 2 quiet CPU cores)
 # 1. what each window's refinement did to its own frames against GT, and the checks' verdicts
 #    (scripts/studies/check_outcomes.py) on the hard drive, the domain-B drive and hololens_000;
-# 2. sfm-ttr benchmark with the checks on (defaults) and off, reset and continual policies.
+# 2. sfm-ttr benchmark with the checks on (defaults) and off, reset and continue policies.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT=${1:-bench/checks}
 SFM_TTR=.venv/bin/sfm-ttr
 H=../shared/data/hololens_000
 DRIVE=2011_09_26_drive_0001_sync
-OFF=(--set check.holdout_fraction=0 --set check.min_parallax=0
+OFF=(--set check.min_parallax=0
      --set check.max_reprojection_error=0 --set check.max_scale_jump=0)
 
 $SFM_TTR generate --scenario hard --kitti-raw "$OUT/hard/raw" --kitti-gt "$OUT/hard/gt" \
@@ -27,7 +27,7 @@ for seq in hard b40 holo; do
     $SFM_TTR benchmark "${S[@]}" --modes no_ttr sfm_ttr_online --out "$OUT/${seq}_on"
     $SFM_TTR benchmark "${S[@]}" --modes sfm_ttr_online "${OFF[@]}" --out "$OUT/${seq}_off"
 done
-$SFM_TTR benchmark "${HARD[@]}" --modes sfm_ttr_online --policy continual \
-    --out "$OUT/hard_continual_on"
-$SFM_TTR benchmark "${HARD[@]}" --modes sfm_ttr_online --policy continual "${OFF[@]}" \
-    --out "$OUT/hard_continual_off"
+$SFM_TTR benchmark "${HARD[@]}" --modes sfm_ttr_online --policy continue \
+    --out "$OUT/hard_continue_on"
+$SFM_TTR benchmark "${HARD[@]}" --modes sfm_ttr_online --policy continue "${OFF[@]}" \
+    --out "$OUT/hard_continue_off"

@@ -8,7 +8,7 @@ innermost core function on its stack) and the stream's received / queued counter
 ``HEAP_PROBE_TRIM_S`` > 0 a second thread calls ``malloc_trim(0)`` that often while at least
 32 MiB are free (the experiment section 6f rejected). Use it as the soak's node:
 
-    .venv/bin/python scripts/soak_node.py --minutes 2.5 --set weight_policy=continual \\
+    .venv/bin/python scripts/soak_node.py --minutes 2.5 --set weight_policy=continue \\
         --warm-s 10 --drain-timeout 120 --exe ".venv/bin/python scripts/studies/heap_probe.py" \\
         --node-env HEAP_PROBE_OUT=probe.jsonl --out soak_probe
 

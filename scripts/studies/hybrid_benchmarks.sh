@@ -3,9 +3,10 @@
 # online mode, the same windows for every loss:
 #   bash scripts/studies/hybrid_benchmarks.sh [OUT_DIR] [LAMBDA ...]     (~15 min per λ on 2 quiet CPU cores)
 # On the generated domain-B drive (seed 1, 40 frames) and hololens_000 (first 40 frames): no TTR,
-# sfm, photometric, and the hybrid for every λ given (default 10) with the parallax gate at each
-# τ of $TAUS (default "0 2 4" px, refinement.hybrid_min_parallax). SEQUENCES="b3 b5" runs
-# the same on two other domain-B drives (seeds 3 and 5: not used to choose λ and τ).
+# sfm, photometric, and the hybrid for every λ given (default 10). SEQUENCES="b3 b5" runs the
+# same on two other domain-B drives (seeds 3 and 5: not used to choose λ). The parallax gate τ
+# this study also swept is gone (docs/decisions.md, 2026-11-27: the relative SfM residual
+# superseded it).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT=${1:-bench/hybrid}
@@ -38,12 +39,9 @@ for seq in ${SEQUENCES:-b40 holo}; do
     [ -f "$OUT/${seq}_base/results.json" ] || $SFM_TTR benchmark "${S[@]}" "${COMMON[@]}" \
         --modes no_ttr sfm_ttr_online ph_ttr_online --out "$OUT/${seq}_base"
     for lam in "${LAMBDAS[@]}"; do
-        for tau in ${TAUS:-0 2 4}; do
-            run="$OUT/${seq}_l${lam}_t${tau}"
-            [ -f "$run/results.json" ] || $SFM_TTR benchmark "${S[@]}" "${COMMON[@]}" \
-                --modes hybrid_online --set refinement.photometric_weight="$lam" \
-                --set refinement.hybrid_min_parallax="$tau" --out "$run"
-        done
+        run="$OUT/${seq}_l${lam}"
+        [ -f "$run/results.json" ] || $SFM_TTR benchmark "${S[@]}" "${COMMON[@]}" \
+            --modes hybrid_online --set refinement.photometric_weight="$lam" --out "$run"
     done
 done
 .venv/bin/python - "$OUT" <<'PY'

@@ -9,7 +9,7 @@ main`` steps the same windows in the calling thread (as ``sfm_ttr_online`` does)
 window's stage timings, which tells what the worker thread itself costs.
 
     .venv/bin/python scripts/studies/live_latency.py --kitti-raw /tmp/d/raw --drive \\
-        2011_09_26_drive_0001_sync --mode both --set worker_nice=10
+        2011_09_26_drive_0001_sync --mode both --set stream.worker_nice=10
 """
 
 from __future__ import annotations

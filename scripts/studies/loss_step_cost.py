@@ -25,7 +25,8 @@ import torch
 
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.models import build_model
-from sfm_ttr_ros.core.refinement.encoder import LOSSES, refine_encoder
+from sfm_ttr_ros.core.refinement.config import LOSSES
+from sfm_ttr_ros.core.refinement.encoder import refine_encoder
 from sfm_ttr_ros.core.refinement.photometric import prepare_frames
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.data.synthetic import make_sequence
@@ -71,8 +72,7 @@ def main(argv=None) -> int:
     for _ in range(args.repeats):
         for loss in LOSSES:
             model.encoder.load_state_dict(state)
-            cfg = type(base)(**{**base.__dict__, "steps": args.steps, "loss": loss,
-                                "early_stop_patience": 0})
+            cfg = type(base)(**{**base.__dict__, "steps": args.steps, "loss": loss})
             t0 = time.perf_counter()
             res = refine_encoder(model, sup, cfg, photometric=frames)
             per_step[loss].append((time.perf_counter() - t0) / max(1, res.steps_done))

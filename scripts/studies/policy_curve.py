@@ -5,7 +5,7 @@ mode's abs rel over consecutive blocks of frames (``--block``, e.g. one window) 
 curve per run, plus the first-third / last-third means in a JSON next to the figure.
 
     .venv/bin/python scripts/studies/policy_curve.py --runs reset=bench/reset \\
-        continue=bench/continue continual=bench/continual --mode sfm_ttr_online --block 15 \\
+        continue=bench/continue --mode sfm_ttr_online --block 15 \\
         --out bench/policies.png
 """
 

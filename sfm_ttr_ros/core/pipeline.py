@@ -35,12 +35,12 @@ from sfm_ttr_ros.core.checks.window import WindowChecks
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
+from sfm_ttr_ros.core.outcomes import Stop, Unrefined
+from sfm_ttr_ros.core.refinement.config import RefinementConfig, resolve_loss
 from sfm_ttr_ros.core.refinement.encoder import (
-    RefinementConfig,
     RefinementResult,
     frozen_stage_count,
     refine_encoder,
-    resolve_loss,
     warm_up_refinement,
 )
 from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_frames
@@ -67,17 +67,9 @@ class TTRConfig:
     check: CheckConfig = field(default_factory=CheckConfig)  # core/checks/measures.py
     # Weights across windows (WEIGHT_POLICIES): "continue" every window starts from the last
     # ACCEPTED window's weights (a refused or rolled-back window leaves them as they were;
-    # measured best on real video: BENCHMARKS.md); "reset" from the start-up weights (the
-    # paper's per-sequence refinement); "continual" continues with a replay of earlier windows'
-    # supervision and an L2 pull toward the start-up encoder (see refine_encoder).
+    # measured best on real video: docs/decisions.md); "reset" from the start-up weights (the
+    # paper's per-sequence refinement).
     weight_policy: str = "continue"
-    replay_windows: int = 3  # continual: earlier windows whose supervision is replayed
-    replay_ratio: float = 0.5  # continual: share of the steps spent on a replayed frame
-    anchor_weight: float = 0.01  # continual: λ of λ·Σ‖θ − θ₀‖² over the trainable encoder
-    # Steps of a window whose refinement starts from carried weights (continue, continual:
-    # after an accepted window): 0 = refinement.steps. What a window learnt carries
-    # over, so later windows may need fewer steps than the first.
-    carried_steps: int = 0
     # Roll a window back to the weights before it when its loss after refinement exceeds this
     # many times its loss before (or anything is non-finite); 0 = only the non-finite check.
     max_loss_ratio: float = 2.0
@@ -98,16 +90,9 @@ class TTRConfig:
         if self.weight_policy not in WEIGHT_POLICIES:
             raise InputError(f"weight_policy must be one of {WEIGHT_POLICIES}, got "
                              f"{self.weight_policy!r}")
-        if self.replay_windows < 0:
-            raise InputError(f"replay_windows must be >= 0, got {self.replay_windows}")
-        if self.carried_steps < 0:
-            raise InputError(f"carried_steps must be >= 0, got {self.carried_steps}")
-        for name in ("replay_ratio", "anchor_weight", "max_loss_ratio"):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be a finite number >= 0, got {v}")
-        if self.replay_ratio > 1:
-            raise InputError(f"replay_ratio must lie in [0, 1], got {self.replay_ratio}")
+        v = float(self.max_loss_ratio)
+        if not (math.isfinite(v) and v >= 0):
+            raise InputError(f"max_loss_ratio must be a finite number >= 0, got {v}")
 
 
 @dataclass
@@ -118,8 +103,8 @@ class WindowResult:
     depths: dict[str, np.ndarray]
     depths_before: dict[str, np.ndarray]
     refined: bool
-    reason: str = ""  # why the window was not refined ("" when it was)
-    reason_key: str = ""  # a verification.CHECK_REASONS key when a check refused the window
+    reason: str = ""  # why the window was not refined, for people ("" when it was)
+    reason_key: Unrefined | None = None  # what is counted when it was not refined
     check: WindowCheck | None = None  # what the window checks measured
     # the refined weights' depths of a window a check refused after refining (for evaluation)
     depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
@@ -162,8 +147,6 @@ class _Window:
     d_nn: np.ndarray = field(default_factory=lambda: np.zeros(0))  # D_nn at the same pixels
     scaled: bool = False  # the alignment is the paper's scale fit (depth up to scale)
     supervision: list[FrameSupervision] = field(default_factory=list)  # Eq. (5) per frame
-    train: list[FrameSupervision] = field(default_factory=list)  # what the refinement sees
-    held: list[FrameSupervision] = field(default_factory=list)  # the held-out check points
 
     def __post_init__(self) -> None:
         self.images = {f.name: f.image for f in self.frames}
@@ -182,11 +165,11 @@ class _Window:
         return self.result.timings
 
 
-def _unrefined(res: WindowResult, reason: str, reason_key: str = "",
+def _unrefined(res: WindowResult, stop: Stop,
                depths: dict[str, np.ndarray] | None = None) -> WindowResult:
     """``res`` as a window that is not refined, with why; ``depths`` (the depths before) are
     published instead of the refined weights' when given."""
-    res.refined, res.reason, res.reason_key = False, reason, reason_key
+    res.refined, res.reason, res.reason_key = False, stop.text, stop.key
     if depths is not None:
         res.depths = dict(depths)
     return res
@@ -220,8 +203,8 @@ class SfmTTR:
         # (weights key, pixel digest -> depth) of the latest predictions, see predict()
         self._pred_key: tuple | None = None
         self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
-        # Predictions of the ORIGINAL weights survive refinement and the next reset: with
-        # reset_each_window the overlap frames' "before" depths are those of the previous window.
+        # Predictions of the ORIGINAL weights survive refinement and the next reset: under the
+        # reset policy the overlap frames' "before" depths are those of the previous window.
         self._original_key: tuple | None = self._weights_key()
         self._original_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
         self.predictions_computed = 0  # images the network actually ran on
@@ -306,8 +289,8 @@ class SfmTTR:
         identified by every parameter and buffer of the model (storage and in-place version
         counter), so an optimizer step, ``load_state_dict``, a BatchNorm statistics update or
         a move to another device all invalidate the cache. The predictions of the original
-        weights are kept apart and found again after :meth:`reset_model` (with
-        ``reset_each_window`` the overlap frames' "before" depths are reused). Call
+        weights are kept apart and found again after :meth:`reset_model` (under the ``reset``
+        policy the overlap frames' "before" depths are reused). Call
         :meth:`clear_prediction_cache` after changing anything else the network's output
         depends on."""
         key = self._weights_key() if self.config.reuse_predictions else None
@@ -389,50 +372,52 @@ class SfmTTR:
         self._own_sfm_pending = True  # no SfM begun ahead until this window's own has ended
         self._stop = False
         cfg = self.config
-        self.weights.begin_window(cfg)  # "reset": every window from the start-up weights
+        self.weights.begin_window(cfg.weight_policy)  # "reset": from the start-up weights
         self.checks.begin_window()  # the scale-jump reference: the window before, if accepted
         w = self._predict_before(frames, intrinsics)  # D_nn = h(g(I_j)) with the weights before
         res = w.result
         if not refine:
-            return _unrefined(res, "refinement skipped")
+            return _unrefined(res, Stop(Unrefined.DISABLED, "refinement skipped"))
         if cfg.refinement.steps == 0:  # nothing to refine: do not spend time on SfM either
-            return _unrefined(res, "refinement disabled: refinement.steps is 0")
-        if why := self._reconstruct(w):  # SfM: D_sfm, p_lj, r_lj (Sec. 3.1)
-            return _unrefined(res, why)
-        if why := self._align(w):  # D_nn(p_lj) and one scale ŝ for the window (Sec. 3.2)
-            return _unrefined(res, why)
+            return _unrefined(res, Stop(Unrefined.DISABLED,
+                                        "refinement disabled: refinement.steps is 0"))
+        if stop := self._reconstruct(w):  # SfM: D_sfm, p_lj, r_lj (Sec. 3.1)
+            return _unrefined(res, stop)
+        if stop := self._align(w):  # D_nn(p_lj) and one scale ŝ for the window (Sec. 3.2)
+            return _unrefined(res, stop)
         res.check = self.checks.before_refining(cfg.check, res.sfm, w.registered, w.d_sfm,
                                                 w.d_nn, res.alignment, w.scaled)
         if res.check.reason_key:
-            return _unrefined(res, f"check: {res.check.reason}", res.check.reason_key)
-        self._supervise(w)  # Eq. (5) per frame; the held-out tracks set apart
-        plan = self.weights.begin(cfg)  # where the refinement starts, what it replays
+            return _unrefined(res, Stop(res.check.reason_key, f"check: {res.check.reason}"))
+        self._supervise(w)  # Eq. (5) per frame and the window's loss before
+        plan = self.weights.begin(cfg.weight_policy, cfg.refinement)  # where it starts
         res.refinement = self._refine(w, plan, should_stop)  # Adam on the encoder (Sec. 3.3)
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
-            return _unrefined(res, "refinement cancelled")
+            return _unrefined(res, Stop(Unrefined.CANCELLED, "refinement cancelled"))
         self._predict_after(w)  # the refined weights' depth of every frame
         if not res.refined:
-            return _unrefined(res, "no usable frame")
+            return _unrefined(res, Stop(Unrefined.TOO_FEW_POINTS, "no usable frame"))
         if why := self.checks.rollback_reason(cfg.max_loss_ratio, res.refinement.loss_history,
                                               res.loss_before, res.loss_after,
                                               self.model.encoder):
             self.weights.refuse(plan)
-            return _unrefined(res, f"rolled back: {why}", depths=w.before)
-        c = self.checks.after_refining(cfg.check, res.check, w.before, res.depths, w.held,
-                                       res.sfm, w.registered, cfg.refinement.sampling, w.scaled)
+            return _unrefined(res, Stop(Unrefined.ROLLED_BACK, f"rolled back: {why}"),
+                              depths=w.before)
+        c = self.checks.after_refining(cfg.check, res.check, w.before, res.depths, res.sfm,
+                                       w.registered, w.scaled)
         res.timings["check"] = c.seconds
         if c.reason_key:
             self.weights.refuse(plan)
             res.depths_candidate = res.depths
-            return _unrefined(res, f"rejected by check: {c.reason}", c.reason_key, w.before)
-        self.weights.accept(cfg, w.supervision)
+            return _unrefined(res, Stop(c.reason_key, f"rejected by check: {c.reason}"),
+                              w.before)
         self.checks.accept(c, res.sfm, w.registered, res.scale, w.scaled)
         self._cloud(res, res.sfm, w.registered)
         return res
 
     def interim_refusal(self) -> str:
         """Why the refining window's current weights may not be served yet ("" = they may).
-        With ``check.max_unsupported_change`` on (and no held-out check), its unsupported change
+        With ``check.max_unsupported_change`` on, its unsupported change
         measured on :func:`probe_frames` of the window with the weights as they are now, judged
         as the finished window's will be (core/checks/measures.py, 3.). For ``on_refine_step``
         (the worker thread, between steps)."""
@@ -455,9 +440,9 @@ class SfmTTR:
         return _Window(frames, intrinsics,
                        WindowResult(names, dict(before), before, refined=False, timings=t))
 
-    def _reconstruct(self, w: _Window) -> str:
+    def _reconstruct(self, w: _Window) -> Stop | None:
         """SfM of the window (Sec. 3.1), or the reconstruction begun ahead of it
-        (:meth:`prefetch_sfm`); why the window stops here ("" = it goes on)."""
+        (:meth:`prefetch_sfm`); why the window stops here (None = it goes on)."""
         t, res = w.timings, w.result
         t0 = time.perf_counter()
         try:
@@ -472,12 +457,12 @@ class SfmTTR:
         t["sfm"] = time.perf_counter() - t0
         t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
         res.sfm = sfm
-        return "" if sfm.ok else f"SfM failed: {sfm.reason}"
+        return None if sfm.ok else Stop(Unrefined.SFM_FAILED, f"SfM failed: {sfm.reason}")
 
-    def _align(self, w: _Window) -> str:
+    def _align(self, w: _Window) -> Stop | None:
         """Network depth at the SfM keypoints and one scale for the whole window (Sec. 3.2,
         Eq. (4): RANSAC, weighted least squares, the relaxed selection of the supervision
-        points); why the window stops here ("" = it goes on)."""
+        points); why the window stops here (None = it goes on)."""
         cfg, res, sfm = self.config, w.result, w.result.sfm
         t0 = time.perf_counter()
         w.registered = reg = [n for n in w.names if n in sfm.frames]
@@ -492,24 +477,23 @@ class SfmTTR:
         w.scaled = self._scaled(align)
         w.timings["align"] = time.perf_counter() - t0
         if not align.ok or int(align.selected.sum()) < cfg.min_supervision_points:
-            return (f"too few supervision points: {int(align.selected.sum())} selected of "
-                    f"{w.d_sfm.size} (< {cfg.min_supervision_points})")
-        return ""
+            return Stop(Unrefined.TOO_FEW_POINTS,
+                        f"too few supervision points: {int(align.selected.sum())} selected of "
+                        f"{w.d_sfm.size} (< {cfg.min_supervision_points})")
+        return None
 
     def _supervise(self, w: _Window) -> None:
-        """Eq. (5) per registered frame (targets ŝ·D_sfm at p_lj, weights exp(−r²)), the
-        window's loss before refining, and the held-out split of the window checks."""
+        """Eq. (5) per registered frame (targets ŝ·D_sfm at p_lj, weights exp(−r²)) and the
+        window's loss before refining."""
         cfg, res = self.config, w.result
         w.supervision = build_supervision(res.sfm, w.registered, w.images, res.alignment,
                                           cfg.refinement.weighting)
         res.loss_before = float(np.mean([frame_loss(w.before[s.name], s)
                                          for s in w.supervision]))
-        w.train, w.held = self.checks.hold_out(cfg.check, res.check, w.supervision, w.before,
-                                               cfg.refinement.sampling, w.scaled)
 
     def _refine(self, w: _Window, plan: RefinementPlan,
                 should_stop: Callable[[], bool] | None) -> RefinementResult:
-        """Test-time refinement (Sec. 3.3): Adam on the encoder over the training points, as
+        """Test-time refinement (Sec. 3.3): Adam on the encoder over the supervision, as
         ``plan`` says; between steps ``on_refine_step`` may serve the interim weights when the
         window checks allow it (their time counts in "refine" and in the check's)."""
         cfg, res = self.config, w.result
@@ -522,9 +506,7 @@ class SfmTTR:
         t0 = time.perf_counter()
         try:
             refinement = refine_encoder(
-                self.model, w.train, plan.refinement, should_stop=stop, replay=plan.replay,
-                replay_ratio=plan.replay_ratio, anchor=plan.anchor,
-                anchor_weight=plan.anchor_weight,
+                self.model, w.supervision, plan.refinement, should_stop=stop,
                 photometric=self._photometric_frames(w.names, w.images, res.sfm, res.scale,
                                                      w.intrinsics),
                 on_step=self.on_refine_step if serve else None)

@@ -31,8 +31,9 @@ from dataclasses import dataclass, field
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.outcomes import Dropped
 
-NO_INTRINSICS = "no_intrinsics"  # the dropped reason of a held frame pushed out by a newer one
+NO_INTRINSICS = Dropped.NO_INTRINSICS  # a held frame pushed out by a newer one
 KEEP_BY_STAMP = 64
 
 

@@ -77,18 +77,18 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
-from sfm_ttr_ros.ros import allocator
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.models.registry import build_model
+from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S, Throttle
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
-from sfm_ttr_ros.ros import dds, names, outputs
+from sfm_ttr_ros.ros import allocator, dds, names, outputs
 from sfm_ttr_ros.ros import params as node_params
 from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
 
@@ -147,7 +147,12 @@ class RefinerNode(Node):
         reason = node_params.validate(values)
         if reason:
             raise InputError(f"invalid parameters: {reason}")
+        settings = node_params.build_settings(values)
+        for warning in settings.warnings:
+            self.get_logger().warning(warning)
+        self.settings = settings.node  # what the node reads itself, refreshed on every set
         self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._parameters_set)
         nv = node_params.node_values(values)
 
         if nv["torch_num_threads"] > 0:
@@ -224,7 +229,22 @@ class RefinerNode(Node):
         return self.get_parameter(name).value
 
     def _fallback_intrinsics(self) -> FallbackIntrinsics:
-        return FallbackIntrinsics(*(float(self._param(k)) for k in ("fx", "fy", "cx", "cy")))
+        k = self.settings.fallback
+        return FallbackIntrinsics(*k) if k is not None else FallbackIntrinsics()
+
+    def _publishes(self, output: str) -> bool:
+        return output in self.settings.published
+
+    def _parameters_set(self, params) -> None:
+        """After a change: the node's own settings again (and the legacy names' warnings)."""
+        try:
+            settings = node_params.build_settings(self._values())
+        except Exception as exc:  # validated before it was set: unexpected
+            self.fault("parameters", exc)
+            return
+        self.settings = settings.node
+        for warning in settings.warnings:
+            self.warn_every(f"legacy:{warning}", warning)
 
     def _validate_parameters(self, params) -> SetParametersResult:
         """The on-set check: never raises (an exception would reach the parameter service);
@@ -296,16 +316,16 @@ class RefinerNode(Node):
                           header=msg.header)
         except Exception as exc:
             detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
-            self.stream.reject("bad_image", f"image rejected: {detail}")
+            self.stream.reject(Dropped.BAD_IMAGE, f"image rejected: {detail}")
             return
-        if self._param("publish_live"):
+        if self._publishes("depth"):
             self.online.submit_live(frame)  # live depth needs no intrinsics
         self._hand_over(self.intrinsics.add_frame(frame, stamp_ns))
         if self.intrinsics.held:
             self.warn_every(
                 "held", f"{self.intrinsics.held} frame(s) held: no intrinsics yet - waiting for "
                 f"a CameraInfo on {self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set the "
-                "fallback parameters fx and fy")
+                "fallback_intrinsics")
 
     @contained("camera_info_callback")
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -325,15 +345,15 @@ class RefinerNode(Node):
         for frame, intr in resolved.ready:
             if frame.size != (intr.width, intr.height):
                 source = ("the CameraInfo" if self.intrinsics.latest is not None else
-                          "the fallback fx, fy, cx, cy (principal point outside the frame)")
+                          "fallback_intrinsics (principal point outside the frame)")
                 self.warn_every(
                     "mismatch", f"intrinsics for {intr.width}x{intr.height} from {source} on a "
                     f"{frame.size[0]}x{frame.size[1]} frame: published unrefined "
                     "(intrinsics_mismatch)")
             self.stream.submit(frame, intr)
         for frame in resolved.dropped:
-            self.stream.reject(NO_INTRINSICS, "no intrinsics (no CameraInfo, fallback fx/fy "
-                               f"unset): held frame dropped (max_pending="
+            self.stream.reject(NO_INTRINSICS, "no intrinsics (no CameraInfo, "
+                               f"fallback_intrinsics unset): held frame dropped (max_pending="
                                f"{self.intrinsics.max_held})", frame)
 
     @contained("qos_event")
@@ -356,13 +376,13 @@ class RefinerNode(Node):
         the live server (``live.skipped.publish_error``) and logged, throttled."""
         if self._stop.is_set():
             return
-        self._publish(outputs.live_messages(out, colored=self._param("publish_colored")))
+        self._publish(outputs.live_messages(out, colored=self._publishes("depth_colored")))
 
     @contained("publish")
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
-        if self._param("publish_refined") and not out.live_only:
+        if self._publishes("depth_refined") and not out.live_only:
             self._publish(outputs.frame_messages(out))
         self.diagnostics.output_published(out.refined)
 
@@ -370,9 +390,9 @@ class RefinerNode(Node):
     def _on_window(self, stats: WindowStats) -> None:
         if self._stop.is_set():
             return
-        if stats.reason_key == "rolled_back":
+        if stats.reason_key == Unrefined.ROLLED_BACK:
             self.warn_every("rolled_back", f"window {stats.index}: {stats.reason}")
-        self._publish(outputs.window_messages(stats, points=self._param("publish_points")))
+        self._publish(outputs.window_messages(stats, points=self._publishes("points")))
         self.publish_diagnostics()
 
     def _publish(self, messages: dict[str, object]) -> None:
@@ -385,7 +405,7 @@ class RefinerNode(Node):
         return self.diagnostics.values()
 
     def publish_diagnostics(self) -> None:
-        if self._stop.is_set() or not self._param("publish_diagnostics"):
+        if self._stop.is_set() or not self._publishes("diagnostics"):
             return
         with self._diag_lock:
             msg = outputs.diagnostics_message(self.diagnostics.status(), self.get_clock().now(),

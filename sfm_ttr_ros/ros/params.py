@@ -7,8 +7,10 @@ Live parameters (not read-only) take effect at the next window: the node builds 
 :class:`~sfm_ttr_ros.core.stream.windows.StreamSettings` from the current values at the start of
 every window (``SfmTTR.set_config``). rclpy itself enforces types, ranges and read-only;
 :func:`validate` adds what descriptors cannot say (choices, ``window_stride <= window_size``,
-``lr > 0``, both model files or neither, ...). This is the only module that imports
-``rcl_interfaces``.
+``lr > 0``, both model files or neither, ...). The legacy names of
+:mod:`sfm_ttr_ros.core.params.legacy` are declared too, with their old defaults, so that an old
+parameter file or ``-p`` still works for one release (with a warning). This is the only module
+that imports ``rcl_interfaces``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from rcl_interfaces.msg import (
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params import Param
+from sfm_ttr_ros.core.params.legacy import BY_NAME, LEGACY
 from sfm_ttr_ros.core.params.node import parse_use_projection
 from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.stream.windows import StreamSettings
@@ -70,18 +73,32 @@ def descriptor(param: Param) -> ParameterDescriptor:
 
 def declare(node) -> None:
     """Declare every parameter of the schema on ``node`` (overrides from --params-file / -p
-    are applied and checked against type and range by rclpy here)."""
+    are applied and checked against type and range by rclpy here), and every legacy name with
+    its old default and a description that says what replaces it."""
     node.declare_parameters("", [(p.name, p.default, descriptor(p)) for p in PARAMS])
+    node.declare_parameters("", [
+        (row.name, row.default, ParameterDescriptor(
+            name=row.name, type=_ROS_TYPES[type(row.default)],
+            description=f"deprecated, goes in the next release: use {row.becomes}"))
+        for row in LEGACY])
 
 
 def current_values(node) -> dict[str, Any]:
-    return {name: node.get_parameter(name).value for name in SPECS}
+    """The schema's parameters, and the legacy names set to something else than their old
+    default (those are translated, with a warning)."""
+    values = {name: node.get_parameter(name).value for name in SPECS}
+    for row in LEGACY:
+        value = node.get_parameter(row.name).value
+        if value != row.default:
+            values[row.name] = value
+    return values
 
 
 def _ours(values: Mapping[str, Any]) -> dict[str, Any]:
-    """The schema's parameters among a node's (which also has ``use_sim_time``,
-    ``qos_overrides.*``, ...)."""
-    return {k: v for k, v in values.items() if k in SPECS}
+    """The schema's parameters (and legacy names not at their old default) among a node's
+    (which also has ``use_sim_time``, ``qos_overrides.*``, ...)."""
+    return {k: v for k, v in values.items()
+            if k in SPECS or (k in BY_NAME and v != BY_NAME[k].default)}
 
 
 def validate(values: Mapping[str, Any]) -> str:

@@ -23,7 +23,6 @@ PARAM_FLAGS: dict[str, tuple[str, str]] = {
     "--model": ("model_type", "model"),
     "--encoder": ("encoder_path", "model"),
     "--decoder": ("decoder_path", "model"),
-    "--num-layers": ("num_layers", "model"),
     "--model-path": ("model_path", "model"),
     "--device": ("device", "model"),
     "--threads": ("torch_num_threads", "model"),

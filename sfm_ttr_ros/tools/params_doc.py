@@ -26,10 +26,25 @@ Each default is the default of the config field the parameter sets.
 
 LIVE = """
 When live values apply: windows, keyframes, overload and idle flush at the next frame; `sfm.*`,
-`alignment.*`, `refinement.*`, `min_supervision_points`, `weight_policy`, `continual.*`,
-`max_loss_ratio` and `seed` at the next window; `fx`..`cy` at the next frame that needs them;
-`camera_info_use_projection` at the next CameraInfo; `publish_*` at the next message;
+`alignment.*`, `refinement.*`, `check.*`, `min_supervision_points`, `weight_policy`,
+`max_loss_ratio` and `seed` at the next window; `fallback_intrinsics` at the next frame that
+needs them; `camera_info_use_projection` at the next CameraInfo; `outputs` at the next message;
 `save_weights_path` at shutdown.
+
+Names of the last release that still work for one more release, with a warning at start-up
+(and on `ros2 param set`): `fx`, `fy`, `cx`, `cy` (now `fallback_intrinsics`), `publish_live`,
+`publish_colored`, `publish_refined`, `publish_points`, `publish_diagnostics` (now `outputs`),
+`reset_each_window` (now `weight_policy`). Parameters that became config fields (settable as
+`--set section.field` in `sfm-ttr` for experiments, or under their old name for one release):
+`num_layers`, `live_max_queue`, `worker_nice`, `sfm.prefetch`, `sfm.refine_intrinsics`,
+`sfm.retry_above_error`, `sfm.retry_above_ratio`, `alignment.relaxed_tau`,
+`alignment.affine_ransac_iterations`, `refinement.photometric_alpha`,
+`refinement.smoothness_weight`, `refinement.photometric_sources`, `refinement.lora_rank`.
+Removed, because they lost their measurement (docs/decisions.md; at their old default they are
+ignored with a warning, at any other value refused): `carried_steps`, `continual.*` (with
+`weight_policy: continual`), `check.holdout_fraction`, `check.holdout_margin`,
+`check.min_track_length`, `check.min_inlier_ratio`, `check.max_scale_spread`,
+`refinement.hybrid_min_parallax`, `refinement.early_stop_patience`.
 """
 
 

@@ -1,13 +1,13 @@
-"""Trust, but verify, each window: sanity checks before refining, a held-out check after.
+"""Trust, but verify, each window: sanity checks before refining, the unsupported change after.
 
 The paper names SfM-TTR's weak spots (Sec. 6): dynamic objects, low parallax and drastic
 appearance change make SfM wrong, and SfM-TTR then teaches the network the wrong scene. pycolmap
-may report success on such a window. With live serving and the ``continual`` policy a bad window
-would reach every frame after it, so each window has to show it helped before its weights are
+may report success on such a window. With live serving and the ``continue`` policy a bad window
+would reach every frame after it, so each window has to pass the checks before its weights are
 served or kept. Not in the paper.
 
 1. Sanity checks (cheap, before any refinement step; :func:`sanity_check`), each with a threshold
-   in :class:`CheckConfig` (0 = off) and a reason key of :data:`CHECK_REASONS`:
+   in :class:`CheckConfig` (0 = off) and a key of :class:`~sfm_ttr_ros.core.outcomes.Unrefined`:
 
    * mean reprojection error of the window's observations  r̄ = mean r_lj  ≤ max (px), and
      relative to the stream (``max_reprojection_ratio`` k > 0, :func:`reprojection_refusal`):
@@ -16,28 +16,22 @@ served or kept. Not in the paper.
      retries fits its observations worse than the stream's right ones (hololens_000: 1.31–1.40x
      against ≤ 1.18x for right ones, indoors and driving), and refined on it the network gets
      worse, while the window's frames keep the weights before it;
-   * mean track length (observations per 3D point inside the window)  ≥ min;
    * parallax: the diameter of the registered camera centres over the median SfM depth,
      max_jk ‖C_j − C_k‖ / median D_sfm  ≥ min (scale-free; the paper's low-parallax weak spot:
      a creeping or turning camera triangulates depth from a baseline far shorter than the scene,
-     and SfM may still "succeed" with consistent but wrong depth that no held-out point can
-     expose);
-   * the alignment's RANSAC inlier ratio  ≥ min;
-   * the spread of per-frame scales  max_j max(s_j/s̃, s̃/s_j) ≤ max, with s_j = median over
-     frame j's points of D_nn/D_sfm and s̃ the median of the s_j: one rigid scene seen by one
-     network gives one scale up to the network's own bias; a wrong reconstruction (two partial
-     models glued at different scales, scale drift, a moving-object solution) bends it frame
-     by frame. Over ALL valid points, not the selected ones: the relaxed selection of Sec. 3.2
-     would drop exactly the points of a frame whose scale is off;
+     and SfM may still "succeed" with consistent but wrong depth);
    * the scale jump against the previous accepted window on the frames both registered:
      the camera path between the first and last shared frame in network units, ŝ·‖C_a − C_b‖,
      must agree within the factor max (a jump means one of the two reconstructions is wrong).
      Windows side by side (``window_stride == window_size``) share no frame: no jump check.
 
    Scale-based checks need depth up to scale: for affine-invariant (relative inverse depth)
-   outputs they are skipped.
+   outputs they are skipped. Measured and reported, without a threshold (each was tried as a
+   check and left off: harmful and helpful windows overlapped, docs/decisions.md): the mean
+   track length, the alignment's RANSAC inlier ratio and the spread of per-frame scales
+   max_j max(s_j/s̃, s̃/s_j), s_j = median over frame j's valid points of D_nn/D_sfm.
 
-3. Unsupported change (after refining; :func:`unsupported_change`): no statistic of the SfM
+2. Unsupported change (after refining; :func:`unsupported_change`): no statistic of the SfM
    points can see a region that has no points, e.g. a vehicle moving with the camera (its
    features are static in the image, so SfM triangulates none on it) while the static street
    around it is reconstructed right. Refined on the street, the network may still move that
@@ -67,20 +61,6 @@ served or kept. Not in the paper.
    INTERIM_PROBE_FRAMES of its registered frames before they are served
    (:func:`probe_frames`).
 
-2. Held-out check (:func:`split_supervision`, :func:`check_error`): the selected supervision
-   points are split BY TRACK (a 3D point and all its observations go to one side; seeded) into a
-   train set and a check set of ``holdout_fraction`` of the tracks. The refinement sees the train
-   set only; the refined weights are accepted when the check error fell by at least
-   ``holdout_margin``:  E_after ≤ (1 − margin)·E_before, with
-
-       E = Σ_l w_l·|σ·D_nn(p_l) − t_l| / t_l  /  Σ_l w_l     over the check points,
-
-   t_l = ŝ·D_sfm (the Eq. (5) target), w_l = exp(−r_l²) (the Eq. (5) weight): Eq. (5) made
-   relative, so near and far points count alike, and scale-invariant, σ = median(t/D_nn) over
-   the check points (the depth is up to scale: a global scale change is no error, as under the
-   evaluation's median scaling; measured: one Adam step moves the global scale enough to
-   "raise" an un-rescaled error while GT abs rel falls). The check points took part in the scale fit
-   (ŝ is one number for the window: the leak is one degree of freedom), not in any step.
 """
 
 from __future__ import annotations
@@ -94,22 +74,10 @@ import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, sample_at
+from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 
-#: Reason keys of windows the checks refuse (frames published unrefined with that key).
-CHECK_REASONS = {
-    "rejected_by_check": "refined weights rejected: the held-out check error did not fall",
-    "check_reprojection": "sanity check: mean reprojection error too high",
-    "check_track_length": "sanity check: tracks too short",
-    "check_parallax": "sanity check: too little parallax (camera path short against the depth)",
-    "check_inlier_ratio": "sanity check: alignment inlier ratio too low",
-    "check_scale_spread": "sanity check: per-frame scales disagree",
-    "check_scale_jump": "sanity check: scale jumped against the previous window",
-    "check_unsupported_change": "refined weights rejected: depth changed where SfM has no points",
-}
-
-#: ρ and τ of :func:`unsupported_change` (module docstring, 3.)
+#: ρ and τ of :func:`unsupported_change` (module docstring, 2.)
 UNSUPPORTED_RADIUS = 0.05
 UNSUPPORTED_FACTOR = 1.5
 #: the depth maps are read on every STEP-th pixel (the share is a ratio of pixel counts)
@@ -133,61 +101,33 @@ INTERIM_PROBE_FRAMES = 2
 class CheckConfig:
     """Thresholds of the window checks (the node's ``check.*`` parameters); 0 turns one off."""
 
-    holdout_fraction: float = 0.0  # share of the window's tracks held out of refinement
-    holdout_margin: float = 0.0  # accept when E_after <= (1 - margin) * E_before
     max_reprojection_error: float = 2.0  # px, mean over the window's observations
     max_reprojection_ratio: float = 1.25  # x the median error of the stream's accepted windows
-    min_track_length: float = 0.0  # mean observations per 3D point
     min_parallax: float = 0.1  # camera-centre diameter / median SfM depth
-    min_inlier_ratio: float = 0.0  # RANSAC inliers / valid points of the scale fit
-    max_scale_spread: float = 0.0  # per-frame scale within [s̃/x, s̃·x] (median over frames)
     max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
     max_unsupported_change: float = 0.0  # share of pixels moved > τ far from any SfM point
     unsupported_change_ratio: float = 0.0  # refuse U above k x the stream's accepted median
-    seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("holdout_fraction", "holdout_margin", "max_reprojection_error",
-                     "max_reprojection_ratio", "min_track_length", "min_parallax",
-                     "min_inlier_ratio", "max_scale_spread", "max_scale_jump",
-                     "max_unsupported_change", "unsupported_change_ratio"):
+        for name in ("max_reprojection_error", "max_reprojection_ratio", "min_parallax",
+                     "max_scale_jump", "max_unsupported_change", "unsupported_change_ratio"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"check.{name} must be a finite number >= 0, got {v}")
-        if self.holdout_fraction >= 1:
-            raise InputError(f"check.holdout_fraction must lie in [0, 1), got "
-                             f"{self.holdout_fraction}")
-        if self.holdout_margin >= 1:
-            raise InputError(f"check.holdout_margin must lie in [0, 1), got "
-                             f"{self.holdout_margin}")
         if self.max_unsupported_change > 1:
             raise InputError(f"check.max_unsupported_change is a share in [0, 1], got "
                              f"{self.max_unsupported_change}")
-        if self.min_inlier_ratio > 1:
-            raise InputError(f"check.min_inlier_ratio must lie in [0, 1], got "
-                             f"{self.min_inlier_ratio}")
-        for name in ("max_scale_spread", "max_scale_jump", "unsupported_change_ratio",
-                     "max_reprojection_ratio"):
+        for name in ("max_scale_jump", "unsupported_change_ratio", "max_reprojection_ratio"):
             v = float(getattr(self, name))
             if 0 < v < 1:
                 raise InputError(f"check.{name} is a factor >= 1 (or 0 = off), got {v}")
 
     @property
-    def holdout(self) -> bool:
-        return self.holdout_fraction > 0
-
-    @property
     def after_refinement(self) -> bool:
-        """Whether a check runs on the refined weights (the held-out error or the unsupported
-        change) and may still refuse the window once its steps are done."""
-        return self.holdout or self.max_unsupported_change > 0
-
-    @property
-    def interim_checkable(self) -> bool:
-        """Whether interim weights can be verified while the window refines: the unsupported
-        change is the only check after refinement (the held-out error needs the finished
-        weights' verdict on points no step saw; it is not re-run per preview)."""
-        return self.max_unsupported_change > 0 and not self.holdout
+        """Whether a check runs on the refined weights (the unsupported change) and may still
+        refuse the window once its steps are done; interim weights are then checked the same
+        way before they are served."""
+        return self.max_unsupported_change > 0
 
 
 @dataclass
@@ -200,11 +140,8 @@ class WindowCheck:
     inlier_ratio: float = float("nan")
     scale_spread: float = float("nan")
     scale_jump: float = float("nan")
-    check_points: int = 0
-    error_before: float = float("nan")
-    error_after: float = float("nan")
     unsupported_change: float = float("nan")
-    reason_key: str = ""  # a CHECK_REASONS key when the window is refused
+    reason_key: Unrefined | None = None  # the check that refused the window
     reason: str = ""
     seconds: float = 0.0
 
@@ -289,20 +226,14 @@ def parallax(sfm: SfmResult, registered: Sequence[str]) -> float:
 
 
 def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:
-    """Fill ``check.reason_key`` / ``reason`` from the measured statistics (first failing check
-    in the order of :data:`CHECK_REASONS`); a NaN statistic passes (nothing to judge)."""
+    """Fill ``check.reason_key`` / ``reason`` from the measured statistics (the first failing
+    check, in this order); a NaN statistic passes (nothing to judge)."""
     tests = (
-        ("check_reprojection", check.reprojection_error, config.max_reprojection_error, ">",
-         "mean reprojection error {v:.3g} px > check.max_reprojection_error {t:g}"),
-        ("check_track_length", check.track_length, config.min_track_length, "<",
-         "mean track length {v:.3g} < check.min_track_length {t:g}"),
-        ("check_parallax", check.parallax, config.min_parallax, "<",
+        (Unrefined.CHECK_REPROJECTION, check.reprojection_error, config.max_reprojection_error,
+         ">", "mean reprojection error {v:.3g} px > check.max_reprojection_error {t:g}"),
+        (Unrefined.CHECK_PARALLAX, check.parallax, config.min_parallax, "<",
          "parallax {v:.3g} (camera path / median depth) < check.min_parallax {t:g}"),
-        ("check_inlier_ratio", check.inlier_ratio, config.min_inlier_ratio, "<",
-         "alignment inlier ratio {v:.3g} < check.min_inlier_ratio {t:g}"),
-        ("check_scale_spread", check.scale_spread, config.max_scale_spread, ">",
-         "per-frame scales spread {v:.3g}x > check.max_scale_spread {t:g}"),
-        ("check_scale_jump", check.scale_jump, config.max_scale_jump, ">",
+        (Unrefined.CHECK_SCALE_JUMP, check.scale_jump, config.max_scale_jump, ">",
          "scale jumped {v:.3g}x against the previous window > check.max_scale_jump {t:g}"),
     )
     for key, value, threshold, op, text in tests:
@@ -314,71 +245,11 @@ def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:
     return check
 
 
-# -- 2. held-out check -----------------------------------------------------------------------
-def held_out_tracks(point_ids: np.ndarray, fraction: float, seed: int) -> np.ndarray:
-    """The 3D point ids held out: ``round(fraction·n)`` of the n distinct ids, drawn with
-    ``seed`` (at least one when fraction > 0 and n ≥ 2, never all)."""
-    ids = np.unique(np.asarray(point_ids, np.int64))
-    if fraction <= 0 or ids.size < 2:
-        return np.zeros(0, np.int64)
-    k = min(ids.size - 1, max(1, int(round(fraction * ids.size))))
-    rng = np.random.default_rng([int(seed), 19])
-    return np.sort(rng.choice(ids, size=k, replace=False))
-
-
-def split_supervision(supervision: Sequence[FrameSupervision], fraction: float, seed: int
-                      ) -> tuple[list[FrameSupervision], list[FrameSupervision]]:
-    """(train, check): each frame's points split by track (:func:`held_out_tracks` over the
-    window's selected points). Frames keep their order; a frame with no point on a side is left
-    out of that side."""
-    if not supervision:
-        return [], []
-    if any(s.point_ids is None for s in supervision):
-        raise InputError("split_supervision needs the point ids of every supervision point")
-    held = held_out_tracks(np.concatenate([s.point_ids for s in supervision]), fraction, seed)
-    train, check = [], []
-    for s in supervision:
-        mask = np.isin(s.point_ids, held)
-        for side, m in ((train, ~mask), (check, mask)):
-            if m.any():
-                side.append(dataclasses.replace(s, pixels=s.pixels[m], target=s.target[m],
-                                                weights=s.weights[m], point_ids=s.point_ids[m]))
-    return train, check
-
-
-def check_error(depths: Mapping[str, np.ndarray], check: Sequence[FrameSupervision],
-                mode: str = "bilinear", rescale: bool = True) -> float:
-    """E = Σ w·|σ·D_nn − t|/|t| / Σ w over the check points of ``depths`` (module docstring),
-    σ = median(t / D_nn) over them with ``rescale`` (depth up to scale: a change of the
-    network's global scale is no error, as under the evaluation's median scaling), else 1 (the
-    network's own output space, e.g. affine inverse depth). NaN with no check point."""
-    pred = [sample_at(depths[s.name], s.pixels, mode) for s in check if len(s)]
-    sup = [s for s in check if len(s)]
-    if not sup:
-        return float("nan")
-    p, t = np.concatenate(pred).astype(np.float64), np.concatenate([s.target for s in sup])
-    w = np.concatenate([s.weights for s in sup]).astype(np.float64)
-    sigma = 1.0
-    if rescale:
-        ok = np.isfinite(p) & (p > 0) & (t > 0)
-        sigma = float(np.median(t[ok] / p[ok])) if ok.any() else 1.0
-    err = w * np.abs(sigma * p - t) / np.maximum(np.abs(t), 1e-9)
-    return float(err.sum() / w.sum()) if w.sum() > 0 else float("nan")
-
-
-def accept(config: CheckConfig, error_before: float, error_after: float) -> bool:
-    """The held-out verdict: E_after ≤ (1 − margin)·E_before (a NaN error: nothing held out or
-    nothing to measure, accepted)."""
-    if not (math.isfinite(error_before) and math.isfinite(error_after)):
-        return True
-    return error_after <= (1.0 - config.holdout_margin) * error_before
-
-
-# -- 3. unsupported change -------------------------------------------------------------------
+# -- 2. unsupported change -------------------------------------------------------------------
 def frame_unsupported_change(before: np.ndarray, after: np.ndarray, pixels: np.ndarray,
                              radius: float | None = None, factor: float | None = None,
                              step: int = UNSUPPORTED_STEP) -> float:
-    """U_j of one frame (module docstring, 3.): the share of its pixels farther than
+    """U_j of one frame (module docstring, 2.): the share of its pixels farther than
     ``radius``·W from every observation in ``pixels`` (N x 2, x y) whose depth changed by more
     than ``factor`` against the median change at the observations (None: UNSUPPORTED_RADIUS,
     UNSUPPORTED_FACTOR). NaN without an observation or a valid depth at one."""
@@ -444,7 +315,7 @@ def unsupported_refusal(config: CheckConfig, value: float,
                         history: Sequence[float] = ()) -> str:
     """Why the window's unsupported change ``value`` refuses it ("" = accepted; a NaN value or
     ``max_unsupported_change`` 0 accepts). ``history``: U of this stream's last accepted
-    windows, the reference of ``unsupported_change_ratio`` (module docstring, 3.); with a ratio
+    windows, the reference of ``unsupported_change_ratio`` (module docstring, 2.); with a ratio
     and fewer than UNSUPPORTED_MIN_HISTORY of them nothing is refused."""
     t = config.max_unsupported_change
     if t <= 0 or not math.isfinite(value) or value <= t:

@@ -6,15 +6,13 @@ what they compare with across windows: the last accepted window's camera path (t
 and the unsupported change of the last accepted windows. In the order a window meets them:
 
 1. before refining: the sanity statistics and their verdict (:meth:`WindowChecks.before_refining`);
-2. the held-out split of the supervision by track and the check error before
-   (:meth:`WindowChecks.hold_out`);
-3. while refining: the interim gate, the unsupported change of interim weights on
+2. while refining: the interim gate, the unsupported change of interim weights on
    :func:`~sfm_ttr_ros.core.checks.measures.probe_frames` (:meth:`WindowChecks.arm_interim`,
    :meth:`WindowChecks.interim_refusal`);
-4. after refining: the rollback reasons (non-finite loss or weights, ``max_loss_ratio``;
-   :meth:`WindowChecks.rollback_reason`), then the held-out error and the unsupported change
+3. after refining: the rollback reasons (non-finite loss or weights, ``max_loss_ratio``;
+   :meth:`WindowChecks.rollback_reason`), then the unsupported change
    (:meth:`WindowChecks.after_refining`);
-5. an accepted window becomes the reference of the next (:meth:`WindowChecks.accept`).
+4. an accepted window becomes the reference of the next (:meth:`WindowChecks.accept`).
 """
 
 from __future__ import annotations
@@ -35,8 +33,6 @@ from sfm_ttr_ros.core.checks.measures import (
     CheckConfig,
     PathReference,
     WindowCheck,
-    accept,
-    check_error,
     frame_scale_spread,
     parallax,
     path_reference,
@@ -44,12 +40,11 @@ from sfm_ttr_ros.core.checks.measures import (
     reprojection_refusal,
     sanity_check,
     scale_jump,
-    split_supervision,
     track_length,
     unsupported_change,
     unsupported_refusal,
 )
-from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
+from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 from sfm_ttr_ros.core.stream.serving import finite_state
 
@@ -100,26 +95,11 @@ class WindowChecks:
         sanity_check(config, c)
         if not c.reason_key and (why := reprojection_refusal(config, c.reprojection_error,
                                                              self.reprojection)):
-            c.reason_key, c.reason = "check_reprojection", why
+            c.reason_key, c.reason = Unrefined.CHECK_REPROJECTION, why
         c.seconds = time.perf_counter() - t0
         return c
 
-    # -- 2. the held-out split ---------------------------------------------------------------
-    def hold_out(self, config: CheckConfig, check: WindowCheck,
-                 supervision: list[FrameSupervision], before: Depths, sampling: str,
-                 rescale: bool) -> tuple[list[FrameSupervision], list[FrameSupervision]]:
-        """(train, held): the supervision split by track when ``check.holdout_fraction`` is set
-        (the refinement sees the train side only), and the check error of the weights before
-        on the held-out side."""
-        t0 = time.perf_counter()
-        train, held = (split_supervision(supervision, config.holdout_fraction, config.seed)
-                       if config.holdout else (supervision, []))
-        check.check_points = sum(len(s) for s in held)
-        check.error_before = check_error(before, held, sampling, rescale)
-        check.seconds += time.perf_counter() - t0
-        return train, held
-
-    # -- 3. while refining: interim weights --------------------------------------------------
+    # -- 2. while refining: interim weights --------------------------------------------------
     def arm_interim(self, config: CheckConfig, before: Depths, images: Mapping[str, np.ndarray],
                     sfm: SfmResult, registered: list[str],
                     predict: Callable[[list[np.ndarray]], list[np.ndarray]],
@@ -130,7 +110,7 @@ class WindowChecks:
         depth of images as the weights are now)."""
         self.interim_seconds = 0.0
         self._interim = (self._interim_gate(config, before, images, sfm, registered, predict)
-                         if config.interim_checkable and rescale else None)
+                         if config.after_refinement and rescale else None)
         return not config.after_refinement or self._interim is not None
 
     def disarm_interim(self) -> float:
@@ -162,7 +142,7 @@ class WindowChecks:
 
         return refusal
 
-    # -- 4. after refining -------------------------------------------------------------------
+    # -- 3. after refining -------------------------------------------------------------------
     @staticmethod
     def rollback_reason(max_loss_ratio: float, loss_history: Sequence[float],
                         loss_before: float, loss_after: float, encoder: nn.Module) -> str:
@@ -183,27 +163,21 @@ class WindowChecks:
         return ""
 
     def after_refining(self, config: CheckConfig, check: WindowCheck, before: Depths,
-                       after: Depths, held: list[FrameSupervision], sfm: SfmResult,
-                       registered: list[str], sampling: str, rescale: bool) -> WindowCheck:
-        """The refined weights' check error on the held-out points and their unsupported change
-        (depth up to scale only), and the verdict (``check.reason_key``: "" = accepted)."""
+                       after: Depths, sfm: SfmResult, registered: list[str],
+                       rescale: bool) -> WindowCheck:
+        """The refined weights' unsupported change (depth up to scale only) and the verdict
+        (``check.reason_key``: None = accepted)."""
         t0 = time.perf_counter()
         c = check
-        c.error_after = check_error(after, held, sampling, rescale)
         if rescale:
             c.unsupported_change = unsupported_change(
                 before, after, {n: sfm.frames[n].pixels for n in registered})
         c.seconds += time.perf_counter() - t0
-        if not accept(config, c.error_before, c.error_after):
-            c.reason_key = "rejected_by_check"
-            c.reason = (f"held-out check error {c.error_before:.4g} -> {c.error_after:.4g} "
-                        f"on {c.check_points} points did not fall by "
-                        f"check.holdout_margin {config.holdout_margin:g}")
-        elif why := unsupported_refusal(config, c.unsupported_change, self.unsupported):
-            c.reason_key, c.reason = "check_unsupported_change", why
+        if why := unsupported_refusal(config, c.unsupported_change, self.unsupported):
+            c.reason_key, c.reason = Unrefined.CHECK_UNSUPPORTED_CHANGE, why
         return c
 
-    # -- 5. the reference of the next window -------------------------------------------------
+    # -- 4. the reference of the next window -------------------------------------------------
     def accept(self, check: WindowCheck, sfm: SfmResult, registered: list[str], scale: float,
                scaled: bool) -> None:
         """An accepted window: its camera path (``scaled`` only), its unsupported change and its

@@ -13,6 +13,39 @@ QOS_RELIABILITIES = ("reliable", "best_effort")
 IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, CompressedImage on
 # image/compressed (the image_transport convention)
 USE_PROJECTION_CHOICES = ("auto", "true", "false")
+#: The node's outputs (``outputs``): ~/depth (live), ~/depth_colored, ~/depth_refined
+#: (windowed), ~/points (the windows' sparse clouds) and /diagnostics.
+OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics")
+
+
+def parse_outputs(text: str) -> frozenset[str]:
+    """``outputs`` ("depth,points", any order, spaces allowed; empty = none) → the set."""
+    names = [n.strip() for n in str(text).split(",") if n.strip()]
+    unknown = [n for n in names if n not in OUTPUTS]
+    if unknown:
+        raise InputError(f"outputs: unknown output(s) {', '.join(map(repr, unknown))}; "
+                         f"choose from {', '.join(OUTPUTS)}")
+    return frozenset(names)
+
+
+def parse_fallback_intrinsics(text: str) -> tuple[float, float, float, float] | None:
+    """``fallback_intrinsics`` "fx fy cx cy" (spaces or commas) → the four numbers, None when
+    empty; fx, fy > 0, cx, cy >= 0 (0 = the image centre)."""
+    parts = str(text).replace(",", " ").split()
+    if not parts:
+        return None
+    try:
+        values = tuple(float(v) for v in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"fallback_intrinsics must be empty or four numbers 'fx fy cx cy', "
+                         f"got {text!r}")
+    fx, fy, cx, cy = values
+    if fx <= 0 or fy <= 0 or cx < 0 or cy < 0:
+        raise InputError(f"fallback_intrinsics: fx and fy must be > 0 and cx, cy >= 0, got "
+                         f"{text!r}")
+    return fx, fy, cx, cy
 
 
 def parse_use_projection(value: str | bool) -> bool | None:
@@ -33,38 +66,27 @@ def parse_use_projection(value: str | bool) -> bool | None:
 class NodeSettings:
     """What the node reads itself (the core's configs hold the rest).
 
-    ``fx``/``fy``/``cx``/``cy``: fallback intrinsics until a CameraInfo arrives (0 = unset; cx,
-    cy 0 = image centre). ``camera_info_use_projection``: ``"auto"``, ``"true"``/True (P) or
+    ``fallback_intrinsics``: "fx fy cx cy" used until a CameraInfo arrives ("" = none; cx, cy
+    0 = image centre). ``outputs``: the outputs published (:data:`OUTPUTS`, comma-separated).
+    ``camera_info_use_projection``: ``"auto"``, ``"true"``/True (P) or
     ``"false"``/False (K). ``image_transport``: ``"raw"`` (sensor_msgs/Image on ``image``) or
     ``"compressed"`` (sensor_msgs/CompressedImage on ``<image>/compressed``).
     ``torch_num_threads`` 0 = torch's default."""
 
-    fx: float = 0.0
-    fy: float = 0.0
-    cx: float = 0.0
-    cy: float = 0.0
+    fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
     image_transport: str = "raw"
     qos_reliability: str = "reliable"
     qos_depth: int = 30
-    publish_live: bool = True
-    publish_refined: bool = True
-    publish_colored: bool = True
-    publish_points: bool = True
-    publish_diagnostics: bool = True
+    outputs: str = ",".join(OUTPUTS)
     diagnostics_period_s: float = 1.0
     torch_num_threads: int = 0
     load_weights_path: str = ""
     save_weights_path: str = ""
 
     def __post_init__(self) -> None:
-        for name in ("fx", "fy", "cx", "cy"):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"{name} must be a finite number >= 0, got {v}")
-        if (self.fx > 0) != (self.fy > 0):
-            raise InputError("set both fallback focal lengths fx and fy, or neither "
-                             f"(got fx={self.fx}, fy={self.fy})")
+        parse_fallback_intrinsics(self.fallback_intrinsics)
+        parse_outputs(self.outputs)
         parse_use_projection(self.camera_info_use_projection)
         if self.image_transport not in IMAGE_TRANSPORTS:
             raise InputError(f"image_transport must be one of {', '.join(IMAGE_TRANSPORTS)}; "
@@ -79,6 +101,16 @@ class NodeSettings:
                              f"{self.diagnostics_period_s}")
         if self.torch_num_threads < 0:
             raise InputError(f"torch_num_threads must be >= 0, got {self.torch_num_threads}")
+
+    @property
+    def fallback(self) -> tuple[float, float, float, float] | None:
+        """(fx, fy, cx, cy) of ``fallback_intrinsics``, None when unset."""
+        return parse_fallback_intrinsics(self.fallback_intrinsics)
+
+    @property
+    def published(self) -> frozenset[str]:
+        """The outputs published (:data:`OUTPUTS`)."""
+        return parse_outputs(self.outputs)
 
     @property
     def use_projection(self) -> bool | None:

@@ -26,13 +26,6 @@ With auto-masking the identity errors pe(I_t, I_s) (un-warped source, plus N(0, 
 break ties) join that minimum: pixels that a raw source already explains (static camera, objects
 moving with the camera) fall back to an identity error and get no depth gradient.
 
-Parallax gate (not in Monodepth2, ``min_parallax`` > 0): a warped source joins the
-minimum at p only where moving its point from depth D_t(p) to infinity moves its projection by at
-least ``min_parallax`` pixels, |π(K (R P + t)) − π(K R K⁻¹ p̃)| ≥ τ (D_t detached). Where the
-baseline is too short for the point's depth (far field, the focus of expansion) the photometric
-error hardly depends on depth and only adds noise to it (the paper's Fig. 4: Ph-TTR useless
-far); those pixels are left to the SfM term.
-
 Smoothness (Monodepth2 layers.py get_smooth_loss), on the disparity d* = d / mean(d):
 
     L_s = mean |∂x d*| · exp(−mean_RGB |∂x I_t|) + mean |∂y d*| · exp(−mean_RGB |∂y I_t|)
@@ -95,13 +88,8 @@ class PhotometricConfig:
     source_offsets: tuple[int, ...] = SOURCE_OFFSETS
     scales: tuple[int, ...] = (0,)
     seed: int = 0
-    min_parallax: float = 0.0  # px at the network's size; 0 = every pixel (Monodepth2)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.min_parallax, (int, float)) and math.isfinite(self.min_parallax)
-                and self.min_parallax >= 0):
-            raise InputError(f"min_parallax must be a number of pixels >= 0, got "
-                             f"{self.min_parallax!r}")
         if not (isinstance(self.alpha, (int, float)) and 0.0 <= self.alpha <= 1.0):
             raise InputError(f"photometric alpha must lie in [0, 1], got {self.alpha!r}")
         if not (isinstance(self.smoothness_weight, (int, float))
@@ -254,7 +242,7 @@ def _batched(matrix, n: int, size: int, like: torch.Tensor, what: str) -> torch.
 
 
 def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
-         T_source_from_target, min_parallax: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+         T_source_from_target) -> tuple[torch.Tensor, torch.Tensor]:
     """The source image seen from the target camera, I_{s→t}, and where it is valid.
 
     ``source_image`` N x C x H x W, ``depth_target`` N x 1 x H x W (same H x W), ``K`` 3 x 3
@@ -265,9 +253,8 @@ def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
     with T, projects it with K (divided by z + 1e-7) and samples the source bilinearly with
     "border" padding. Coordinates are normalised by (W − 1) and (H − 1): Monodepth2's
     convention, which is PyTorch's ``align_corners=True``. Returns (warped N x C x H x W,
-    valid N x 1 x H x W bool: the point lies in front of the source camera and, with
-    ``min_parallax`` > 0, its :func:`parallax` is at least that). Points that project outside
-    the image are not masked (Monodepth2: border padding)."""
+    valid N x 1 x H x W bool: the point lies in front of the source camera). Points that project
+    outside the image are not masked (Monodepth2: border padding)."""
     if source_image.ndim != 4 or depth_target.ndim != 4 or depth_target.shape[1] != 1:
         raise InputError(f"warp needs an N x C x H x W image and an N x 1 x H x W depth, got "
                          f"{tuple(source_image.shape)} and {tuple(depth_target.shape)}")
@@ -275,23 +262,17 @@ def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
     if source_image.shape[0] != n or source_image.shape[-2:] != depth_target.shape[-2:]:
         raise InputError(f"source image {tuple(source_image.shape)} and target depth "
                          f"{tuple(depth_target.shape)} differ in batch or size")
-    uv, cam, far = _project(depth_target, K, T_source_from_target, with_far=min_parallax > 0)
+    uv, cam = _project(depth_target, K, T_source_from_target)
     grid = torch.stack([uv[:, 0] / (w - 1) * 2 - 1, uv[:, 1] / (h - 1) * 2 - 1], dim=-1)
     warped = F.grid_sample(source_image, grid.reshape(n, h, w, 2), mode="bilinear",
                            padding_mode="border", align_corners=True)
     valid = (cam[:, 2:3] > PROJECTION_EPS).reshape(n, 1, h, w)
-    if far is not None:
-        with torch.no_grad():
-            moved = _distance(uv.detach(), far).reshape(n, 1, h, w)
-        valid = valid & (moved >= min_parallax)
     return warped, valid
 
 
-def _project(depth_target: torch.Tensor, K, T_source_from_target, with_far: bool = False):
+def _project(depth_target: torch.Tensor, K, T_source_from_target):
     """Every target pixel's point moved into the source camera and projected: (uv N x 2 x HW in
-    pixels, camera points N x 3 x HW, and with ``with_far`` the projection of the point at
-    infinity on the pixel's ray, K R K⁻¹ p̃, without gradient; else None). One grid of rays
-    serves both."""
+    pixels, camera points N x 3 x HW)."""
     n, _, h, w = depth_target.shape
     K = _batched(K, n, 3, depth_target, "K")
     T = _batched(T_source_from_target, n, 4, depth_target, "T_source_from_target")
@@ -301,33 +282,12 @@ def _project(depth_target: torch.Tensor, K, T_source_from_target, with_far: bool
     pix = torch.stack([xs, ys, torch.ones_like(xs)]).reshape(1, 3, h * w)
     rays = torch.linalg.inv(K) @ pix  # N x 3 x HW
     cam = T[:, :3, :3] @ (rays * depth_target.reshape(n, 1, h * w)) + T[:, :3, 3:]
-    far = None
-    if with_far:
-        with torch.no_grad():
-            far = _pixels(K @ (T[:, :3, :3] @ rays.expand(n, 3, h * w)))
-    return _pixels(K @ cam), cam, far
+    return _pixels(K @ cam), cam
 
 
 def _pixels(proj: torch.Tensor) -> torch.Tensor:
     """Homogeneous N x 3 x HW image points → N x 2 x HW pixels (divided by z + eps)."""
     return proj[:, :2] / (proj[:, 2:3] + PROJECTION_EPS)
-
-
-def parallax(depth_target: torch.Tensor, K, T_source_from_target) -> torch.Tensor:
-    """N x 1 x H x W: how far (pixels) a target pixel's projection into the source moves when
-    its point goes from ``depth_target`` to infinity, |π(K (R P + t)) − π(K R K⁻¹ p̃)|: the
-    image motion the photometric loss can measure the pixel's depth by (no gradient)."""
-    with torch.no_grad():
-        near, _, far = _project(depth_target.detach(), K, T_source_from_target, with_far=True)
-    n, _, h, w = depth_target.shape
-    return _distance(near, far).reshape(n, 1, h, w)
-
-
-def _distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """|a − b| of N x 2 x HW pixel positions, N x HW (elementwise: ``norm(dim=1)`` over the
-    size-2 axis is ~20x slower on CPU)."""
-    du, dv = a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]
-    return torch.sqrt(du * du + dv * dv)
 
 
 def relative_pose(target_cam_from_world: np.ndarray, source_cam_from_world: np.ndarray,
@@ -446,7 +406,7 @@ def photometric_loss(depth_target: torch.Tensor, target_image: torch.Tensor,
                      source_images: Sequence[torch.Tensor], K,
                      T_sources_from_target: Sequence, alpha: float = ALPHA,
                      automask: bool = True, seed: int = 0, return_maps: bool = False,
-                     identity: torch.Tensor | None = None, min_parallax: float = 0.0,
+                     identity: torch.Tensor | None = None,
                      target_stats: SsimTarget | None = None):
     """Monodepth2's photometric term: mean over pixels of min over sources of pe(I_t, I_{s→t}).
 
@@ -454,9 +414,8 @@ def photometric_loss(depth_target: torch.Tensor, target_image: torch.Tensor,
     N x 3 x H x W in [0, 1], ``K`` at that size, one T_{s<-t} per source (4 x 4 or N x 4 x 4).
     With ``automask`` the identity errors (:func:`identity_errors` with ``seed``, or the
     precomputed ``identity``) join the minimum. Warped errors of points behind a source camera
-    do not join it, nor (``min_parallax`` > 0) those whose :func:`parallax` is below it;
-    pixels left with no term at all (no automask, no valid source) are left out of the mean.
-    ``target_stats``: the target's :func:`ssim_target` (else computed once here, for all
+    do not join it; pixels left with no term at all (no automask, no valid source) are left out of
+    the mean. ``target_stats``: the target's :func:`ssim_target` (else computed once here, for all
     sources). Returns the loss, or (loss, :class:`PhotometricMaps`) with ``return_maps``."""
     sources = list(source_images)
     poses = list(T_sources_from_target)
@@ -481,7 +440,7 @@ def photometric_loss(depth_target: torch.Tensor, target_image: torch.Tensor,
     if target_stats is None and alpha != 0:
         target_stats = ssim_target(target_image)
     for src, T in zip(sources, poses, strict=True):
-        warped, valid = warp(src, depth_target, K, T, min_parallax)
+        warped, valid = warp(src, depth_target, K, T)
         err = reprojection_error(warped, target_image, alpha, target_stats)
         errors.append(torch.where(valid, err, torch.full_like(err, math.inf)))
     min_error, idx = torch.cat(errors, 1).min(1, keepdim=True)
@@ -564,7 +523,7 @@ def photometric_objective(outputs: Sequence[ScaleOutput], target_image: torch.Te
     for o in outputs:
         p = photometric_loss(o.depth, target_image, sources, K, T_sources_from_target,
                              cfg.alpha, cfg.automask, cfg.seed, identity=identity,
-                             min_parallax=cfg.min_parallax, target_stats=target_stats)
+                             target_stats=target_stats)
         s = smoothness_loss(o.disp, target_image)
         ph.append(p)
         sm.append(s)

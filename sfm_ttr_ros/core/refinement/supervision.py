@@ -9,7 +9,6 @@ sampling of a depth map at those pixels (D_nn(p_lj)) and Eq. (5) itself, so the 
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -23,7 +22,6 @@ from sfm_ttr_ros.core.alignment.affine import (
     affine_targets,
 )
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
-from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 
 
@@ -41,24 +39,6 @@ class FrameSupervision:
 
     def __len__(self) -> int:
         return int(self.target.shape[0])
-
-
-def at_network_size(s: FrameSupervision, model: DepthModel) -> FrameSupervision:
-    """``s`` with its image as ``model`` sees it (:meth:`DepthModel.preprocess` at
-    ``input_size``, rounded back to uint8) and its pixels moved with it: p' = (p + ½)·w'/w − ½,
-    so :func:`normalized_grid` gives the same coordinates. What the continual policy's replay
-    keeps of an earlier window's frame: a 1242x375 KITTI image is 1.4 MB, at the default
-    network's 416x128 0.16 MB. Unchanged when the image is not larger than the input."""
-    h, w = s.image.shape[:2]
-    th, tw = model.input_size
-    if th >= h and tw >= w:
-        return s
-    x = model.preprocess(s.image)[0].permute(1, 2, 0)
-    image = (x * 255.0).round().clamp(0, 255).to(torch.uint8).cpu().numpy()
-    pixels = np.asarray(s.pixels, np.float64).copy()
-    pixels[:, 0] = (pixels[:, 0] + 0.5) * tw / w - 0.5
-    pixels[:, 1] = (pixels[:, 1] + 0.5) * th / h - 0.5
-    return dataclasses.replace(s, image=np.ascontiguousarray(image), pixels=pixels)
 
 
 def observation_weights(reproj_errors: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from sfm_ttr_ros.core.outcomes import Dropped
 from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
 from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
@@ -104,7 +105,7 @@ class StreamDiagnostics:
         v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})
         v.update({f"dropped.{k}": n for k, n in sorted(c["dropped_by_reason"].items())})
         v.update({
-            "rejected_bad_image": c["dropped_by_reason"].get("bad_image", 0),
+            "rejected_bad_image": c["dropped_by_reason"].get(Dropped.BAD_IMAGE, 0),
             "rejected_camera_info": self.rejected_camera_info,
             "non_monotonic_stamps": c["non_monotonic_stamps"],
             "qos_incompatible": sum(self.qos_incompatible.values()),
@@ -146,8 +147,6 @@ class StreamDiagnostics:
                 "last_window.loss_after": w.loss_after,
                 "last_window.steps": w.steps,
                 "last_window.steps_done": w.steps_done,
-                "last_window.check_error_before": w.check_error_before,
-                "last_window.check_error_after": w.check_error_after,
                 "last_window.unsupported_change": w.unsupported_change,
             })
             v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})

@@ -37,17 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame
+from sfm_ttr_ros.core.outcomes import LiveSkipped
 from sfm_ttr_ros.core.stream.serving import ServingModel
 from sfm_ttr_ros.core.stream.throttle import Throttle
-
-#: Reason keys of live frames that were not published.
-LIVE_SKIP_REASONS = {
-    "overflow": "live queue full: oldest frame skipped",
-    "prediction_error": "live prediction failed",
-    "publish_error": "publishing the live depth failed",
-    "stopped": "server stopped before the frame was served",
-}
-
 
 #: How long :meth:`LiveServer.start` (and the window worker's start) waits for a warm-up, s.
 WARM_UP_WAIT_S = 120.0
@@ -116,13 +108,13 @@ class LiveServer:
         with self._cv:
             self.received += 1
             if self._stop:
-                self.skipped["stopped"] += 1
+                self.skipped[LiveSkipped.STOPPED] += 1
                 return
             if len(self._queue) >= self.max_queue:
                 self._queue.popleft()
-                self.skipped["overflow"] += 1
+                self.skipped[LiveSkipped.OVERFLOW] += 1
                 self._warn("overflow", f"live queue full ({self.max_queue}): oldest frame "
-                                       f"skipped ({self.skipped['overflow']} so far)")
+                                       f"skipped ({self.skipped[LiveSkipped.OVERFLOW]} so far)")
             self._queue.append((frame, t))
             self._cv.notify()
 
@@ -145,7 +137,7 @@ class LiveServer:
         with self._cv:
             self._stop = True
             if self._queue:
-                self.skipped["stopped"] += len(self._queue)
+                self.skipped[LiveSkipped.STOPPED] += len(self._queue)
             self._queue.clear()
             self._cv.notify_all()
         if self._thread is not None:
@@ -167,12 +159,12 @@ class LiveServer:
         try:
             depth, version = self.serving.predict(frame.image)
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop serving
-            return self._skip("prediction_error", frame, exc)
+            return self._skip(LiveSkipped.PREDICTION_ERROR, frame, exc)
         out = LiveOutput(frame, depth, version, self.serving.age_s, arrival, time.monotonic())
         try:
             self.on_depth(out)
         except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving
-            return self._skip("publish_error", frame, exc)
+            return self._skip(LiveSkipped.PUBLISH_ERROR, frame, exc)
         frame.served_live = True
         done = time.monotonic()
         with self._cv:
@@ -181,11 +173,11 @@ class LiveServer:
             self._publish_s.append(done - out.served)
         return out
 
-    def _skip(self, key: str, frame: Frame, exc: Exception) -> None:
+    def _skip(self, key: LiveSkipped, frame: Frame, exc: Exception) -> None:
         """Count ``frame`` as skipped for ``key`` and log why (throttled)."""
         with self._cv:
             self.skipped[key] += 1
-        self._warn(key, f"frame {frame.name}: {LIVE_SKIP_REASONS[key]}: "
+        self._warn(key, f"frame {frame.name}: {key.description}: "
                         f"{type(exc).__name__}: {exc}")
 
     def _run(self, warm_up: Callable[[], object] | None = None,

@@ -61,8 +61,8 @@ Model of the stream
   counted (``pending`` in :meth:`counters`).
 
 Every frame given to :meth:`submit` / :meth:`reject` is accounted for exactly once: refined,
-unrefined with a reason key (:data:`UNREFINED_REASONS`), or dropped with a reason key
-(:data:`DROP_REASONS`); until then it is pending, so at any time
+unrefined with a key of :class:`~sfm_ttr_ros.core.outcomes.Unrefined`, or dropped with a key
+of :class:`~sfm_ttr_ros.core.outcomes.Dropped`; until then it is pending, so at any time
 ``received == refined + sum(unrefined) + sum(dropped) + pending``.
 """
 
@@ -80,38 +80,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.checks.measures import CHECK_REASONS
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.outcomes import CHECKS, Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm.reconstruction import SfmCancelled
 from sfm_ttr_ros.core.stream.throttle import Throttle
-
-#: Reason keys of frames published without refinement.
-UNREFINED_REASONS = {
-    "not_keyframe": "not a keyframe",
-    "sfm_failed": "SfM failed",
-    "too_few_points": "too few supervision points",
-    "overload": "overload: refinement skipped",
-    "resolution_change": "image resolution changed",
-    "intrinsics_change": "intrinsics changed",
-    "intrinsics_mismatch": "intrinsics are for another image size",
-    "stamp_jump_back": "stamp went back: window reset",
-    "cancelled": "refinement cancelled",
-    "disabled": "refinement disabled (refinement.steps = 0)",
-    "window_error": "window failed with an error",
-    "rolled_back": "refinement rolled back (non-finite or exploding loss)",
-    "end_of_stream": "end of stream with a single frame",
-    **CHECK_REASONS,
-}
-#: Reason keys of frames that were never published.
-DROP_REASONS = {
-    "overflow": "input queue full: oldest pending frame dropped",
-    "duplicate_stamp": "same stamp as the previous frame",
-    "bad_image": "image could not be converted",
-    "no_intrinsics": "held too long without intrinsics",
-    "prediction_error": "the network failed on the frame",
-}
 
 THUMB_WIDTH = 64
 # the idle flush waits at least this many median frame intervals of the last
@@ -199,7 +173,7 @@ class WindowStats:
     names: list[str]
     new_frames: int
     refined: bool
-    reason_key: str = ""
+    reason_key: Unrefined | None = None
     reason: str = ""
     registered: int = 0
     points: int = 0
@@ -212,8 +186,6 @@ class WindowStats:
     loss_after: float = float("nan")
     steps: int = 0  # configured refinement steps for this window
     steps_done: int = 0
-    check_error_before: float = float("nan")  # held-out check error
-    check_error_after: float = float("nan")
     unsupported_change: float = float("nan")  # share of unsupported pixels moved
     timings: dict[str, float] = field(default_factory=dict)
     # time.monotonic() when the worker began the window and when its outputs were ready
@@ -239,7 +211,7 @@ class FrameOutput:
     frame: Frame
     depth: np.ndarray | None
     refined: bool
-    reason_key: str = ""
+    reason_key: Unrefined | None = None
     reason: str = ""
     window: int | None = None  # index of the window that produced it
 
@@ -253,24 +225,6 @@ class FrameOutput:
 class _Entry:
     frame: Frame
     published: bool = False
-
-
-def reason_key_of(result: WindowResult) -> str:
-    """Reason key of an unrefined window from the core's free-text reason."""
-    if result.reason_key:
-        return result.reason_key
-    r = result.reason
-    if r.startswith("SfM failed"):
-        return "sfm_failed"
-    if r.startswith("too few supervision") or r.startswith("no usable frame"):
-        return "too_few_points"
-    if r.startswith("refinement cancelled"):
-        return "cancelled"
-    if r.startswith("refinement disabled"):
-        return "disabled"
-    if r.startswith("rolled back"):
-        return "rolled_back"
-    return "window_error"
 
 
 def _thumb(image: np.ndarray) -> np.ndarray:
@@ -359,7 +313,7 @@ class StreamProcessor:
             self._seq += 1
             if len(self._queue) >= max(1, self.settings.max_pending):
                 dropped, _ = self._queue.popleft()
-                self._dropped["overflow"] += 1
+                self._dropped[Dropped.OVERFLOW] += 1
             self._queue.append((frame, intrinsics))
             self._release_backlog()
             self._last_input = time.monotonic()
@@ -367,7 +321,7 @@ class StreamProcessor:
             self._cv.notify_all()
         self._prefetch_next()
         if dropped is not None:
-            self._emit_drop(dropped, "overflow",
+            self._emit_drop(dropped, Dropped.OVERFLOW,
                             f"input queue full (max_pending={self.settings.max_pending}): dropped "
                             f"the oldest pending frame (stamp {dropped.stamp:.6f}); "
                             f"{self._dropped['overflow']} dropped so far")
@@ -386,7 +340,7 @@ class StreamProcessor:
                 self._released += 1
                 held -= 1
 
-    def reject(self, reason_key: str, message: str, frame: Frame | None = None) -> None:
+    def reject(self, reason_key: Dropped, message: str, frame: Frame | None = None) -> None:
         """Count a received frame that is not processed at all (bad image, no intrinsics...)."""
         with self._cv:
             self._received += 1
@@ -442,8 +396,8 @@ class StreamProcessor:
             if refine and len(self._buffer) >= 2:
                 outs += self._run_window(self._buffer)
             else:
-                outs += self._flush_unrefined("end_of_stream", "end of stream: a single frame "
-                                              "cannot make a window")
+                outs += self._flush_unrefined(Unrefined.END_OF_STREAM, "end of stream: a "
+                                              "single frame cannot make a window")
         self._buffer = []
         self._kf_stamp = self._kf_thumb = None
         return outs
@@ -537,9 +491,9 @@ class StreamProcessor:
         outs: list[FrameOutput] = []
         if self._last_stamp is not None and frame.stamp == self._last_stamp:
             with self._cv:
-                self._dropped["duplicate_stamp"] += 1
+                self._dropped[Dropped.DUPLICATE_STAMP] += 1
                 self._taken.discard(id(frame))
-            self._emit_drop(frame, "duplicate_stamp",
+            self._emit_drop(frame, Dropped.DUPLICATE_STAMP,
                             f"frame with the same stamp as the previous one ({frame.stamp:.9f}) "
                             "rejected")
             return outs
@@ -549,7 +503,8 @@ class StreamProcessor:
             self.log.warning(f"stamp went back from {self._last_stamp:.6f} to {frame.stamp:.6f} "
                              f"s: {self._n_unpublished} pending frame(s) published unrefined and "
                              "a new window started")
-            outs += self._flush_unrefined("stamp_jump_back", "stamp went back: window reset")
+            outs += self._flush_unrefined(Unrefined.STAMP_JUMP_BACK,
+                                          "stamp went back: window reset")
             self._kf_stamp = self._kf_thumb = None
         self._last_stamp = frame.stamp
 
@@ -557,13 +512,13 @@ class StreamProcessor:
             reason = ("overload: image released by the backlog bound (overload_pending + "
                       "window_size images kept); served live")
             self._warn("overload", reason)
-            outs += self._flush_unrefined("overload", reason)
+            outs += self._flush_unrefined(Unrefined.OVERLOAD, reason)
             self._kf_stamp = self._kf_thumb = None
-            outs += self._unrefined([frame], "overload", reason)
+            outs += self._unrefined([frame], Unrefined.OVERLOAD, reason)
             return outs
 
         if frame.size != (intr.width, intr.height):
-            outs += self._unrefined([frame], "intrinsics_mismatch",
+            outs += self._unrefined([frame], Unrefined.INTRINSICS_MISMATCH,
                                     f"intrinsics are for {intr.width}x{intr.height}, the image is "
                                     f"{frame.size[0]}x{frame.size[1]}")
             return outs
@@ -577,7 +532,7 @@ class StreamProcessor:
         self._intr, self._intr_fallback = intr, frame.fallback_intrinsics
 
         if not self._is_keyframe(frame, s):
-            outs += self._unrefined([frame], "not_keyframe", "not a keyframe")
+            outs += self._unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
             return outs
         self._buffer.append(_Entry(frame))
         n_new = self._n_unpublished
@@ -591,7 +546,7 @@ class StreamProcessor:
 
     def _intrinsics_changed(self, intr: Intrinsics, size_changed: bool) -> list[FrameOutput]:
         """The camera changed: the pending frames are published unrefined, a new window starts."""
-        key = "resolution_change" if size_changed else "intrinsics_change"
+        key = Unrefined.RESOLUTION_CHANGE if size_changed else Unrefined.INTRINSICS_CHANGE
         what = (f"image size changed from {self._intr.width}x{self._intr.height} to "
                 f"{intr.width}x{intr.height}" if size_changed else
                 f"intrinsics changed from {self._intr} to {intr}")
@@ -666,12 +621,12 @@ class StreamProcessor:
                             started_at=time.monotonic())
         queued = self._overloaded()
         if queued:
-            stats.reason_key = "overload"
+            stats.reason_key = Unrefined.OVERLOAD
             stats.reason = (f"overload: {queued} frames queued > overload_pending="
                             f"{self.settings.overload_pending}: refinement skipped")
             self._warn("overload", stats.reason)
             self.windows.append(stats)  # before any output: a consumer sees the window first
-            outs = self._unrefined(new, "overload", stats.reason, window=index)
+            outs = self._unrefined(new, Unrefined.OVERLOAD, stats.reason, window=index)
             with self._cv:
                 self._windows_skipped += 1
             self._finish_window(entries, stats)
@@ -684,10 +639,10 @@ class StreamProcessor:
                                           should_stop=lambda: self._cancelled)
         except SfmCancelled:
             res = None
-            stats.reason_key, stats.reason = "cancelled", "SfM cancelled"
+            stats.reason_key, stats.reason = Unrefined.CANCELLED, "SfM cancelled"
         except Exception as exc:  # never let one window kill the stream
             res = None
-            stats.reason_key = "window_error"
+            stats.reason_key = Unrefined.WINDOW_ERROR
             stats.reason = f"window failed: {type(exc).__name__}: {exc}"
             self.log.error(stats.reason)
         finally:
@@ -709,20 +664,20 @@ class StreamProcessor:
             outs = []
             for f in new:
                 out = FrameOutput(f, res.depths[f.name], res.refined,
-                                  "" if res.refined else stats.reason_key,
+                                  None if res.refined else stats.reason_key,
                                   "" if res.refined else stats.reason, window=index)
                 outs.append(out)
             self._account(outs)
         with self._cv:
             if stats.refined:
                 self._windows_ok += 1
-            elif stats.reason_key == "disabled":
+            elif stats.reason_key == Unrefined.DISABLED:
                 self._windows_disabled += 1
             else:
                 self._windows_failed += 1
-                self._windows_rejected += stats.reason_key in CHECK_REASONS
+                self._windows_rejected += stats.reason_key in CHECKS
             self._windows_remapped += stats.mapping_attempts > 1
-        if not stats.refined and stats.reason_key != "disabled":
+        if not stats.refined and stats.reason_key != Unrefined.DISABLED:
             self._warn(f"window:{stats.reason_key}",
                        f"window {index} not refined ({stats.reason}): {len(new)} frame(s) "
                        "published unrefined")
@@ -742,7 +697,7 @@ class StreamProcessor:
     def _fill_stats(stats: WindowStats, res: WindowResult) -> None:
         stats.refined = res.refined
         if not res.refined:
-            stats.reason_key, stats.reason = reason_key_of(res), res.reason
+            stats.reason_key, stats.reason = res.reason_key, res.reason
         if res.sfm is not None:
             stats.registered, stats.points = res.sfm.num_registered, res.sfm.num_points
             stats.mapping_attempts = len(res.sfm.attempts)
@@ -754,8 +709,6 @@ class StreamProcessor:
             res.loss_after
         stats.steps_done = res.refinement.steps_done if res.refinement is not None else 0
         if res.check is not None:
-            stats.check_error_before = res.check.error_before
-            stats.check_error_after = res.check.error_after
             stats.unsupported_change = res.check.unsupported_change
         stats.timings = dict(res.timings)
         # The history keeps the SfM/alignment summary but not the per-frame depth maps: a deque of
@@ -765,12 +718,12 @@ class StreamProcessor:
         if res.cloud_frame:
             stats.cloud_xyz, stats.cloud_error = res.cloud_xyz, res.cloud_error
 
-    def _flush_unrefined(self, key: str, reason: str) -> list[FrameOutput]:
+    def _flush_unrefined(self, key: Unrefined, reason: str) -> list[FrameOutput]:
         new = [e.frame for e in self._buffer if not e.published]
         self._buffer = []
         return self._unrefined(new, key, reason) if new else []
 
-    def _unrefined(self, frames: Sequence[Frame], key: str, reason: str,
+    def _unrefined(self, frames: Sequence[Frame], key: Unrefined, reason: str,
                    window: int | None = None) -> list[FrameOutput]:
         """Publish ``frames`` unrefined, predicted with the latest weights - except the frames
         the live output already served, unless ``republish_unrefined``: those come out with
@@ -791,10 +744,10 @@ class StreamProcessor:
                 msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
                 self.log.error(msg)
                 with self._cv:
-                    self._dropped["prediction_error"] += len(todo)
+                    self._dropped[Dropped.PREDICTION_ERROR] += len(todo)
                     self._taken.difference_update(map(id, todo))
                 for f in todo:
-                    self._emit_drop(f, "prediction_error", msg)
+                    self._emit_drop(f, Dropped.PREDICTION_ERROR, msg)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
         outs = [FrameOutput(f, depths.get(id(f)), False, key, reason, window) for f in frames]
@@ -814,7 +767,7 @@ class StreamProcessor:
             if self.on_output is not None:
                 self.on_output(o)
 
-    def _emit_drop(self, frame: Frame | None, key: str, message: str) -> None:
+    def _emit_drop(self, frame: Frame | None, key: Dropped, message: str) -> None:
         self._warn(f"drop:{key}", message)
         if self.on_drop is not None:
             self.on_drop(frame, key, message)

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
@@ -81,7 +82,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     def on_window(ws: WindowStats) -> None:
         windows["windows"] += 1
         windows["windows_refined"] += int(ws.refined)
-        windows["windows_rolled_back"] += int(ws.reason_key == "rolled_back")
+        windows["windows_rolled_back"] += int(ws.reason_key == Unrefined.ROLLED_BACK)
         # the stream numbers frames in arrival order: name k is the k-th frame fed
         windows["window_log"].append(window_record(ws, lambda n: indices[int(n)]))
         timeline.append(window_timeline(ws, arrivals, online.served_at.get(ws.index, {})))
@@ -165,7 +166,7 @@ def window_timeline(ws: WindowStats, arrivals: Sequence[float], served: dict) ->
     def since(v: float | None, origin: float) -> float | None:
         return None if v is None or not np.isfinite(v) else float(v - origin)
 
-    return {"window": ws.index, "accepted": ws.refined, "reason_key": ws.reason_key,
+    return {"window": ws.index, "accepted": ws.refined, "reason_key": ws.reason_key or "",
             "first_frame_arrival": since(arrivals[int(ws.names[0])], last) if ws.names else None,
             "closed": since(ws.started_at, last),
             "sfm_done": since(sfm_done, last) if "sfm" in t else None,

@@ -25,7 +25,6 @@ from sfm_ttr_ros.core.stream.windows import (
     StreamProcessor,
     StreamSettings,
     WindowStats,
-    reason_key_of,
 )
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import DepthBands
@@ -156,7 +155,7 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
     res = ws.result
     check = res.check.summary() if res is not None and res.check is not None else None
     return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
-            "new_frames": ws.new_frames, "refined": ws.refined, "reason_key": ws.reason_key,
+            "new_frames": ws.new_frames, "refined": ws.refined, "reason_key": ws.reason_key or "",
             "registered": ws.registered, "points": ws.points, "scale": ws.scale,
             "sfm_attempts": list(res.sfm.attempts) if res is not None and res.sfm else [],
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
@@ -259,7 +258,7 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                 run.timings[k] += float(v)
             for f in frames:
                 run.add(f.index, res.depths[f.name], res.refined,
-                        "" if res.refined else reason_key_of(res))
+                        "" if res.refined else res.reason_key)
             info.append(res.summary())
             if progress:
                 what = "refined" if res.refined else f"not refined ({res.reason})"

@@ -11,7 +11,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.checks.measures import CHECK_REASONS
+from sfm_ttr_ros.core.outcomes import CHECKS
 
 TIMELINE_FIGURE = "windows.png"
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -23,7 +23,7 @@ _REFINED, _REJECTED, _OTHER = (120, 200, 120), (90, 90, 230), (200, 200, 200)
 def _outcome_colour(window: Mapping[str, Any]) -> tuple[int, int, int]:
     if window.get("refined"):
         return _REFINED
-    return _REJECTED if window.get("reason_key") in CHECK_REASONS else _OTHER
+    return _REJECTED if window.get("reason_key") in CHECKS else _OTHER
 
 
 def window_timeline_figure(abs_rel: Mapping[str, Mapping[int, float]],

@@ -1,0 +1,137 @@
+"""A refinement step's objective on one frame (``refinement.loss``).
+
+* ``sfm``: the paper's Eq. (5) (Izquierdo & Civera, CVPR 2023, Sec. 3.3),
+
+      L_j = 1/|S_j| Σ_l  exp(−r_lj²) · | ŝ·D_sfm(l, j) − D_nn(p_lj) |;
+
+* ``photometric`` (Ph-TTR): Monodepth2's L_p + w_s·L_s with the window's SfM poses brought into
+  network units with ŝ (:mod:`~sfm_ttr_ros.core.refinement.photometric`);
+* ``hybrid``: Eq. (5)'s term + λ·(L_p + w_s·L_s), λ = ``photometric_weight`` (the paper's
+  future work: photometric gradients where SfM has few points, near the camera); its SfM term
+  divided by the target ŝ·D_sfm with ``sfm_residual: relative``.
+
+A frame is prepared once per window (:func:`frame_terms`: the network input or, with frozen
+leading encoder stages, their cached output; the sampling grid, targets and weights of its SfM
+points); :func:`step_loss` then runs one forward pass and returns the frame's objective.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.refinement.config import RefinementConfig
+from sfm_ttr_ros.core.refinement.photometric import (
+    PhotometricConfig,
+    PhotometricFrame,
+    ScaleOutput,
+    photometric_objective,
+    scale_outputs,
+)
+from sfm_ttr_ros.core.refinement.supervision import (
+    FrameSupervision,
+    normalized_grid,
+    sample_depth,
+    weighted_l1,
+)
+
+
+@dataclass
+class FrameTerms:
+    """What a step on one frame needs and that does not change between steps: the network
+    input ``x`` (with frozen leading stages their (output, features)), the SfM points'
+    sampling grid, Eq. (5) targets ŝ·D_sfm and weights, and the frame's photometric term
+    (None: Eq. (5) alone)."""
+
+    x: object
+    grid: torch.Tensor
+    target: torch.Tensor
+    weight: torch.Tensor
+    photometric: PhotometricFrame | None
+
+
+def step_weights(s: FrameSupervision, sfm_residual: str = "absolute") -> np.ndarray:
+    """The per-point weights of a frame's SfM term in a step: exp(−r²) for Eq. (5)'s absolute
+    residual; exp(−r²) / (ŝ·D_sfm) for the relative one, |ŝ·D_sfm − D_nn| / (ŝ·D_sfm) (the
+    target is fixed during refinement, so the relative residual is Eq. (5) reweighted)."""
+    w = np.asarray(s.weights, np.float64)
+    if sfm_residual == "relative":
+        return w / np.maximum(np.abs(np.asarray(s.target, np.float64)), 1e-6)
+    return w
+
+
+def frame_terms(model: DepthModel, s: FrameSupervision, frozen_stages: int,
+                cfg: RefinementConfig, photometric: PhotometricFrame | None) -> FrameTerms:
+    """``s`` prepared for the steps of a window (on the model's device)."""
+    device = model.device
+    h, w = s.image.shape[:2]
+    residual = cfg.sfm_residual if cfg.loss == "hybrid" else "absolute"
+    return FrameTerms(
+        x=step_input(model, s, frozen_stages),
+        grid=normalized_grid(s.pixels, w, h).to(device),
+        target=torch.as_tensor(s.target, dtype=torch.float32, device=device),
+        weight=torch.as_tensor(step_weights(s, residual), dtype=torch.float32, device=device),
+        photometric=photometric)
+
+
+def step_input(model: DepthModel, s: FrameSupervision, frozen_stages: int):
+    """A frame's network input; with frozen leading stages their (output, features), computed
+    without a graph (they never change during a refinement)."""
+    x = model.preprocess(s.image)
+    if frozen_stages:
+        with torch.no_grad():
+            x = model.staged_encoder.forward_stages(x, 0, frozen_stages, [])
+    return x
+
+
+def step_loss(model: DepthModel, terms: FrameTerms, frozen_stages: int, cfg: RefinementConfig,
+              photometric_cfg: PhotometricConfig) -> torch.Tensor:
+    """One step's objective on one frame (module docstring), from one forward pass of the
+    network. A frame without a photometric term (no registered neighbour, or hybrid with
+    λ = 0) gets Eq. (5) alone."""
+    frame = terms.photometric
+    if frame is None or cfg.loss == "sfm":
+        depth = forward(model, terms.x, frozen_stages)
+        return weighted_l1(sample_depth(depth, terms.grid, cfg.sampling), terms.target,
+                           terms.weight)
+    outputs = _scale_outputs(model, terms.x, frozen_stages, photometric_cfg.scales)
+    ph = photometric_objective(outputs, frame.target, frame.sources, frame.K, frame.poses,
+                               photometric_cfg, frame.identity, frame.ssim_target).total
+    if cfg.loss == "photometric":
+        return ph
+    sfm = weighted_l1(sample_depth(outputs[0].depth, terms.grid, cfg.sampling), terms.target,
+                      terms.weight)
+    return sfm + cfg.photometric_weight * ph
+
+
+def _scale_outputs(model: DepthModel, x, frozen_stages: int,
+                   scales: Sequence[int]) -> list[ScaleOutput]:
+    """The photometric loss's depth / disparity per output scale from one forward pass; a
+    model with its own ``forward`` (not encoder → decoder, e.g. a transformers model) gives
+    its one output with disparity 1 / depth."""
+    if type(model).forward is DepthModel.forward:
+        return scale_outputs(model, encode(model, x, frozen_stages), scales)
+    if tuple(scales) != (0,):
+        raise InputError(f"{type(model).__name__} has a single output scale, got {scales}")
+    depth = forward(model, x, frozen_stages)
+    return [ScaleOutput(0, depth, 1.0 / depth)]
+
+
+def encode(model: DepthModel, x, frozen_stages: int):
+    """g(I); with frozen leading stages ``x`` is their cached (output, features)."""
+    if not frozen_stages:
+        return model.encoder(x)
+    enc = model.staged_encoder
+    return enc.forward_stages(x[0], frozen_stages, enc.num_stages, x[1])[1]
+
+
+def forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
+    """D_nn = h(g(I)); with frozen leading stages ``x`` is their cached (output, features)."""
+    if not frozen_stages:
+        return model(x)
+    return model.depth_from_features(encode(model, x, frozen_stages))
