@@ -17,7 +17,8 @@ import torch
 from conftest import tiny_model
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.pipeline import PREDICTION_CACHE_FRAMES, SfmTTR, TTRConfig
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.prediction import PREDICTION_CACHE_FRAMES
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import sample_at
 from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
@@ -153,19 +154,19 @@ def test_cache_is_bounded_and_can_be_off(one_thread):
     imgs = images(40)
     # untouched weights are the original ones: their predictions live in the original cache
     ttr.predict(imgs[:30])  # one large call keeps all of its frames
-    assert len(ttr._original_cache) == 30
+    assert len(ttr.predictor._original_cache) == 30
     ttr.predict(imgs[30:31])  # later small calls trim it to the latest PREDICTION_CACHE_FRAMES
-    assert len(ttr._original_cache) == PREDICTION_CACHE_FRAMES
+    assert len(ttr.predictor._original_cache) == PREDICTION_CACHE_FRAMES
     computed = ttr.predictions_computed
     ttr.predict(imgs[30:31] + imgs[29:30])  # the most recent frames are the ones kept
     assert ttr.predictions_computed == computed
     for im in imgs[31:]:
         ttr.predict([im])
-    assert len(ttr._original_cache) == PREDICTION_CACHE_FRAMES
+    assert len(ttr.predictor._original_cache) == PREDICTION_CACHE_FRAMES
     off = copy.deepcopy(ttr.config)
     off.reuse_predictions = False
     ttr.set_config(off)
     before = ttr.predictions_computed
     ttr.predict(imgs[:2])
     ttr.predict(imgs[:2])
-    assert ttr.predictions_computed == before + 4 and len(ttr._original_cache) == 0
+    assert ttr.predictions_computed == before + 4 and len(ttr.predictor._original_cache) == 0

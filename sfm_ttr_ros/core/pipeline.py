@@ -14,11 +14,9 @@ original weights).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -36,6 +34,7 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.outcomes import Stop, Unrefined
+from sfm_ttr_ros.core.prediction import Predictor
 from sfm_ttr_ros.core.refinement.config import RefinementConfig, resolve_loss
 from sfm_ttr_ros.core.refinement.encoder import (
     RefinementResult,
@@ -53,10 +52,7 @@ from sfm_ttr_ros.core.refinement.supervision import (
 from sfm_ttr_ros.core.refinement.trainable import check_trainable
 from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES, RefinementPlan, WeightPolicy
 from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
-from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, SfmReconstructor, SfmResult, image_digest
-
-#: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
-PREDICTION_CACHE_FRAMES = 16
+from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, SfmReconstructor, SfmResult
 
 
 @dataclass
@@ -193,31 +189,21 @@ class SfmTTR:
         self._own_sfm_pending = False
         self._prefetch_lock = threading.Lock()
         # where each window starts and what an accepted one leaves to the next (weight policy)
-        self.weights = WeightPolicy(self.model, on_reset=self._original_restored)
+        # D_nn = h(g(I)) with a cache of the latest predictions (core/prediction.py)
+        self.predictor = Predictor(self.model, self.config.predict_batch,
+                                   self.config.reuse_predictions)
+        self.weights = WeightPolicy(self.model, on_reset=self.predictor.original_restored)
         self.checks = WindowChecks()  # the window checks and their references across windows
         self._stop = False
         # called with the step count after each refinement step of a window whose current
         # weights may be served before its end (the live server's interim weights,
         # core/stream/refiner.py): no check after refinement, or one that interim_refusal() re-runs
         self.on_refine_step: Callable[[int], None] | None = None
-        # (weights key, pixel digest -> depth) of the latest predictions, see predict()
-        self._pred_key: tuple | None = None
-        self._pred_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
-        # Predictions of the ORIGINAL weights survive refinement and the next reset: under the
-        # reset policy the overlap frames' "before" depths are those of the previous window.
-        self._original_key: tuple | None = self._weights_key()
-        self._original_cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
-        self.predictions_computed = 0  # images the network actually ran on
-        self.predictions_reused = 0  # images answered from the cache
 
     # -- state ---------------------------------------------------------------------------
     def reset_model(self) -> None:
         """Back to the original encoder weights."""
         self.weights.reset()
-
-    def _original_restored(self) -> None:
-        """The start-up weights are back: their predictions count as the original's again."""
-        self._original_key = self._weights_key()
 
     def _concrete(self, config: TTRConfig) -> TTRConfig:
         """``config`` with its objective resolved for this model (``refinement.loss`` "auto":
@@ -244,6 +230,7 @@ class SfmTTR:
         self.check_config(config)
         self.config = config
         self.reconstructor.config = config.sfm
+        self.predictor.batch, self.predictor.reuse = config.predict_batch, config.reuse_predictions
         if self._prefetch is not None:
             self._prefetch.set_config(config.sfm)
 
@@ -281,83 +268,34 @@ class SfmTTR:
 
     # -- prediction ----------------------------------------------------------------------
     def predict(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """Depth (H x W float32, network units) of each image with the current weights.
-
-        With ``config.reuse_predictions`` an image whose pixels were predicted before with the
-        same weights is not run through the network again (each call returns new arrays; at
-        most max(PREDICTION_CACHE_FRAMES, len(images)) depth maps are kept). The weights are
-        identified by every parameter and buffer of the model (storage and in-place version
-        counter), so an optimizer step, ``load_state_dict``, a BatchNorm statistics update or
-        a move to another device all invalidate the cache. The predictions of the original
-        weights are kept apart and found again after :meth:`reset_model` (under the ``reset``
-        policy the overlap frames' "before" depths are reused). Call
-        :meth:`clear_prediction_cache` after changing anything else the network's output
-        depends on."""
-        key = self._weights_key() if self.config.reuse_predictions else None
-        if key is None:
-            self.clear_prediction_cache()
-            self.predictions_computed += len(images)
-            return self._run_network(images)
-        if key == self._original_key:
-            cache = self._original_cache
-        else:
-            if key != self._pred_key:
-                self._pred_key = key
-                self._pred_cache.clear()
-            cache = self._pred_cache
-        digests = [image_digest(np.asarray(im)) for im in images]
-        todo: dict[bytes, int] = {}
-        for i, d in enumerate(digests):
-            if d not in cache and d not in todo:
-                todo[d] = i
-        fresh = dict(zip(todo, self._run_network([images[i] for i in todo.values()]),
-                         strict=True))
-        self.predictions_computed += len(fresh)
-        self.predictions_reused += len(images) - len(fresh)
-        out = []
-        for d in digests:
-            depth = fresh[d] if d in fresh else cache[d]
-            cache[d] = depth
-            cache.move_to_end(d)
-            out.append(depth.copy())
-        while len(cache) > max(PREDICTION_CACHE_FRAMES, len(images)):
-            cache.popitem(last=False)
-        return out
+        """Depth (H x W float32, network units) of each image with the current weights
+        (:meth:`Predictor.predict <sfm_ttr_ros.core.prediction.Predictor.predict>`: answered
+        from the cache when the same pixels were predicted with the same weights)."""
+        return self.predictor.predict(images)
 
     def clear_prediction_cache(self) -> None:
-        self._pred_key = None
-        self._pred_cache.clear()
-        self._original_cache.clear()
-        self._original_key = None  # until the next reset_model(): nothing is known original
+        self.predictor.clear()
+
+    @property
+    def predictions_computed(self) -> int:
+        """Images the network actually ran on."""
+        return self.predictor.computed
+
+    @property
+    def predictions_reused(self) -> int:
+        """Images answered from the cache."""
+        return self.predictor.reused
 
     def warm_up(self) -> float:
         """Pay a window's one-time costs now, in the calling thread (the window worker's, before
         its first window; on CUDA kernels load at first use and each thread makes its own
         cuDNN / cuBLAS handles): the network's forward pass on ``predict_batch`` grey frames
-        (:meth:`_run_network`, nothing cached) and two refinement steps on a copy of the model
+        (nothing cached) and two refinement steps on a copy of the model
         (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_refinement`). Returns the seconds."""
         t0 = time.perf_counter()
-        self._run_network([warm_up_image(self.model)] * max(1, self.config.predict_batch))
+        self.predictor.run([warm_up_image(self.model)] * max(1, self.config.predict_batch))
         warm_up_refinement(self.model, self.config.refinement)
         return time.perf_counter() - t0
-
-    def _run_network(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
-        out: list[np.ndarray] = []
-        b = max(1, self.config.predict_batch)
-        for i in range(0, len(images), b):
-            out.extend(self.model.predict(list(images[i:i + b])))
-        return out
-
-    def _weights_key(self) -> tuple | None:
-        """Changes whenever a tensor of the model is replaced or modified in place."""
-        m = self.model
-        try:
-            tensors = tuple((t.data_ptr(), t._version)
-                            for t in itertools.chain(m.parameters(), m.buffers()))
-        except (RuntimeError, AttributeError):  # e.g. inference tensors: no version counter
-            return None
-        return (id(m), tuple(getattr(m, "input_size", ())), str(m.device),
-                getattr(m, "min_depth", None), getattr(m, "max_depth", None), tensors)
 
     # -- one window ----------------------------------------------------------------------
     def process_window(self, frames: Sequence[Frame], intrinsics: Intrinsics,
@@ -534,7 +472,7 @@ class SfmTTR:
         encoder's BatchNorm in training mode)."""
         modes = [(m, m.training) for m in self.model.modules()]
         try:
-            return self._run_network(images)
+            return self.predictor.run(images)
         finally:
             for m, training in modes:
                 m.training = training
