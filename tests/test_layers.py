@@ -178,6 +178,42 @@ def test_no_import_goes_up_a_layer():
     assert not wrong, "imports against the layering:\n" + "\n".join(wrong)
 
 
+#: The core's own order, lowest first: a module may import only from its own rank or below.
+#: The stages of the method use the basics; prediction and the orchestrator use the stages;
+#: the stream uses the orchestrator; the schema reads every config.
+CORE_RANKS = (
+    ("errors", "frames", "outcomes", "threads", "models", "visualize", "evaluation"),
+    ("sfm", "alignment", "refinement", "checks", "prediction"),
+    ("pipeline",),
+    ("stream",),
+    ("params",),
+)
+
+
+def core_rank(module: str) -> int | None:
+    parts = module.split(".")
+    if parts[:2] != ["sfm_ttr_ros", "core"] or len(parts) < 3:
+        return None
+    return next(i for i, names in enumerate(CORE_RANKS) if parts[2] in names)
+
+
+def test_the_core_imports_downwards_stage_by_stage():
+    """A stage never imports the orchestrator, the stream or the schema; the orchestrator never
+    the stream; so each folder can be read without the ones above it."""
+    top = {m.split(".")[2] for m in MODULES if m.startswith("sfm_ttr_ros.core.")}
+    assert top == {n for names in CORE_RANKS for n in names}, "a core module without a rank"
+    wrong = []
+    for module in MODULES:
+        mine = core_rank(module)
+        if mine is None:
+            continue
+        for target, line in imports_of(module):
+            theirs = core_rank(target)
+            if theirs is not None and theirs > mine:
+                wrong.append(f"{MODULES[module].relative_to(REPO)}:{line} imports {target}")
+    assert not wrong, "core imports against its order:\n" + "\n".join(wrong)
+
+
 def test_no_import_cycles():
     cycle = find_cycle(package_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)

@@ -308,7 +308,7 @@ def test_serving_warm_up_is_not_a_prediction(one_thread):
 def test_the_window_worker_runs_its_own_openmp_team(threads):
     """worker_threads sets the worker thread's OpenMP team only (per-thread ICV): measured 35 %
     faster windows with 1 thread on 2 cores; the caller's team size is untouched."""
-    from sfm_ttr_ros.core.stream import openmp
+    from sfm_ttr_ros.core import threads as openmp
     from sfm_ttr_ros.core.stream.refiner import StreamRefiner
     from sfm_ttr_ros.core.stream.windows import StreamSettings
 

@@ -45,8 +45,8 @@ from sfm_ttr_ros.core.checks.measures import (
     unsupported_refusal,
 )
 from sfm_ttr_ros.core.outcomes import Unrefined
+from sfm_ttr_ros.core.refinement.encoder import finite_state
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
-from sfm_ttr_ros.core.stream.serving import finite_state
 
 Depths = Mapping[str, np.ndarray]
 

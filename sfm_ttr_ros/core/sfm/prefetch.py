@@ -16,7 +16,7 @@ The stream (:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`) begins it
 callback, at the first frame that finds the next window's frames all queued once the running
 window's own SfM has ended (:meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.prefetch_sfm`); the thread
 lowers its own OS priority to the worker's
-(:func:`~sfm_ttr_ros.core.stream.live.lower_thread_priority`), so live serving keeps the cores
+(:func:`~sfm_ttr_ros.core.threads.lower_thread_priority`), so live serving keeps the cores
 first.
 """
 
@@ -28,7 +28,7 @@ from collections.abc import Sequence
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.sfm.reconstruction import SfmCancelled, SfmConfig, SfmReconstructor, SfmResult
-from sfm_ttr_ros.core.stream.live import lower_thread_priority
+from sfm_ttr_ros.core.threads import lower_thread_priority
 
 log = logging.getLogger(__name__)
 

@@ -19,15 +19,15 @@ arrival to its published depth (p50, p95, max) and the time ``on_depth`` took to
 
 Scheduling on few cores: torch's intra-op thread count is one number per process, so the two
 roles cannot be given different torch thread counts. What can be separated is the OS priority:
-:func:`lower_thread_priority` raises the calling thread's nice value (Linux: per thread; threads
-it starts later, e.g. its OpenMP team and pycolmap's workers, inherit it), so a background
-refinement worker yields the cores to the serving thread whenever a frame arrives.
+:func:`~sfm_ttr_ros.core.threads.lower_thread_priority` raises the calling thread's nice value
+(Linux: per thread; threads it starts later, e.g. its OpenMP team and pycolmap's workers, inherit
+it), so a background refinement worker yields the cores to the serving thread whenever a frame
+arrives.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import Counter, deque
@@ -47,19 +47,6 @@ WARM_UP_WAIT_S = 120.0
 LATENCY_WINDOW = 100
 #: The keys of :func:`latency_figures` (also /diagnostics' ``live.<key>``).
 LATENCY_KEYS = ("latency_p50_s", "latency_p95_s", "latency_max_s", "publish_max_s")
-
-
-def lower_thread_priority(nice: int) -> bool:
-    """Raise the calling thread's nice value by ``nice`` (0 = leave it). True when applied.
-    Linux keeps nice per thread; elsewhere (or when refused) nothing changes."""
-    if nice <= 0 or not hasattr(os, "setpriority"):
-        return False
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + int(nice))
-    except OSError:
-        return False
-    return True
 
 
 @dataclass

@@ -8,7 +8,7 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
 * :meth:`StreamRefiner.submit` — frames with intrinsics to the
   :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`, stepped by a background worker thread
   at a lower OS priority (``StreamSettings.worker_nice``) with an OpenMP team of its own
-  (``StreamSettings.worker_threads``, :mod:`~sfm_ttr_ros.core.stream.openmp`): keyframes, windows,
+  (``StreamSettings.worker_threads``, :mod:`~sfm_ttr_ros.core.threads`): keyframes, windows,
   SfM, alignment, refinement; each window's frames come out again on ``on_refined`` (today's
   windowed output).
 * When a window is refined (and not rolled back) its encoder is swapped into the serving copy:
@@ -33,16 +33,11 @@ import threading
 import time
 from collections.abc import Callable
 
+from sfm_ttr_ros.core import threads
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.refinement.encoder import warm_up_optimiser
-from sfm_ttr_ros.core.stream import openmp
-from sfm_ttr_ros.core.stream.live import (
-    WARM_UP_WAIT_S,
-    LiveOutput,
-    LiveServer,
-    lower_thread_priority,
-)
+from sfm_ttr_ros.core.stream.live import WARM_UP_WAIT_S, LiveOutput, LiveServer
 from sfm_ttr_ros.core.stream.serving import ServingModel
 from sfm_ttr_ros.core.stream.windows import (
     FrameOutput,
@@ -128,17 +123,17 @@ class StreamRefiner:
         self.live.start(warm_up=self.serving.warm_up)
 
     def _work(self, ready: threading.Event | None = None) -> None:
-        lower_thread_priority(self._nice)  # before torch / pycolmap start threads from here
+        threads.lower_thread_priority(self._nice)  # before torch / pycolmap start threads from here
         try:
             self.warm_up_s = self.ttr.warm_up()
         except Exception as exc:  # noqa: BLE001 - a failed warm-up only costs the first window
             self.log.warning(f"worker: warm-up failed ({type(exc).__name__}: {exc}); the first "
                              f"window pays the one-time costs")
         finally:
-            # this thread's own OpenMP team (core/stream/openmp.py), set after the warm-up: a path's
+            # this thread's own OpenMP team (core/threads.py), set after the warm-up: a path's
             # first use in a thread (oneDNN's convolution) resets the team to torch's count
             if self._threads:
-                openmp.set_thread_team(self._threads)
+                threads.set_thread_team(self._threads)
             if ready is not None:
                 ready.set()
         while not self._stop.is_set():

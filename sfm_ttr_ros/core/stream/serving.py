@@ -27,12 +27,7 @@ import numpy as np
 import torch
 
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
-
-
-def finite_state(state: dict[str, torch.Tensor]) -> bool:
-    """True when every floating-point tensor of a state dict is finite."""
-    return all(bool(torch.isfinite(t).all()) for t in state.values()
-               if torch.is_tensor(t) and t.is_floating_point())
+from sfm_ttr_ros.core.refinement.encoder import finite_state
 
 
 class ServingModel:

@@ -116,7 +116,7 @@ class StreamSettings:
     # the nice value added to the background window worker, so live prediction gets the cores first.
     live_max_queue: int = 4
     worker_nice: int = 10
-    # OpenMP threads of the window worker's torch ops (core/stream/openmp.py): 1 measured fastest on
+    # OpenMP threads of the window worker's torch ops (core/threads.py): 1 measured fastest on
     # 2 cores next to live serving; 0 = the runtime's default
     worker_threads: int = 1
     # > 0: while a window refines, its weights are served every this many steps

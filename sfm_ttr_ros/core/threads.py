@@ -1,4 +1,10 @@
-"""The OpenMP team size of one thread: the window worker's thread budget.
+"""A thread's share of the cores: its OS priority and its OpenMP team size.
+
+:func:`lower_thread_priority` raises the calling thread's nice value (Linux keeps nice per
+thread): the window worker and the SfM begun ahead run nicer than live serving, so a live
+prediction gets the cores as soon as a frame arrives.
+
+The OpenMP team size of one thread is the window worker's thread budget.
 
 torch runs its intra-op parallel regions on OpenMP (libgomp in the PyPI wheels), and every
 thread that opens a parallel region gets a team of its own. In the node two threads do: the
@@ -20,6 +26,22 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
+import threading
+
+
+def lower_thread_priority(nice: int) -> bool:
+    """Raise the calling thread's nice value by ``nice`` (0 = leave it). True when applied.
+    Linux keeps nice per thread; elsewhere (or when refused) nothing changes."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return False
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + int(nice))
+    except OSError:
+        return False
+    return True
+
 
 #: Shared objects of the OpenMP runtimes torch may load (GNU, LLVM, Intel).
 RUNTIME_NAMES = ("libgomp", "libomp", "libiomp5")
