@@ -77,7 +77,6 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
-from sfm_ttr_ros.ros import allocator
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.models.base import DepthModel
@@ -88,7 +87,7 @@ from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S, Throttle
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
-from sfm_ttr_ros.ros import dds, names, outputs
+from sfm_ttr_ros.ros import allocator, dds, names, outputs
 from sfm_ttr_ros.ros import params as node_params
 from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
 

@@ -33,10 +33,10 @@ import threading
 import time
 from collections.abc import Callable
 
-from sfm_ttr_ros.core.stream import openmp
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.refinement.encoder import warm_up_optimiser
+from sfm_ttr_ros.core.stream import openmp
 from sfm_ttr_ros.core.stream.live import (
     WARM_UP_WAIT_S,
     LiveOutput,
