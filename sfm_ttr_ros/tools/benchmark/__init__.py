@@ -34,12 +34,13 @@ and predicted-vs-GT density plots, drawn with OpenCV).
 
 Modules: :mod:`.settings` (the parameter file), :mod:`.runners` (the windowed modes),
 :mod:`.live` (``sfm_ttr_live``: the node's live serving fed in real time at ``--rate``), :mod:`.run`
-(:func:`run_benchmark`), :mod:`.report` (json / markdown / csv), :mod:`.figure`, :mod:`.bands`
+(:func:`run_benchmark`), :mod:`.report` (markdown / csv, through the shared
+:mod:`sfm_ttr_ros.tools.report`), :mod:`.figure`, :mod:`.bands`
 (the depth bands and the error-against-depth figure).
 """
 
 from sfm_ttr_ros.tools.benchmark.figure import qualitative_figure, scatter_panel
-from sfm_ttr_ros.tools.benchmark.report import describe_model, json_safe, results_markdown
+from sfm_ttr_ros.tools.benchmark.report import describe_model, results_markdown
 from sfm_ttr_ros.tools.benchmark.run import run_benchmark
 from sfm_ttr_ros.tools.benchmark.runners import DEFAULT_MODES, MODES, STAGES
 from sfm_ttr_ros.tools.benchmark.settings import (
@@ -48,6 +49,7 @@ from sfm_ttr_ros.tools.benchmark.settings import (
     read_params_file,
     settings_from_params,
 )
+from sfm_ttr_ros.tools.report import json_safe
 
 __all__ = [
     "DEFAULT_MODES",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -23,7 +22,6 @@ from sfm_ttr_ros.tools.benchmark.live import run_live
 from sfm_ttr_ros.tools.benchmark.report import (
     config_dict,
     describe_model,
-    json_safe,
     results_markdown,
     write_per_frame,
 )
@@ -43,6 +41,7 @@ from sfm_ttr_ros.tools.benchmark.settings import (
     settings_from_params,
 )
 from sfm_ttr_ros.tools.benchmark.timeline import TIMELINE_FIGURE, window_timeline_figure
+from sfm_ttr_ros.tools.report import write_json
 
 
 def _stderr(line: str) -> None:
@@ -168,8 +167,7 @@ def run_benchmark(
     results["model"] = description
     results["command"] = command if command is not None else " ".join(sys.argv)
     results["figure_frames"] = [names[i] for i in fig_idx]
-    results = json_safe(results)
-    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    results = write_json(out / "results.json", results)
     (out / "results.md").write_text(results_markdown(results))
     write_per_frame(out / "per_frame.csv", seq, gt_indices, runs)
     curves = {m: results[m]["error_by_depth"] for m in modes if m in results}
