@@ -395,6 +395,7 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
     from sfm_ttr_ros.data.sequence import open_kitti
     from sfm_ttr_ros.tools.benchmark import (
+        BenchmarkOptions,
         default_params_file,
         read_params_file,
         run_benchmark,
@@ -413,7 +414,8 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     seq = open_kitti(data / "raw", DRIVE, data / "gt")
     # (kitti.yaml's frozen_encoder_levels needs a staged encoder: the default architecture)
     res = run_benchmark(seq, lambda: MobileDepthNet(input_size=(64, 192)), out_dir=tmp_path / "a",
-                        modes=["no_ttr"], figure_frames=0, progress=None)
+                        modes=["no_ttr"],
+                        options=BenchmarkOptions(figure_frames=0, progress=None))
     assert res["settings"]["stream"] == asdict(stream)
     assert res["settings"]["ttr"] == asdict(ttr)
     assert res["settings"]["ttr"]["refinement"]["steps"] == 70
@@ -426,8 +428,9 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     small.sfm.first_octave = -1  # octave 0 finds too few features in 320x96 images
     lines: list[str] = []
     res = run_benchmark(seq, factory, small, out_dir=tmp_path / "b",
-                        modes=["no_ttr", "sfm_ttr_offline"], offline_max_frames=5,
-                        figure_frames=1, progress=lines.append)
+                        modes=["no_ttr", "sfm_ttr_offline"],
+                        options=BenchmarkOptions(offline_max_frames=5, figure_frames=1,
+                                                 progress=lines.append))
     assert res["settings"]["stream"]["window_size"] == 15
     off = res["sfm_ttr_offline"]
     assert off["windows"] == 2 and [w["frames"] for w in off["offline_windows"]] == [5, 3]
