@@ -344,6 +344,49 @@ def test_depth_bands_by_hand():
     assert sum(acc.by_depth()["pixels"]) == 5
 
 
+@pytest.mark.parametrize("prediction", ["depth", "relative_inverse_depth"])
+def test_the_bands_pool_to_the_frames_own_metrics(prediction):
+    """The bands see the frame exactly as the evaluation does: on a frame with NaN, +-inf,
+    negative and too-far predictions, at another size than the GT, pooling the bands' errors
+    over the four bands [0, 80) gives the frame's abs rel and RMSE from ``compute_errors`` on
+    the evaluation's scaled prediction, over the same pixels the evaluation counted."""
+    from sfm_ttr_ros.core.evaluation import (
+        EvalConfig,
+        compute_errors,
+        evaluate_frame,
+        scaled_prediction,
+    )
+    from sfm_ttr_ros.tools.benchmark.bands import DepthBands
+
+    rng = np.random.default_rng(5)
+    gt = rng.uniform(0.5, 90.0, (48, 160))
+    gt[rng.random(gt.shape) < 0.4] = 0.0  # sparse, and some GT beyond the 80 m cap
+    if prediction == "depth":
+        pred = cv2.resize(gt, (64, 20), interpolation=cv2.INTER_NEAREST) * 0.7 + 1.0
+        pred[3, 5], pred[10, 40], pred[15, 60], pred[7, 7] = np.nan, np.inf, -np.inf, -2.0
+        pred[0, :8] = 1e5  # far beyond max_depth once scaled
+    else:
+        pred = rng.uniform(0.01, 1.0, (20, 64))
+        pred[3, 5], pred[10, 40], pred[15, 60] = np.nan, np.inf, -np.inf
+    cfg = EvalConfig(prediction=prediction)
+    frame = evaluate_frame(pred, gt, cfg)
+    assert frame is not None and frame.invalid_pred > 0
+    want = compute_errors(*scaled_prediction(pred, gt, cfg).values())
+    assert want == frame.metrics
+    acc = DepthBands(cfg)
+    acc.add(pred, gt)
+    bands = acc.bands().values()
+    pixels = sum(b["pixels"] for b in bands)
+    assert pixels == frame.num_pixels == sum(acc.by_depth()["pixels"])
+    abs_rel = sum(b["abs_rel"] * b["pixels"] for b in bands if b["pixels"]) / pixels
+    mse = sum(b["rmse"] ** 2 * b["pixels"] for b in bands if b["pixels"]) / pixels
+    assert abs_rel == pytest.approx(want["abs_rel"], rel=1e-12)
+    assert math.sqrt(mse) == pytest.approx(want["rmse"], rel=1e-12)
+    # a frame the evaluation skips adds nothing
+    acc.add(np.full_like(pred, np.nan), gt)
+    assert sum(b["pixels"] for b in acc.bands().values()) == pixels
+
+
 def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_path):
     """Without settings, run_benchmark uses params/kitti.yaml; offline_max_frames splits."""
     from bench_tiny_model import factory
@@ -352,6 +395,7 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
     from sfm_ttr_ros.data.sequence import open_kitti
     from sfm_ttr_ros.tools.benchmark import (
+        BenchmarkOptions,
         default_params_file,
         read_params_file,
         run_benchmark,
@@ -370,7 +414,8 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     seq = open_kitti(data / "raw", DRIVE, data / "gt")
     # (kitti.yaml's frozen_encoder_levels needs a staged encoder: the default architecture)
     res = run_benchmark(seq, lambda: MobileDepthNet(input_size=(64, 192)), out_dir=tmp_path / "a",
-                        modes=["no_ttr"], figure_frames=0, progress=None)
+                        modes=["no_ttr"],
+                        options=BenchmarkOptions(figure_frames=0, progress=None))
     assert res["settings"]["stream"] == asdict(stream)
     assert res["settings"]["ttr"] == asdict(ttr)
     assert res["settings"]["ttr"]["refinement"]["steps"] == 70
@@ -383,8 +428,9 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     small.sfm.first_octave = -1  # octave 0 finds too few features in 320x96 images
     lines: list[str] = []
     res = run_benchmark(seq, factory, small, out_dir=tmp_path / "b",
-                        modes=["no_ttr", "sfm_ttr_offline"], offline_max_frames=5,
-                        figure_frames=1, progress=lines.append)
+                        modes=["no_ttr", "sfm_ttr_offline"],
+                        options=BenchmarkOptions(offline_max_frames=5, figure_frames=1,
+                                                 progress=lines.append))
     assert res["settings"]["stream"]["window_size"] == 15
     off = res["sfm_ttr_offline"]
     assert off["windows"] == 2 and [w["frames"] for w in off["offline_windows"]] == [5, 3]

@@ -7,6 +7,7 @@ else (node, parameters file, QoS, player, recorder, evaluation) is what `sfm-ttr
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -58,6 +59,11 @@ def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     assert json.loads((out / "results.json").read_text())["gt_frames"] == 14
     md = (out / "results.md").read_text()
     assert "abs_rel" in md and "positive = lower error" in md
+    # the benchmark's report writer: the same metric table (4 decimals) and per-frame columns
+    assert f"| sfm_ttr | {after['abs_rel']:.4f} |" in md
+    rows = list(csv.DictReader(open(out / "per_frame.csv")))
+    assert len(rows) == 14 and float(rows[0]["sfm_ttr_abs_rel"]) > 0
+    assert list(rows[0])[:4] == ["index", "name", "no_ttr_abs_rel", "no_ttr_rmse"]
     assert (out / "figure.png").stat().st_size > 10_000
     log = (out / "refiner.log").read_text()
     assert "Traceback" not in log

@@ -23,6 +23,7 @@ from sfm_ttr_ros.core.evaluation import (
     format_table,
     means_by_part,
     relative_gain,
+    scaled_prediction,
     valid_mask,
 )
 
@@ -328,3 +329,80 @@ def test_means_by_part_cuts_the_frames_in_order_into_nearly_equal_parts():
     assert [p["frames"] for p in means_by_part(rows[:2], 3)] == [1, 1]  # one part per row
     with pytest.raises(ValueError):
         means_by_part(rows, 0)
+
+
+def _protocol_written_out(pred, gt, cfg):
+    """Monodepth2's protocol step by step on 1-D arrays, as ``_evaluate`` computed it before it
+    took the prediction from :func:`scaled_prediction`: (metrics, ratio, pixels, invalid) or
+    None for a skipped frame."""
+    gt, pred = np.asarray(gt, np.float64), np.asarray(pred, np.float64)
+    if pred.shape != gt.shape:
+        bad = ~np.isfinite(pred)
+        h, w = gt.shape
+        pred = cv2.resize(np.where(bad, 0.0, pred), (w, h), interpolation=cv2.INTER_LINEAR)
+        if bad.any():
+            pred[cv2.resize(bad.astype(np.float32), (w, h)) > 0] = np.nan
+    mask = valid_mask(gt, cfg)
+    gt_v, pred_v = gt[mask], pred[mask]
+    finite = np.isfinite(pred_v)
+    gt_v, pred_v = gt_v[finite], pred_v[finite]
+    if not gt_v.size:
+        return None
+    ratio = None
+    if cfg.prediction == "relative_inverse_depth":
+        from sfm_ttr_ros.core.evaluation import inverse_affine_to_depth
+
+        pred_v = inverse_affine_to_depth(pred_v, gt_v, cfg.max_depth)
+        if pred_v is None:
+            return None
+    elif cfg.median_scaling:
+        if float(np.median(pred_v)) <= 0:
+            return None
+        ratio = float(np.median(gt_v)) / float(np.median(pred_v))
+        pred_v = pred_v * ratio
+    pred_v = np.clip(pred_v, cfg.min_depth, cfg.max_depth)
+    return compute_errors(gt_v, pred_v), ratio, gt_v.size, int(np.count_nonzero(~finite))
+
+
+def test_the_metrics_are_the_protocol_written_out_bit_for_bit():
+    """The headline metrics come from :func:`scaled_prediction` and are exactly (``==``, not
+    approximately) the protocol computed step by step, on frames with NaN, inf, negative and
+    out-of-range predictions, of another size than the GT, for every prediction kind."""
+    rng = np.random.default_rng(7)
+    evaluated = 0
+    for _ in range(300):
+        h, w = (int(v) for v in rng.integers(4, 30, 2))
+        gt = rng.uniform(-5.0, 100.0, (h, w))
+        gt[rng.random((h, w)) < 0.3] = 0.0
+        shape = tuple(int(v) for v in rng.integers(3, 40, 2)) if rng.random() < 0.5 else (h, w)
+        inverse = rng.random() < 0.3
+        pred = rng.uniform(0.01, 1.0, shape) if inverse else rng.uniform(-2.0, 90.0, shape)
+        for v in (np.nan, np.inf, -np.inf, -3.0, 0.0, 1e4):
+            pred[rng.random(shape) < 0.05] = v
+        cfg = EvalConfig(eigen_crop=bool(rng.integers(2)), median_scaling=bool(rng.integers(2)),
+                         prediction="relative_inverse_depth" if inverse else "depth")
+        want = _protocol_written_out(pred, gt, cfg)
+        got = evaluate_frame(pred, gt, cfg)
+        assert (got is None) == (want is None)
+        if got is not None:
+            evaluated += 1
+            assert (got.metrics, got.ratio, got.num_pixels, got.invalid_pred) == want
+            scaled = scaled_prediction(pred, gt, cfg)
+            assert scaled.skip is None and scaled.depth.shape == gt.shape
+            assert compute_errors(*scaled.values()) == got.metrics
+    assert evaluated > 150
+
+
+def test_scaled_prediction_keeps_non_finite_predictions_out_of_range_clamping():
+    """+-inf is "no prediction" (NaN, left out and counted), never clamped into the depth
+    range; negative and too-far depths are clamped after scaling; the frame's skip reason is
+    the evaluator's."""
+    gt = np.full((2, 3), 10.0)
+    pred = np.array([[np.inf, -np.inf, np.nan], [-1.0, 5.0, 1e6]])
+    s = scaled_prediction(pred, gt, EvalConfig(median_scaling=False))
+    assert s.skip is None and s.invalid_pred == 3 and s.ratio is None
+    assert s.pixels.tolist() == [[False, False, False], [True, True, True]]
+    assert np.isnan(s.depth[0]).all() and s.depth[1].tolist() == [MIN_DEPTH, 5.0, MAX_DEPTH]
+    assert scaled_prediction(pred, np.zeros((2, 3))).skip == "no_valid_gt"
+    assert scaled_prediction(np.full((2, 3), np.nan), gt).skip == "no_finite_pred"
+    assert scaled_prediction(-np.ones((2, 3)), gt).skip == "nonpositive_median_pred"

@@ -1,8 +1,10 @@
 """KITTI monocular-depth evaluation, exactly the protocol of Monodepth2 (used by SfM-TTR).
 
-Per frame (``evaluate_frame``):
+Per frame (``evaluate_frame``; steps 1-4 are :func:`scaled_prediction`, the prediction as the
+evaluation sees it, which anything that breaks the metrics down must use too):
 
-1. the prediction is resized to the ground-truth size (``cv2.resize``, bilinear) if they differ;
+1. the prediction is resized to the ground-truth size (``cv2.resize``, bilinear) if they differ,
+   NaN-safely (a finite copy and the invalid mask are resized);
 2. valid pixels: ``min_depth < gt < max_depth`` (1e-3 < gt < 80 m), optionally intersected
    with the Eigen (Garg) crop, whose bounds are ``int32(fraction * H or W)`` as in Monodepth2
    (rows ``crop[0]:crop[1]``, columns ``crop[2]:crop[3]``);
@@ -153,43 +155,87 @@ def compute_errors(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
     }
 
 
+@dataclass
+class ScaledPrediction:
+    """A prediction as the evaluation sees it (:func:`scaled_prediction`): what the metrics of
+    a frame, and anything that breaks them down (the benchmark's depth bands, its figures), are
+    computed from, so that they cannot disagree."""
+
+    gt: np.ndarray  # H x W ground truth, metres (float64)
+    depth: np.ndarray  # H x W prediction at the GT size, scaled and clamped; NaN = no prediction
+    pixels: np.ndarray  # H x W bool: valid GT and a finite prediction, the pixels evaluated
+    ratio: float | None  # the median-scaling ratio (None without median scaling)
+    invalid_pred: int  # valid-GT pixels whose prediction is not finite (left out)
+    skip: str | None = None  # why the frame is not evaluated (SKIP_*), None when it is
+
+    def values(self) -> tuple[np.ndarray, np.ndarray]:
+        """(GT, prediction) at the evaluated pixels, 1-D, in row-major order."""
+        return self.gt[self.pixels], self.depth[self.pixels]
+
+
+def _resize_nan_safe(pred: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``pred`` resized bilinearly to ``shape`` (H, W). cv2 cannot resize through NaN/inf
+    safely: resize a finite copy and the invalid mask; a pixel touched by an invalid one is NaN."""
+    if pred.shape == shape:
+        return pred
+    bad = ~np.isfinite(pred)
+    h, w = shape
+    out = cv2.resize(np.where(bad, 0.0, pred), (w, h), interpolation=cv2.INTER_LINEAR)
+    if bad.any():
+        bad_r = cv2.resize(bad.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        out[bad_r > 0] = np.nan
+    return out
+
+
+def scaled_prediction(pred_depth: np.ndarray, gt_depth: np.ndarray,
+                      config: EvalConfig | None = None) -> ScaledPrediction:
+    """Steps 1-4 of the protocol (module docstring) on one frame: the prediction resized to the
+    GT (NaN-safely), the valid pixels (valid GT and a finite prediction), per-image median
+    scaling over them (or, for ``relative_inverse_depth``, the per-frame affine fit to 1/GT:
+    :func:`inverse_affine_to_depth`, NaN outside the fitted pixels), clamped to
+    ``[min_depth, max_depth]``. Non-finite predictions stay NaN (never clamped into range).
+    A frame that cannot be evaluated has ``skip`` set (and its depth unscaled)."""
+    config = config or EvalConfig()
+    gt = _as_depth_map(gt_depth, "ground truth")
+    pred = _resize_nan_safe(_as_depth_map(pred_depth, "prediction"), gt.shape)
+    mask = valid_mask(gt, config)
+    finite = np.isfinite(pred)
+    pixels = mask & finite
+    invalid = int(np.count_nonzero(mask & ~finite))
+    pred = np.where(finite, pred, np.nan)
+    skip = (SKIP_NO_VALID_GT if not mask.any() else
+            SKIP_NO_FINITE_PRED if not pixels.any() else None)
+    ratio = None
+    if config.prediction == "relative_inverse_depth":
+        fitted = None if skip else inverse_affine_to_depth(pred[pixels], gt[pixels],
+                                                           config.max_depth)
+        pred = np.full_like(pred, np.nan)
+        if fitted is None:
+            skip = skip or SKIP_NO_AFFINE_FIT
+        else:
+            pred[pixels] = fitted
+    elif config.median_scaling and skip is None:
+        med_pred = float(np.median(pred[pixels]))
+        if med_pred <= 0:
+            skip = SKIP_NONPOSITIVE_MEDIAN
+        else:
+            ratio = float(np.median(gt[pixels])) / med_pred
+            pred = pred * ratio
+    depth = np.clip(pred, config.min_depth, config.max_depth)
+    return ScaledPrediction(gt, depth, pixels, ratio, invalid, skip)
+
+
 def _evaluate(
     pred_depth: np.ndarray, gt_depth: np.ndarray, config: EvalConfig
 ) -> tuple[FrameResult | None, str | None, int]:
     """(result, skip reason, invalid-prediction count)."""
-    gt = _as_depth_map(gt_depth, "ground truth")
-    pred = _as_depth_map(pred_depth, "prediction")
-    if pred.shape != gt.shape:
-        # cv2 cannot resize through NaN/inf safely: resize a finite copy and the invalid mask.
-        bad = ~np.isfinite(pred)
-        h, w = gt.shape
-        pred = cv2.resize(np.where(bad, 0.0, pred), (w, h), interpolation=cv2.INTER_LINEAR)
-        if bad.any():
-            bad_r = cv2.resize(bad.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-            pred[bad_r > 0] = np.nan
-    mask = valid_mask(gt, config)
-    if not mask.any():
-        return None, SKIP_NO_VALID_GT, 0
-    gt_v, pred_v = gt[mask], pred[mask]
-    finite = np.isfinite(pred_v)
-    invalid = int(np.count_nonzero(~finite))
-    if not finite.any():
-        return None, SKIP_NO_FINITE_PRED, invalid
-    gt_v, pred_v = gt_v[finite], pred_v[finite]
-    ratio = None
-    if config.prediction == "relative_inverse_depth":
-        pred_v = inverse_affine_to_depth(pred_v, gt_v, config.max_depth)
-        if pred_v is None:
-            return None, SKIP_NO_AFFINE_FIT, invalid
-    elif config.median_scaling:
-        med_pred = float(np.median(pred_v))
-        if med_pred <= 0:
-            return None, SKIP_NONPOSITIVE_MEDIAN, invalid
-        ratio = float(np.median(gt_v)) / med_pred
-        pred_v = pred_v * ratio
-    pred_v = np.clip(pred_v, config.min_depth, config.max_depth)
+    scaled = scaled_prediction(pred_depth, gt_depth, config)
+    if scaled.skip is not None:
+        return None, scaled.skip, scaled.invalid_pred
+    gt_v, pred_v = scaled.values()
     metrics = compute_errors(gt_v, pred_v)
-    return FrameResult(metrics, ratio, int(gt_v.size), invalid), None, invalid
+    result = FrameResult(metrics, scaled.ratio, int(gt_v.size), scaled.invalid_pred)
+    return result, None, scaled.invalid_pred
 
 
 def inverse_affine_to_depth(pred: np.ndarray, gt: np.ndarray, max_depth: float

@@ -416,6 +416,37 @@ def write_kitti_drive(
     per-frame ``labels`` (a scenario drive) also gets ``image_02/segments.txt``
     (:func:`write_segments`). A ``None`` depth (a frame without ground truth) writes no GT PNG.
     """
+    labels = _checked_drive(seq, gt_root, date, gt_skip_ends, gt_density)
+    intr: Intrinsics = seq.intrinsics
+    name = drive_name(date, drive_number)
+    date_dir = Path(raw_root) / date
+    drive_dir = date_dir / name
+    img_dir = drive_dir / "image_02" / "data"
+    gt_dir = None
+    if gt_root is not None:
+        gt_dir = Path(gt_root) / gt_split / name / "proj_depth" / "groundtruth" / "image_02"
+    if img_dir.is_dir() and any(img_dir.iterdir()):
+        if not overwrite:
+            raise InputError(f"drive folder already holds images: {img_dir} (overwrite=False)")
+        shutil.rmtree(img_dir)
+        if gt_dir is not None and gt_dir.is_dir():
+            shutil.rmtree(gt_dir)
+    _write_date_calibration(date_dir / "calib_cam_to_cam.txt", intr)
+    _write_drive_images(img_dir, seq.images, intr)
+    write_timestamps(drive_dir / "image_02" / "timestamps.txt", seq.stamps)
+    segments_path = drive_dir / "image_02" / SEGMENTS_FILE
+    if labels:
+        write_segments(segments_path, labels)
+    else:
+        segments_path.unlink(missing_ok=True)  # a stale one of an overwritten drive
+    if gt_dir is not None:
+        _write_drive_gt(gt_dir, seq.depths, range(gt_skip_ends, len(seq.images) - gt_skip_ends),
+                        gt_density, gt_seed)
+    return name
+
+
+def _checked_drive(seq, gt_root, date: str, gt_skip_ends: int, gt_density: float) -> list:
+    """:func:`write_kitti_drive`'s arguments checked; the sequence's segment labels."""
     if not re.fullmatch(r"\d{4}_\d{2}_\d{2}", date):
         raise InputError(f"date must look like 2011_09_26, got {date!r}")
     if gt_skip_ends < 0:
@@ -432,22 +463,12 @@ def write_kitti_drive(
     if labels and len(labels) != n:
         raise InputError(f"sequence has {len(labels)} segment labels for {n} images")
     _check_labels(labels)
-    intr: Intrinsics = seq.intrinsics
-    name = drive_name(date, drive_number)
-    date_dir = Path(raw_root) / date
-    drive_dir = date_dir / name
-    img_dir = drive_dir / "image_02" / "data"
-    gt_dir = None
-    if gt_root is not None:
-        gt_dir = Path(gt_root) / gt_split / name / "proj_depth" / "groundtruth" / "image_02"
-    if img_dir.is_dir() and any(img_dir.iterdir()):
-        if not overwrite:
-            raise InputError(f"drive folder already holds images: {img_dir} (overwrite=False)")
-        shutil.rmtree(img_dir)
-        if gt_dir is not None and gt_dir.is_dir():
-            shutil.rmtree(gt_dir)
+    return labels
 
-    calib_path = date_dir / "calib_cam_to_cam.txt"
+
+def _write_date_calibration(calib_path: Path, intr: Intrinsics) -> None:
+    """The date's ``calib_cam_to_cam.txt``, or a check that the existing one has ``intr`` as
+    camera 02 (drives of one date share one calibration)."""
     if calib_path.is_file():
         existing = kitti_intrinsics(read_calib_cam_to_cam(calib_path), "02")
         if existing != intr:
@@ -458,8 +479,11 @@ def write_kitti_drive(
     else:
         write_calib_cam_to_cam(calib_path, intr)
 
+
+def _write_drive_images(img_dir: Path, images, intr: Intrinsics) -> None:
+    """Each RGB image as ``img_dir/<index:010d>.png``, checked against the intrinsics' size."""
     img_dir.mkdir(parents=True, exist_ok=True)
-    for i, img in enumerate(seq.images):
+    for i, img in enumerate(images):
         img = np.asarray(img)
         if img.shape[:2] != (intr.height, intr.width) or img.dtype != np.uint8:
             raise InputError(
@@ -469,24 +493,21 @@ def write_kitti_drive(
         path = img_dir / f"{i:010d}.png"
         if not cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
             raise InputError(f"cannot write image {path}")
-    write_timestamps(drive_dir / "image_02" / "timestamps.txt", seq.stamps)
-    segments_path = drive_dir / "image_02" / SEGMENTS_FILE
-    if labels:
-        write_segments(segments_path, labels)
-    else:
-        segments_path.unlink(missing_ok=True)  # a stale one of an overwritten drive
 
-    if gt_dir is not None:
-        gt_dir.mkdir(parents=True, exist_ok=True)
-        for i in range(gt_skip_ends, n - gt_skip_ends):
-            if seq.depths[i] is None:
-                continue
-            depth = np.asarray(seq.depths[i], dtype=np.float32)
-            if gt_density < 1.0:
-                rng = np.random.default_rng([int(gt_seed), i])
-                depth = np.where(lidar_like_mask(*depth.shape, gt_density, rng), depth, 0.0)
-            write_depth_png(gt_dir / f"{i:010d}.png", depth, KITTI_DEPTH_SCALE)
-    return name
+
+def _write_drive_gt(gt_dir: Path, depths, frames: range, gt_density: float,
+                    gt_seed: int) -> None:
+    """The improved-GT PNG of each of ``frames`` that has a depth: dense, or sparse LiDAR-like
+    for ``gt_density`` < 1 (seeded by ``gt_seed`` and the frame index)."""
+    gt_dir.mkdir(parents=True, exist_ok=True)
+    for i in frames:
+        if depths[i] is None:
+            continue
+        depth = np.asarray(depths[i], dtype=np.float32)
+        if gt_density < 1.0:
+            rng = np.random.default_rng([int(gt_seed), i])
+            depth = np.where(lidar_like_mask(*depth.shape, gt_density, rng), depth, 0.0)
+        write_depth_png(gt_dir / f"{i:010d}.png", depth, KITTI_DEPTH_SCALE)
 
 
 def parse_drive_name(drive: str) -> tuple[str, int]:

@@ -137,6 +137,37 @@ def kitti_to_bag(
     :class:`InputError` for a missing drive / calibration / GT, an image whose size is not
     ``S_rect``, or an existing ``out``; a failed conversion leaves no partial bag behind.
     """
+    kd, stop = _open_drive(raw_root, drive, gt_root, storage, camera, start, max_frames)
+    stamps = _drive_stamps_ns(kd)
+    topics = _DriveTopics.of(camera, compressed)
+    t0 = time.perf_counter()
+    gt_frames = 0
+    bar = ProgressBar(stop - start, f"kitti-to-bag {drive}", enabled=progress)
+    rec = BagRecorder(out, storage)
+    try:
+        rec.add_topic(topics.image, topics.image_type)
+        rec.add_topic(topics.info, CAMERA_INFO_MSGTYPE)
+        if kd.gt_dir is not None:
+            rec.add_topic(topics.gt, IMAGE_MSGTYPE)
+        for k, i in enumerate(range(start, stop)):
+            gt_frames += _write_frame(rec, kd, i, stamps[i], topics)
+            bar.update(k + 1, f"GT {gt_frames}")
+    except BaseException:
+        rec.abort()
+        bar.close()
+        raise
+    rec.close()
+    bar.close()
+    intr = kd.intrinsics
+    return ConvertResult(
+        path=Path(out), storage=rec.storage, drive=drive, frames=stop - start,
+        gt_frames=gt_frames, counts=dict(rec.counts), width=intr.width, height=intr.height,
+        start_ns=stamps[start], end_ns=stamps[stop - 1], seconds=time.perf_counter() - t0)
+
+
+def _open_drive(raw_root: str | Path, drive: str, gt_root: str | Path | None, storage: str,
+                camera: str, start: int, max_frames: int) -> tuple[KittiDrive, int]:
+    """The checked drive and the end (exclusive) of the frames selected from ``start``."""
     if camera not in KITTI_CAMERA_NAMES:
         raise InputError(f"camera must be one of {', '.join(KITTI_CAMERA_NAMES)} (colour), "
                          f"got {camera!r}")
@@ -150,58 +181,56 @@ def kitti_to_bag(
     stop = len(kd) if max_frames == 0 else min(len(kd), start + max_frames)
     if start >= stop:
         raise InputError(f"no frames selected: start={start}, drive has {len(kd)} frames")
-    stamps = _drive_stamps_ns(kd)
-    name = KITTI_CAMERA_NAMES[camera]
-    frame_id = name
-    ns = f"{KITTI_NAMESPACE}/{name}"
-    topics = {"image": f"{ns}/image_raw", "info": f"{ns}/camera_info", "gt": f"{ns}/depth_gt"}
-    image_type = IMAGE_MSGTYPE
-    if compressed:
-        topics["image"] += COMPRESSED_SUFFIX
-        image_type = COMPRESSED_IMAGE_MSGTYPE
-    intr = kd.intrinsics
+    return kd, stop
 
-    t0 = time.perf_counter()
-    gt_frames = 0
-    bar = ProgressBar(stop - start, f"kitti-to-bag {drive}", enabled=progress)
-    rec = BagRecorder(out, storage)
-    try:
-        rec.add_topic(topics["image"], image_type)
-        rec.add_topic(topics["info"], CAMERA_INFO_MSGTYPE)
-        if kd.gt_dir is not None:
-            rec.add_topic(topics["gt"], IMAGE_MSGTYPE)
-        for k, i in enumerate(range(start, stop)):
-            st = stamps[i]
-            rgb = kd.load_image(i)
-            if rgb.shape[:2] != (intr.height, intr.width):
-                raise InputError(
-                    f"{kd.image_path(i)} is {rgb.shape[1]}x{rgb.shape[0]} but S_rect_{camera} "
-                    f"of {kd.calib_path} says {intr.width}x{intr.height}")
-            rec.write(topics["info"], camera_info_from_calib(kd.calib, camera, st, frame_id))
-            if compressed:
-                c = message_classes()
-                rec.write(topics["image"], rgb8_to_compressed(
-                    rgb, "jpeg", make_header(st, frame_id, c), classes=c))
-            else:
-                rec.write(topics["image"], make_image_msg(rgb, "rgb8", st, frame_id))
-            gt = kd.load_gt(i)
-            if gt is not None:
-                if gt.shape != rgb.shape[:2]:
-                    raise InputError(f"ground truth {kd.gt_path(i)} is {gt.shape[1]}x"
-                                     f"{gt.shape[0]}, its image {rgb.shape[1]}x{rgb.shape[0]}")
-                rec.write(topics["gt"], depth_msg(gt, st, frame_id))
-                gt_frames += 1
-            bar.update(k + 1, f"GT {gt_frames}")
-    except BaseException:
-        rec.abort()
-        bar.close()
-        raise
-    rec.close()
-    bar.close()
-    return ConvertResult(
-        path=Path(out), storage=rec.storage, drive=drive, frames=stop - start,
-        gt_frames=gt_frames, counts=dict(rec.counts), width=intr.width, height=intr.height,
-        start_ns=stamps[start], end_ns=stamps[stop - 1], seconds=time.perf_counter() - t0)
+
+@dataclass(frozen=True)
+class _DriveTopics:
+    """One camera's topics in the bag (kitti2bag's names), its image type and frame id."""
+
+    image: str
+    info: str
+    gt: str
+    image_type: str
+    frame_id: str
+    camera: str
+    compressed: bool
+
+    @classmethod
+    def of(cls, camera: str, compressed: bool) -> _DriveTopics:
+        name = KITTI_CAMERA_NAMES[camera]
+        ns = f"{KITTI_NAMESPACE}/{name}"
+        image, image_type = f"{ns}/image_raw", IMAGE_MSGTYPE
+        if compressed:
+            image, image_type = image + COMPRESSED_SUFFIX, COMPRESSED_IMAGE_MSGTYPE
+        return cls(image, f"{ns}/camera_info", f"{ns}/depth_gt", image_type, name, camera,
+                   compressed)
+
+
+def _write_frame(rec: BagRecorder, kd: KittiDrive, i: int, stamp: int,
+                 topics: _DriveTopics) -> bool:
+    """Frame ``i``'s camera_info, image and (where it has one) GT; True when GT was written."""
+    intr, frame_id = kd.intrinsics, topics.frame_id
+    rgb = kd.load_image(i)
+    if rgb.shape[:2] != (intr.height, intr.width):
+        raise InputError(
+            f"{kd.image_path(i)} is {rgb.shape[1]}x{rgb.shape[0]} but S_rect_{topics.camera} "
+            f"of {kd.calib_path} says {intr.width}x{intr.height}")
+    rec.write(topics.info, camera_info_from_calib(kd.calib, topics.camera, stamp, frame_id))
+    if topics.compressed:
+        c = message_classes()
+        rec.write(topics.image, rgb8_to_compressed(
+            rgb, "jpeg", make_header(stamp, frame_id, c), classes=c))
+    else:
+        rec.write(topics.image, make_image_msg(rgb, "rgb8", stamp, frame_id))
+    gt = kd.load_gt(i)
+    if gt is None:
+        return False
+    if gt.shape != rgb.shape[:2]:
+        raise InputError(f"ground truth {kd.gt_path(i)} is {gt.shape[1]}x"
+                         f"{gt.shape[0]}, its image {rgb.shape[1]}x{rgb.shape[0]}")
+    rec.write(topics.gt, depth_msg(gt, stamp, frame_id))
+    return True
 
 
 __all__ = [

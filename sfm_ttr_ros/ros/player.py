@@ -162,82 +162,20 @@ def play_bag(
     ctx = node = None
     bar = None
     try:
-        conns = list(reader.connections)
-        have = {c.topic for c in conns}
-        for what, wanted in (("topic", topics), ("wait topic", wait_topics)):
-            missing = [t for t in (wanted or []) if t not in have]
-            if missing:
-                raise InputError(f"{what}(s) {', '.join(missing)} not in bag {path}; it has: "
-                                 f"{', '.join(sorted(have)) or 'no topics'}")
-        if topics is not None:
-            conns = [c for c in conns if c.topic in set(topics)]
-        types: dict[str, str] = {}
-        for c in conns:
-            fmt = getattr(c.ext, "serialization_format", "cdr")
-            if fmt != "cdr":
-                raise InputError(f"{c.topic} in {path} is serialized as {fmt!r}; only cdr "
-                                 "can be published")
-            if types.setdefault(c.topic, c.msgtype) != c.msgtype:
-                raise InputError(f"{c.topic} has two message types in {path}: "
-                                 f"{types[c.topic]} and {c.msgtype}")
-        classes = {t: message_class(mt) for t, mt in types.items()}
-        total = sum(c.msgcount for c in conns)
-        if total == 0:
-            raise InputError(f"no messages to play in {path}")
-
+        conns, classes = _playable_connections(reader, path, topics, wait_topics)
         ctx = _init_context()
         import rclpy
-        from rclpy.duration import Duration
 
         node = rclpy.create_node(node_name, context=ctx)
         qos = _reliable_qos(qos_depth)
         pubs = {t: node.create_publisher(cls, t, qos) for t, cls in classes.items()}
-        clock_pub = clock_cls = time_cls = None
-        if clock:
-            clock_cls = message_class("rosgraph_msgs/msg/Clock")
-            time_cls = message_class("builtin_interfaces/msg/Time")
-            clock_pub = node.create_publisher(clock_cls, CLOCK_TOPIC, _reliable_qos(10))
-
+        bag_clock = _BagClock(node, result, clock_hz) if clock else None
         if wait_for_subscribers:
             _wait_for_subscribers(pubs, wait_topics, wait_timeout, settle_s, progress)
-
-        def publish_clock(ns: int) -> None:
-            clock_pub.publish(clock_message(ns, clock_cls, time_cls))
-            result.clock += 1
-
-        bag_start = None  # log time of the first message played
-        bar = ProgressBar(total, f"play {path.name}", enabled=progress)
-        wall0 = time.monotonic()
-        period = 1.0 / clock_hz if clock else None
-        for conn, t, raw in reader.messages(connections=conns):
-            if bag_start is None:
-                bag_start, wall0 = t, time.monotonic()
-                span = max(0, reader.end_time - t)
-            target = wall0 + (t - bag_start) / 1e9 / rate
-            while True:
-                now = time.monotonic()
-                if now >= target:
-                    break
-                if clock_pub is not None:
-                    publish_clock(bag_start + int((now - wall0) * rate * 1e9))
-                    time.sleep(min(target - now, period))
-                else:
-                    time.sleep(target - now)
-            if clock_pub is not None:
-                publish_clock(t)
-            pubs[conn.topic].publish(bytes(raw))
-            result.published[conn.topic] += 1
-            result.bag_seconds = (t - bag_start) / 1e9
-            bar.update(result.total, f"{result.bag_seconds:.1f}/{span / 1e9:.1f} s bag time "
-                       f"x{rate:g}")
-        result.seconds = time.monotonic() - wall0
+        bar = ProgressBar(sum(c.msgcount for c in conns), f"play {path.name}", enabled=progress)
+        _publish_in_time(reader, conns, pubs, bag_clock, rate, result, bar)
         bar.close()
-        result.no_subscriber = sorted(t for t, p in pubs.items()
-                                      if p.get_subscription_count() == 0)
-        for t, p in [*pubs.items(), *([(CLOCK_TOPIC, clock_pub)] if clock_pub else [])]:
-            if p.get_subscription_count() and not p.wait_for_all_acked(
-                    Duration(seconds=float(ack_timeout))):
-                result.unacked.append(t)
+        _wait_for_acknowledgements(pubs, bag_clock, ack_timeout, result)
         return result
     except KeyboardInterrupt:
         result.interrupted = True
@@ -252,6 +190,95 @@ def play_bag(
 
             rclpy.try_shutdown(context=ctx)
         reader.close()
+
+
+def _playable_connections(reader, path: Path, topics: list[str] | None,
+                          wait_topics: list[str] | None) -> tuple[list, dict[str, type]]:
+    """The bag's connections to play (``topics``, or all) and each topic's message class;
+    :class:`InputError` for a topic not in the bag, a non-CDR connection, a topic with two
+    types, a type that is not installed, or nothing to play."""
+    conns = list(reader.connections)
+    have = {c.topic for c in conns}
+    for what, wanted in (("topic", topics), ("wait topic", wait_topics)):
+        missing = [t for t in (wanted or []) if t not in have]
+        if missing:
+            raise InputError(f"{what}(s) {', '.join(missing)} not in bag {path}; it has: "
+                             f"{', '.join(sorted(have)) or 'no topics'}")
+    if topics is not None:
+        conns = [c for c in conns if c.topic in set(topics)]
+    types: dict[str, str] = {}
+    for c in conns:
+        fmt = getattr(c.ext, "serialization_format", "cdr")
+        if fmt != "cdr":
+            raise InputError(f"{c.topic} in {path} is serialized as {fmt!r}; only cdr "
+                             "can be published")
+        if types.setdefault(c.topic, c.msgtype) != c.msgtype:
+            raise InputError(f"{c.topic} has two message types in {path}: "
+                             f"{types[c.topic]} and {c.msgtype}")
+    classes = {t: message_class(mt) for t, mt in types.items()}
+    if sum(c.msgcount for c in conns) == 0:
+        raise InputError(f"no messages to play in {path}")
+    return conns, classes
+
+
+class _BagClock:
+    """``/clock`` carrying the bag time, published at ``clock_hz`` while the player waits."""
+
+    def __init__(self, node, result: PlayResult, clock_hz: float) -> None:
+        self.cls = message_class("rosgraph_msgs/msg/Clock")
+        self.time_cls = message_class("builtin_interfaces/msg/Time")
+        self.pub = node.create_publisher(self.cls, CLOCK_TOPIC, _reliable_qos(10))
+        self.period = 1.0 / clock_hz
+        self.result = result
+
+    def publish(self, ns: int) -> None:
+        self.pub.publish(clock_message(ns, self.cls, self.time_cls))
+        self.result.clock += 1
+
+
+def _publish_in_time(reader, conns: list, pubs: dict, bag_clock: _BagClock | None,
+                     rate: float, result: PlayResult, bar: ProgressBar) -> None:
+    """Each message at its log time (from the first one's) divided by ``rate``, preceded by
+    the bag time on ``/clock`` (also ticking while waiting); counts into ``result``."""
+    bag_start = None  # log time of the first message played
+    wall0 = time.monotonic()
+    for conn, t, raw in reader.messages(connections=conns):
+        if bag_start is None:
+            bag_start, wall0 = t, time.monotonic()
+            span = max(0, reader.end_time - t)
+        target = wall0 + (t - bag_start) / 1e9 / rate
+        while True:
+            now = time.monotonic()
+            if now >= target:
+                break
+            if bag_clock is not None:
+                bag_clock.publish(bag_start + int((now - wall0) * rate * 1e9))
+                time.sleep(min(target - now, bag_clock.period))
+            else:
+                time.sleep(target - now)
+        if bag_clock is not None:
+            bag_clock.publish(t)
+        pubs[conn.topic].publish(bytes(raw))
+        result.published[conn.topic] += 1
+        result.bag_seconds = (t - bag_start) / 1e9
+        bar.update(result.total, f"{result.bag_seconds:.1f}/{span / 1e9:.1f} s bag time "
+                   f"x{rate:g}")
+    result.seconds = time.monotonic() - wall0
+
+
+def _wait_for_acknowledgements(pubs: dict, bag_clock: _BagClock | None, ack_timeout: float,
+                               result: PlayResult) -> None:
+    """Name the topics nobody subscribes to, and wait until every subscribed topic's samples
+    are acknowledged (those that are not within ``ack_timeout`` go to ``result.unacked``)."""
+    from rclpy.duration import Duration
+
+    result.no_subscriber = sorted(t for t, p in pubs.items()
+                                  if p.get_subscription_count() == 0)
+    clock_pub = [(CLOCK_TOPIC, bag_clock.pub)] if bag_clock is not None else []
+    for t, p in [*pubs.items(), *clock_pub]:
+        if p.get_subscription_count() and not p.wait_for_all_acked(
+                Duration(seconds=float(ack_timeout))):
+            result.unacked.append(t)
 
 
 def _wait_for_subscribers(pubs: dict, wait_topics: list[str] | None, timeout: float,

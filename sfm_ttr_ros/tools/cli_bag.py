@@ -8,8 +8,6 @@ and raises :class:`~sfm_ttr_ros.core.frames.InputError` for bad input (``cli.mai
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 from pathlib import Path
 
@@ -17,6 +15,7 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros.bag import STORAGES
 from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
 from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
+from sfm_ttr_ros.tools.report import write_json
 
 
 def cmd_kitti_to_bag(args: argparse.Namespace) -> int:
@@ -111,24 +110,13 @@ def evaluate_bag_command(args: argparse.Namespace) -> int:
     if out:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(_json_safe(res), indent=2))
+        write_json(out, res)
         print(f"results in {out}")
     if res["frames"] == 0:
         print("evaluate: no frame could be evaluated (no prediction stamp matches a GT stamp, "
               "or none has valid GT)", file=sys.stderr)
         return 1
     return 0
-
-
-def _json_safe(value):
-    """NaN / inf -> None (strict JSON has no NaN), recursively."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def add_commands(subparsers) -> None:

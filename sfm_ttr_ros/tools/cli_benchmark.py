@@ -10,7 +10,6 @@ the command line override the file's values (:mod:`sfm_ttr_ros.tools.cli_args`).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -200,13 +199,13 @@ def evaluate_folder_command(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        from sfm_ttr_ros.tools.benchmark import json_safe
+        from sfm_ttr_ros.tools.report import write_json
 
         doc = {"gt": str(args.gt), "gt_scale": args.gt_scale,
                "eval": {"min_depth": cfg.min_depth, "max_depth": cfg.max_depth,
                         "eigen_crop": cfg.eigen_crop, "median_scaling": cfg.median_scaling},
                "results": results, "relative_gain": gains, "command": command_line()}
-        out.write_text(json.dumps(json_safe(doc), indent=2) + "\n")
+        write_json(out, doc)
         print(f"results in {out}")
     empty = [label for label, res in results.items() if res["frames"] == 0]
     if empty:

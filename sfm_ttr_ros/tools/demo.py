@@ -16,7 +16,8 @@ Steps (each printed as it runs):
    image came back; then SIGINT;
 5. both bags evaluated against the GT topic matched by stamp
    (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
-   the before/after table printed and written (``results.md`` / ``results.json``) with a
+   the before/after table printed and written (``results.md`` / ``results.json`` /
+   ``per_frame.csv``, by the benchmark's writer, :mod:`sfm_ttr_ros.tools.report`) with a
    qualitative figure (``figure.png``).
 
 ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) on a random
@@ -26,7 +27,6 @@ ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import shutil
@@ -323,112 +323,200 @@ def _live_line(node: dict, expected: int) -> str:
 
 def run_demo(opts: DemoOptions) -> dict:
     """Run the whole demo; returns the results written to ``out/results.json``."""
-    import cv2
-    import torch
-
-    from msg_adapters.image import image_to_depth
-    from sfm_ttr_ros.core.evaluation import (
-        EvalConfig,
-        format_table,
-        mean_over_frames,
-        relative_gain,
-    )
-    from sfm_ttr_ros.core.models import build_model
-    from sfm_ttr_ros.ros.bag import bag_topics, read_bag
-    from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
-    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC, kitti_to_bag
-    from sfm_ttr_ros.tools.benchmark import (
-        default_params_file,
-        qualitative_figure,
-        read_params_file,
-        settings_from_params,
-    )
+    from sfm_ttr_ros.core.evaluation import EvalConfig
 
     t_start = time.perf_counter()
     out = _prepare_out(opts)
+    drive, bag, gt_frames = _drive_to_bag(opts, out)
+    expected = _predict_unrefined(opts, bag, out)
+    node = _run_refiner(opts, bag, out, expected)
+    _say("5/5 evaluating against the ground truth topic (matched by stamp)")
+    cfg = EvalConfig(eigen_crop=opts.eigen_crop)
+    evals = _evaluate_outputs(out, bag, cfg)
+    fig_path = _draw_figure(out, bag, drive, cfg, bag_image_topic(opts.compressed))
+    results = {
+        "drive": drive, "frames": expected, "gt_frames": gt_frames,
+        **_compare_outputs(evals),
+        "refiner": node,
+        "seconds_total": time.perf_counter() - t_start,
+        "figure": str(fig_path) if fig_path else None,
+    }
+    _write_reports(out, results, evals, _frame_indices(bag, opts.start))
+    _print_summary(results, out)
+    return results
+
+
+def _drive_to_bag(opts: DemoOptions, out: Path) -> tuple[str, Path, int]:
+    """Steps 1-2: the drive, converted to ``out/drive_bag``; (drive, bag, GT frames)."""
+    from sfm_ttr_ros.ros.kitti_bag import kitti_to_bag
+
     raw, gt_root, drive = _make_drive(opts, out)
     _say(f"2/5 converting {drive} to a rosbag2 ({opts.storage})")
     bag = out / "drive_bag"
     conv = kitti_to_bag(raw, drive, bag, gt_root, storage=opts.storage,
                         start=opts.start, max_frames=opts.max_frames,
                         compressed=opts.compressed)
-    image_topic = bag_image_topic(opts.compressed)
-    expected = bag_topics(bag)[image_topic].count
     _say(f"   {conv.frames} images, {conv.gt_frames} with ground truth")
     if conv.gt_frames == 0:
         raise InputError(f"{drive} has no frame with ground truth: nothing to evaluate (a "
                          f"synthetic drive needs more than 2 x {opts.gt_skip_ends} frames)")
+    return drive, bag, conv.gt_frames
 
+
+def _predict_unrefined(opts: DemoOptions, bag: Path, out: Path) -> int:
+    """Step 3: the parameter file's network, unrefined, over every image of ``bag`` into
+    ``out/no_ttr_bag``; returns the number of images (the frames expected back)."""
+    import torch
+
+    from sfm_ttr_ros.core.models import build_model
+    from sfm_ttr_ros.ros.bag import bag_topics
+    from sfm_ttr_ros.tools.benchmark import (
+        default_params_file,
+        read_params_file,
+        settings_from_params,
+    )
+
+    expected = bag_topics(bag)[bag_image_topic(opts.compressed)].count
     torch.set_num_threads(max(1, opts.threads))
     params = Path(opts.params_file) if opts.params_file else default_params_file()
     _, _, model_config = settings_from_params(read_params_file(params))
     _say(f"3/5 unrefined depth (model {model_config.type!r} of {params.name}, no refinement)")
     model = build_model(model_config)
     _predict_no_ttr(bag, out / "no_ttr_bag", model, opts.storage, opts.compressed)
+    return expected
 
-    node = _run_refiner(opts, bag, out, expected)
 
-    _say("5/5 evaluating against the ground truth topic (matched by stamp)")
-    cfg = EvalConfig(eigen_crop=opts.eigen_crop)
-    evals = {}
-    sources = {"no_ttr": (out / "no_ttr_bag", DEPTH_TOPIC),
-               "sfm_ttr_live": (out / "refined_bag", DEPTH_TOPIC),
-               "sfm_ttr": (out / "refined_bag", REFINED_TOPIC)}
-    for key, (pred_bag, topic) in sources.items():
-        evals[key] = evaluate_bag(pred_bag, bag, topic, DEPTH_GT_TOPIC, cfg)
+def _output_sources(out: Path) -> dict[str, tuple[Path, str]]:
+    """Each scored output: its name -> (bag, topic)."""
+    return {"no_ttr": (out / "no_ttr_bag", DEPTH_TOPIC),
+            "sfm_ttr_live": (out / "refined_bag", DEPTH_TOPIC),
+            "sfm_ttr": (out / "refined_bag", REFINED_TOPIC)}
+
+
+def _evaluate_outputs(out: Path, bag: Path, cfg) -> dict[str, dict]:
+    """Step 5: each output's :func:`evaluate_bag` against the drive bag's GT topic."""
+    from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
+    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
+
+    return {key: evaluate_bag(pred_bag, bag, topic, DEPTH_GT_TOPIC, cfg)
+            for key, (pred_bag, topic) in _output_sources(out).items()}
+
+
+def _compare_outputs(evals: dict[str, dict]) -> dict:
+    """The outputs' metrics and their relative gains over no TTR: the windowed one on every
+    frame, the live one on its own frames (a live frame the node skipped, or that was not
+    recorded, is left out of both; ``metrics["no_ttr (live's frames)"]`` then) and by third
+    of the drive (the live output starts on the start-up weights and improves as the windows'
+    weights reach it)."""
+    from sfm_ttr_ros.core.evaluation import mean_over_frames, relative_gain
+
     metrics = {k: {m: v for m, v in e.items() if not isinstance(v, list | dict)}
                for k, e in evals.items()}
     gain = relative_gain(metrics["no_ttr"], metrics["sfm_ttr"])
-    # the live output against no TTR on the same frames (a live frame the node skipped, or
-    # that was not recorded, is left out of both)
     base_on_live, _ = _paired_by_stamp(evals["no_ttr"]["per_frame"],
                                        evals["sfm_ttr_live"]["per_frame"])
     live_base = metrics["no_ttr"]
     if len(base_on_live) != len(evals["no_ttr"]["per_frame"]):
         live_base = metrics["no_ttr (live's frames)"] = mean_over_frames(base_on_live)
     live_gain = relative_gain(live_base, metrics["sfm_ttr_live"])
-    # ... and by third of the drive: the live output starts on the start-up weights and
-    # improves as the windows' weights reach it
     live_by_third = _gain_by_part(evals["no_ttr"]["per_frame"],
                                   evals["sfm_ttr_live"]["per_frame"])
-    table = format_table(metrics)
+    return {"metrics": metrics, "relative_gain": gain, "relative_gain_live": live_gain,
+            "relative_gain_live_by_third": live_by_third}
 
-    # figure: the middle GT frame
+
+def _draw_figure(out: Path, bag: Path, drive: str, cfg, image_topic: str) -> Path | None:
+    """``out/figure.png``: the middle GT frame, its GT and each output's depth (a live frame
+    the node skipped under load has none: left out); None without a GT frame."""
+    import cv2
+
+    from msg_adapters.image import image_to_depth
+    from sfm_ttr_ros.ros.bag import read_bag
+    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
+    from sfm_ttr_ros.tools.benchmark import qualitative_figure
+
     gts = {s: m for _, _, s, m in read_bag(bag, [DEPTH_GT_TOPIC])}
-    stamp = sorted(gts)[len(gts) // 2] if gts else None
-    fig_path = None
-    if stamp is not None:
-        image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic])
-                     if s == stamp)
-        # a live frame skipped under load (counted by the node) has no depth: left out
-        found = {k: next((m for _, _, s, m in read_bag(p, [topic]) if s == stamp), None)
-                 for k, (p, topic) in sources.items()}
-        preds = {k: image_to_depth(m) for k, m in found.items() if m is not None}
-        gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
-        fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
-        fig_path = out / "figure.png"
-        cv2.imwrite(str(fig_path), fig)
+    if not gts:
+        return None
+    stamp = sorted(gts)[len(gts) // 2]
+    image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic]) if s == stamp)
+    found = {k: next((m for _, _, s, m in read_bag(p, [topic]) if s == stamp), None)
+             for k, (p, topic) in _output_sources(out).items()}
+    preds = {k: image_to_depth(m) for k, m in found.items() if m is not None}
+    gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
+    fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
+    fig_path = out / "figure.png"
+    cv2.imwrite(str(fig_path), fig)
+    return fig_path
 
-    results = {
-        "drive": drive, "frames": expected, "gt_frames": conv.gt_frames,
-        "metrics": metrics, "relative_gain": gain, "relative_gain_live": live_gain,
-        "relative_gain_live_by_third": live_by_third,
-        "refiner": node,
-        "seconds_total": time.perf_counter() - t_start,
-        "figure": str(fig_path) if fig_path else None,
-    }
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=_json_default))
-    gain_line = ", ".join(f"{k} {v:+.1%}" for k, v in gain.items() if k in ("abs_rel", "rmse"))
-    live_line = ", ".join(f"{k} {v:+.1%}" for k, v in live_gain.items()
-                          if k in ("abs_rel", "rmse"))
-    thirds_line = " -> ".join(f"{g['abs_rel']:+.1%} / {g['rmse']:+.1%}" for g in live_by_third)
-    (out / "results.md").write_text(
-        f"# sfm-ttr demo: {drive}\n\n{table}\n\nsfm_ttr = /refiner/depth_refined (each frame "
-        f"once its window is done), sfm_ttr_live = /refiner/depth (every frame at once, served "
-        f"with the newest refined weights).\n\nRelative change (positive = lower error than "
-        f"no TTR): windowed {gain_line}; live {live_line}; live by third of the drive (abs "
-        f"rel / RMSE) {thirds_line}\n")
-    print(table)
+
+def _frame_indices(bag: Path, start: int) -> dict[str, int]:
+    """Frame name (``sec.nanosec``) -> its index in the drive, from the bag's CameraInfo
+    stamps (one per image, in stamp order from frame ``start``)."""
+    from sfm_ttr_ros.ros.bag import read_bag, stamp_str
+    from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC
+
+    stamps = sorted({s for _, _, s, _ in read_bag(bag, [CAMERA_INFO_TOPIC])})
+    return {stamp_str(s): start + k for k, s in enumerate(stamps)}
+
+
+def _gain_lines(results: dict) -> tuple[str, str, str]:
+    """The summary's gains: windowed, live, live by third of the drive."""
+    def line(gain: dict) -> str:
+        return ", ".join(f"{k} {v:+.1%}" for k, v in gain.items() if k in ("abs_rel", "rmse"))
+
+    thirds = " -> ".join(f"{g['abs_rel']:+.1%} / {g['rmse']:+.1%}"
+                         for g in results["relative_gain_live_by_third"])
+    return line(results["relative_gain"]), line(results["relative_gain_live"]), thirds
+
+
+def _results_markdown(results: dict) -> str:
+    """``results.md``: the metric and gain tables as the benchmark writes them, the summary's
+    gains and the figure."""
+    from sfm_ttr_ros.tools.report import gain_table, metric_table
+
+    gain_line, live_line, thirds_line = _gain_lines(results)
+    lines = [f"# sfm-ttr demo: {results['drive']}", "",
+             f"{results['frames']} frames, {results['gt_frames']} with ground truth.", "",
+             metric_table(results["metrics"]),
+             "sfm_ttr = /refiner/depth_refined (each frame once its window is done), "
+             "sfm_ttr_live = /refiner/depth (every frame at once, served with the newest "
+             "refined weights).", ""]
+    lines += gain_table({"sfm_ttr": results["relative_gain"],
+                         "sfm_ttr_live": results["relative_gain_live"]},
+                        title="Relative gain against no_ttr (positive = better; sfm_ttr_live "
+                              "on its own frames):")
+    lines += [f"Relative change (positive = lower error than no TTR): windowed {gain_line}; "
+              f"live {live_line}; live by third of the drive (abs rel / RMSE) {thirds_line}",
+              ""]
+    if results.get("figure"):
+        lines += ["![qualitative results](figure.png)", ""]
+    return "\n".join(lines)
+
+
+def _write_reports(out: Path, results: dict, evals: dict[str, dict],
+                   indices: dict[str, int]) -> None:
+    """``results.json``, ``results.md`` and ``per_frame.csv`` (abs rel and RMSE of every
+    evaluated frame of each output, named by stamp), with the benchmark's writer."""
+    from sfm_ttr_ros.tools.report import write_json, write_per_frame_csv
+
+    write_json(out / "results.json", results)
+    (out / "results.md").write_text(_results_markdown(results))
+    per_frame = {k: {indices.get(r["name"], -1): r for r in e["per_frame"]}
+                 for k, e in evals.items()}
+    names = sorted({r["name"] for e in evals.values() for r in e["per_frame"]},
+                   key=lambda n: tuple(int(x) for x in n.split(".")))
+    frames = [(indices.get(n, -1), n) for n in names]
+    write_per_frame_csv(out / "per_frame.csv", frames, per_frame, columns=("abs_rel", "rmse"))
+
+
+def _print_summary(results: dict, out: Path) -> None:
+    """The before/after table and the gains on stdout (README quotes these lines)."""
+    from sfm_ttr_ros.core.evaluation import format_table
+
+    node, expected = results["refiner"], results["frames"]
+    gain_line, live_line, thirds_line = _gain_lines(results)
+    print(format_table(results["metrics"]))
     print(f"SfM-TTR (windowed, ~/depth_refined) vs no TTR: {gain_line} (gain; positive = lower "
           "error)")
     print(f"SfM-TTR live (~/depth) vs no TTR on the same frames: {live_line} "
@@ -437,10 +525,9 @@ def run_demo(opts: DemoOptions) -> dict:
           f"weights until the first window's reach it): {thirds_line}")
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
-    if fig_path:
-        print(f"figure: {fig_path}")
+    if results["figure"]:
+        print(f"figure: {results['figure']}")
     print(f"results: {out / 'results.md'}")
-    return results
 
 
 def _gain_by_part(base_rows: list[dict], live_rows: list[dict], parts: int = 3) -> list[dict]:
@@ -462,16 +549,6 @@ def _paired_by_stamp(base_rows: list[dict], live_rows: list[dict]) -> tuple[list
     live = sorted((r for r in live_rows if r["name"] in base),
                   key=lambda r: tuple(int(x) for x in r["name"].split(".")))
     return [base[r["name"]] for r in live], live
-
-
-def _json_default(o):
-    if isinstance(o, float | np.floating):
-        return None if not np.isfinite(o) else float(o)
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -64,7 +64,7 @@ def benchmark_sequence(seq, settings, args: argparse.Namespace, out, *, start: i
     also each task of ``--split`` (``quiet``: no progress lines)."""
     import torch
 
-    from sfm_ttr_ros.tools.benchmark import run_benchmark
+    from sfm_ttr_ros.tools.benchmark import BenchmarkOptions, run_benchmark
 
     base = build_model_for(settings)
 
@@ -75,15 +75,15 @@ def benchmark_sequence(seq, settings, args: argparse.Namespace, out, *, start: i
     description = {"type": model_config.type, "encoder_path": model_config.encoder_path,
                    "decoder_path": model_config.decoder_path, "device": model_config.device,
                    "load_weights_path": settings.node.load_weights_path}
-    return run_benchmark(
-        seq, factory, settings.ttr, settings.stream, out, args.modes,
-        eval_config(args, base),
+    options = BenchmarkOptions(
         start=start, max_frames=max_frames,
         offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
         save_depth=args.save_depth, model_description=description, rate=args.rate,
         settings_info={"params_file": str(params_path),
                        "torch_threads": torch.get_num_threads()},
         command=command, **({"progress": None} if quiet else {}))
+    return run_benchmark(seq, factory, settings.ttr, settings.stream, out, args.modes,
+                         eval_config(args, base), options)
 
 
 def _plain(summary: dict) -> dict:

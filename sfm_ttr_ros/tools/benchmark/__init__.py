@@ -33,14 +33,15 @@ few frames: image, depth of each mode on one colour scale, abs-rel error maps at
 and predicted-vs-GT density plots, drawn with OpenCV).
 
 Modules: :mod:`.settings` (the parameter file), :mod:`.runners` (the windowed modes),
-:mod:`.live` (``sfm_ttr_live``: the node's live serving fed in real time at ``--rate``), :mod:`.run`
-(:func:`run_benchmark`), :mod:`.report` (json / markdown / csv), :mod:`.figure`, :mod:`.bands`
-(the depth bands and the error-against-depth figure).
+:mod:`.live` (``sfm_ttr_live``: the node's live serving fed in real time at ``--rate``),
+:mod:`.run` (:func:`run_benchmark`, :class:`BenchmarkOptions`), :mod:`.report` (markdown / csv,
+through the shared :mod:`sfm_ttr_ros.tools.report`), :mod:`.figure`, :mod:`.bands` (the depth
+bands and the error-against-depth figure).
 """
 
 from sfm_ttr_ros.tools.benchmark.figure import qualitative_figure, scatter_panel
-from sfm_ttr_ros.tools.benchmark.report import describe_model, json_safe, results_markdown
-from sfm_ttr_ros.tools.benchmark.run import run_benchmark
+from sfm_ttr_ros.tools.benchmark.report import describe_model, results_markdown
+from sfm_ttr_ros.tools.benchmark.run import BenchmarkOptions, run_benchmark
 from sfm_ttr_ros.tools.benchmark.runners import DEFAULT_MODES, MODES, STAGES
 from sfm_ttr_ros.tools.benchmark.settings import (
     PARAMS_FILE,
@@ -48,8 +49,10 @@ from sfm_ttr_ros.tools.benchmark.settings import (
     read_params_file,
     settings_from_params,
 )
+from sfm_ttr_ros.tools.report import json_safe
 
 __all__ = [
+    "BenchmarkOptions",
     "DEFAULT_MODES",
     "MODES",
     "PARAMS_FILE",

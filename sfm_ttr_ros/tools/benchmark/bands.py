@@ -2,12 +2,13 @@
 error-against-depth figure (the paper's Fig. 4: Izquierdo & Civera, CVPR 2023, where photometric
 refinement helps below ~10 m and SfM-TTR beyond).
 
-Every evaluated frame's prediction is scaled exactly as the evaluation scales it (resized to the
-GT, per-image median scaling, clamped to the depth range: :func:`scaled_prediction`), then each
-valid GT pixel is put in the depth bin of its GT depth. Unlike the overall metrics (means over
-frames of per-frame metrics), the band numbers are POOLED over the pixels of all frames: abs rel
-= mean |d − d*| / d*, RMSE = sqrt(mean (d − d*)²) over the band's pixels, ``pixels`` = their
-count, so a band seen in few frames is not over-weighted."""
+Every evaluated frame's prediction is the one the evaluation computes its metrics from
+(:func:`sfm_ttr_ros.core.evaluation.scaled_prediction`: resized to the GT NaN-safely, per-image
+median scaling, clamped to the depth range), and each pixel it evaluates (valid GT, finite
+prediction) is put in the depth bin of its GT depth: the bands hold the frame's pixels. Unlike
+the overall metrics (means over frames of per-frame metrics), the band numbers are POOLED over
+the pixels of all frames: abs rel = mean |d − d*| / d*, RMSE = sqrt(mean (d − d*)²) over the
+band's pixels, ``pixels`` = their count, so a band seen in few frames is not over-weighted."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.evaluation import EvalConfig, inverse_affine_to_depth, valid_mask
+from sfm_ttr_ros.core.evaluation import EvalConfig, scaled_prediction
 
 #: The error-against-depth figure, written next to figure.png
 ERROR_FIGURE = "error_by_depth.png"
@@ -32,27 +33,6 @@ def band_name(lo: float, hi: float) -> str:
     return f"{lo:g}-{hi:g}"
 
 
-def scaled_prediction(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray,
-                      cfg: EvalConfig) -> np.ndarray:
-    """The prediction as the evaluation sees it: resized to the GT, median-scaled over the valid
-    finite pixels (when ``cfg.median_scaling``) or, for relative inverse depth, turned into
-    depth by the per-frame affine fit to 1/GT (:func:`inverse_affine_to_depth`), clamped to
-    [min_depth, max_depth]."""
-    p = np.asarray(pred, np.float64)
-    if p.shape != gt.shape:
-        p = cv2.resize(p, (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_LINEAR)
-    sel = mask & np.isfinite(p)
-    if cfg.prediction == "relative_inverse_depth":
-        depth = inverse_affine_to_depth(p[sel], gt[sel], cfg.max_depth) if sel.any() else None
-        out = np.full_like(p, np.nan)
-        if depth is not None:
-            out[sel] = depth
-        return np.clip(out, cfg.min_depth, cfg.max_depth)
-    if cfg.median_scaling and sel.any() and np.median(p[sel]) > 0:
-        p = p * (np.median(gt[sel]) / np.median(p[sel]))
-    return np.clip(p, cfg.min_depth, cfg.max_depth)
-
-
 class DepthBands:
     """Accumulates per-pixel errors of one mode's frames in the fine depth bins."""
 
@@ -64,12 +44,12 @@ class DepthBands:
         self.sq_err = np.zeros(n)
 
     def add(self, pred: np.ndarray, gt: np.ndarray) -> None:
-        """One evaluated frame (call it only for frames the evaluator did not skip)."""
-        gt = np.asarray(gt, np.float64)
-        mask = valid_mask(gt, self.config)
-        p = scaled_prediction(pred, gt, mask, self.config)
-        sel = mask & np.isfinite(p)
-        g, d = gt[sel], p[sel]
+        """One frame: its evaluated pixels (:func:`scaled_prediction`), by GT depth; nothing for a
+        frame the evaluation skips."""
+        scaled = scaled_prediction(pred, gt, self.config)
+        if scaled.skip is not None:
+            return
+        g, d = scaled.values()
         idx = np.searchsorted(BIN_EDGES, g, side="right") - 1
         ok = (idx >= 0) & (idx < len(self.count))
         idx, g, d = idx[ok], g[ok], d[ok]

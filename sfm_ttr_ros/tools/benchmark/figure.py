@@ -10,9 +10,8 @@ from collections.abc import Mapping, Sequence
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.evaluation import EvalConfig, valid_mask
+from sfm_ttr_ros.core.evaluation import EvalConfig, scaled_prediction, valid_mask
 from sfm_ttr_ros.core.visualize import colorize_depth, colorize_error
-from sfm_ttr_ros.tools.benchmark.bands import scaled_prediction
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _BG = (255, 255, 255)
@@ -127,7 +126,7 @@ def qualitative_figure(image: np.ndarray, gt: np.ndarray, preds: Mapping[str, np
     pw = min(int(panel_width), w)
     ph = max(1, round(h * pw / w))
     sh = min(pw, max(ph, 256))  # scatter row height
-    scaled = {k: scaled_prediction(v, gt, mask, cfg) for k, v in preds.items()}
+    scaled = {k: scaled_prediction(v, gt, cfg).depth for k, v in preds.items()}
     if mask.any():
         vmin, vmax = (float(v) for v in np.percentile(gt[mask], (5, 95)))
         vmax = max(vmax, vmin * 1.01)

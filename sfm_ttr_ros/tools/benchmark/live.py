@@ -51,88 +51,117 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     if not rate > 0:
         raise ValueError(f"rate must be positive, got {rate}")
     ttr = SfmTTR(model, copy.deepcopy(cfg))
-    first = seq.frame(indices[0])
-    forward = bare_forward_s(ttr.model, first.image)
-    latencies: list[float] = []
-    versions: list[int] = []
-    windows = {"windows": 0, "windows_refined": 0, "windows_rolled_back": 0, "window_log": []}
+    forward = bare_forward_s(ttr.model, seq.frame(indices[0]).image)
+    live = _LiveRun(run, indices, progress)
+    online = StreamRefiner(ttr, copy.deepcopy(settings), on_live=live.on_live,
+                           on_window=live.on_window, logger=log)
+    live.online = online
+    online.start()
+    try:
+        fed_s = _feed(seq, indices, rate, live, progress)
+    finally:
+        online.stop(timeout=None)  # wait: pycolmap must be out of the workspace before close
+        ttr.close()
+    live.evaluate()
+    live.add_cut_short_windows()
+    run.seconds = fed_s
+    _record(live, ttr.config.refinement.loss, cfg.weight_policy, rate, forward)
 
-    arrivals: list[float] = []  # time.monotonic() of the k-th frame fed
-    timeline: list[dict] = []  # one row per window, see window_timeline
-    served: deque[LiveOutput] = deque()  # evaluated by the feeder after the feed
-    held = [0]  # bytes of the served depths waiting in ``served``
 
-    def on_live(out: LiveOutput) -> None:  # the live thread: hand over only
-        latencies.append(out.latency_s)
-        versions.append(out.version)
-        held[0] += out.depth.nbytes
-        served.append(out)
+class _LiveRun:
+    """What one ``sfm_ttr_live`` run collects: the live thread's served depths (evaluated by
+    the feeder), the window thread's windows and their time line."""
 
-    def evaluate(until: float | None = None) -> None:
+    def __init__(self, run: ModeRun, indices: Sequence[int], progress) -> None:
+        self.run, self.indices, self.progress = run, indices, progress
+        self.online: StreamRefiner | None = None  # set before it starts
+        self.latencies: list[float] = []
+        self.versions: list[int] = []
+        self.windows = {"windows": 0, "windows_refined": 0, "windows_rolled_back": 0,
+                        "window_log": []}
+        self.arrivals: list[float] = []  # time.monotonic() of the k-th frame fed
+        self.timeline: list[dict] = []  # one row per window, see window_timeline
+        self.served: deque[LiveOutput] = deque()  # evaluated by the feeder after the feed
+        self.held = 0  # bytes of the served depths waiting in ``served``
+
+    def on_live(self, out: LiveOutput) -> None:  # the live thread: hand over only
+        self.latencies.append(out.latency_s)
+        self.versions.append(out.version)
+        self.held += out.depth.nbytes
+        self.served.append(out)
+
+    def evaluate(self, until: float | None = None) -> None:
         """Evaluate served depths (GT read + metrics, ~15 ms each): all of them after the
         feed (``until`` None); during it only while more than DEFER_EVAL_BYTES are held, and
         while time allows: the node spends no CPU on evaluation, the feeder should not either."""
-        while served and (until is None or (held[0] > DEFER_EVAL_BYTES
-                                            and until - time.monotonic() > EVAL_SLACK_S)):
-            out = served.popleft()
-            held[0] -= out.depth.nbytes
-            run.add(out.frame.index, out.depth, out.version > 0,
-                    "" if out.version > 0 else "start_up_weights")
+        while self.served and (until is None or (self.held > DEFER_EVAL_BYTES
+                                                 and until - time.monotonic() > EVAL_SLACK_S)):
+            out = self.served.popleft()
+            self.held -= out.depth.nbytes
+            self.run.add(out.frame.index, out.depth, out.version > 0,
+                         "" if out.version > 0 else "start_up_weights")
 
-    def on_window(ws: WindowStats) -> None:
+    def on_window(self, ws: WindowStats) -> None:
+        windows = self.windows
         windows["windows"] += 1
         windows["windows_refined"] += int(ws.refined)
         windows["windows_rolled_back"] += int(ws.reason_key == Unrefined.ROLLED_BACK)
         # the stream numbers frames in arrival order: name k is the k-th frame fed
-        windows["window_log"].append(window_record(ws, lambda n: indices[int(n)]))
-        timeline.append(window_timeline(ws, arrivals, online.served_at.get(ws.index, {})))
+        windows["window_log"].append(window_record(ws, lambda n: self.indices[int(n)]))
+        self.timeline.append(window_timeline(ws, self.arrivals,
+                                             self.online.served_at.get(ws.index, {})))
         for k, v in ws.timings.items():
-            run.timings[k] += float(v)
-        if progress:
+            self.run.timings[k] += float(v)
+        if self.progress:
             what = "refined: now served" if ws.refined else f"not refined ({ws.reason})"
-            progress(f"sfm_ttr_live: window {ws.index} {what}")
+            self.progress(f"sfm_ttr_live: window {ws.index} {what}")
 
-    online = StreamRefiner(ttr, copy.deepcopy(settings), on_live=on_live, on_window=on_window,
-                           logger=log)
-    online.start()
+    def add_cut_short_windows(self) -> None:
+        """Windows whose weights were served while they refined but that the end of the feed
+        cut short (stop cancels the running window): their interim weights are on the time
+        line too."""
+        done = {row["window"] for row in self.timeline}
+        for index, marks in sorted(self.online.served_at.items()):
+            if index not in done and marks.get("names"):
+                self.timeline.append(interim_timeline(index, marks, self.arrivals))
+
+
+def _feed(seq: ImageSequence, indices: Sequence[int], rate: float, live: _LiveRun,
+          progress) -> float:
+    """Each frame at its due time to the live output and to the windows, as the node's image
+    callback does; returns the seconds from the first frame until every live frame is out."""
+    online = live.online
     t_start = time.monotonic()
-    try:
-        for k, i in enumerate(indices):
-            frame = seq.frame(i)  # read before its due time
-            due = t_start + k / rate
-            evaluate(until=due)
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            arrival = time.monotonic()
-            arrivals.append(arrival)
-            online.submit_live(frame, arrival)
-            online.submit(frame, seq.intrinsics)
-            if progress and k % 100 == 99:
-                progress(f"sfm_ttr_live: {k + 1}/{len(indices)} frames fed, "
-                         f"{online.serving.version} = served weights' version")
-        online.live.drain(timeout=30.0)
-        fed_s = time.monotonic() - t_start
-    finally:
-        online.stop(timeout=None)  # wait: pycolmap must be out of the workspace before close
-        ttr.close()
-    evaluate()
-    # windows whose weights were served while they refined but that the end of the feed cut
-    # short (stop cancels the running window): their interim weights are on the time line too
-    done = {row["window"] for row in timeline}
-    for index, marks in sorted(online.served_at.items()):
-        if index not in done and marks.get("names"):
-            timeline.append(interim_timeline(index, marks, arrivals))
-    run.seconds = fed_s
-    lat = np.asarray(latencies, np.float64)
+    for k, i in enumerate(indices):
+        frame = seq.frame(i)  # read before its due time
+        due = t_start + k / rate
+        live.evaluate(until=due)
+        delay = due - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        arrival = time.monotonic()
+        live.arrivals.append(arrival)
+        online.submit_live(frame, arrival)
+        online.submit(frame, seq.intrinsics)
+        if progress and k % 100 == 99:
+            progress(f"sfm_ttr_live: {k + 1}/{len(indices)} frames fed, "
+                     f"{online.serving.version} = served weights' version")
+    online.live.drain(timeout=30.0)
+    return time.monotonic() - t_start
+
+
+def _record(live: _LiveRun, loss: str, policy: str, rate: float, forward: float) -> None:
+    """The run's live figures: skipped frames, windows, latency, counters, time line."""
+    run, online = live.run, live.online
+    lat = np.asarray(live.latencies, np.float64)
     c = online.counters()
     run.not_published.update({f"live_{k}": v for k, v in c["live"]["skipped"].items()})
-    run.extra.update(windows)
+    run.extra.update(live.windows)
     run.extra.update({
-        "policy": cfg.weight_policy,
-        "loss": ttr.config.refinement.loss,  # the parameter file's, as the node runs it
+        "policy": policy,
+        "loss": loss,  # the parameter file's, as the node runs it
         "rate_hz": rate,
-        "frames": len(indices),
+        "frames": len(live.indices),
         "latency_p50_s": float(np.percentile(lat, 50)) if lat.size else float("nan"),
         "latency_p95_s": float(np.percentile(lat, 95)) if lat.size else float("nan"),
         "latency_max_s": float(lat.max()) if lat.size else float("nan"),
@@ -140,11 +169,11 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         "warm_up_s": online.warm_up_s,
         "live_counters": c["live"],
         "stream_counters": {k: v for k, v in c.items() if k != "live"},
-        "served_versions": sorted(set(versions)),
-        **timeline_summary(timeline),
+        "served_versions": sorted(set(live.versions)),
+        **timeline_summary(live.timeline),
     })
     log.info("sfm_ttr_live: %d frames at %.1f Hz, latency p50/p95/max %.3f/%.3f/%.3f s, "
-             "bare forward %.3f s", len(indices), rate, run.extra["latency_p50_s"],
+             "bare forward %.3f s", len(live.indices), rate, run.extra["latency_p50_s"],
              run.extra["latency_p95_s"], run.extra["latency_max_s"], forward)
 
 

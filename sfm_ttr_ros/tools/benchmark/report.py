@@ -1,34 +1,19 @@
-"""The benchmark's reports: ``results.json`` values made JSON-safe, ``results.md`` and
-``per_frame.csv``."""
+"""The benchmark's reports: ``results.md`` and ``per_frame.csv`` (their tables, the JSON and
+the CSV written by the shared :mod:`sfm_ttr_ros.tools.report`, as the demo's are), the
+settings and model as ``results.json`` records them."""
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from sfm_ttr_ros.core.evaluation import ERROR_METRICS, METRICS, format_table
+from sfm_ttr_ros.core.evaluation import ERROR_METRICS
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE
 from sfm_ttr_ros.tools.benchmark.runners import MODES, ModeRun
-
-
-def json_safe(v):
-    if isinstance(v, dict):
-        return {str(k): json_safe(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [json_safe(x) for x in v]
-    if isinstance(v, np.generic):
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, Path):
-        return str(v)
-    return v
+from sfm_ttr_ros.tools.report import gain_table, metric_table, write_per_frame_csv
 
 
 def config_dict(obj) -> dict:
@@ -46,22 +31,10 @@ def describe_model(model) -> dict[str, Any]:
 
 
 def write_per_frame(path: Path, seq: ImageSequence, gt_indices: Sequence[int],
-                     runs: Mapping[str, ModeRun]) -> None:
-    cols = ["index", "name"]
-    for m in runs:
-        cols += [f"{m}_abs_rel", f"{m}_rmse", f"{m}_refined", f"{m}_reason"]
-    with open(path, "w", newline="") as fh:
-        wr = csv.writer(fh)
-        wr.writerow(cols)
-        for i in gt_indices:
-            row: list[Any] = [i, seq.names[i]]
-            for r in runs.values():
-                pf = r.per_frame.get(i, {})
-                for key in ("abs_rel", "rmse"):
-                    v = pf.get(key)
-                    row.append("" if v is None else f"{v:.6f}")
-                row += [int(bool(pf.get("refined"))), pf.get("reason", "")]
-            wr.writerow(row)
+                    runs: Mapping[str, ModeRun]) -> None:
+    """``per_frame.csv``: abs rel, RMSE, refined and reason of every GT frame in every mode."""
+    write_per_frame_csv(path, [(i, seq.names[i]) for i in gt_indices],
+                        {m: r.per_frame for m, r in runs.items()})
 
 
 def band_table(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
@@ -88,10 +61,6 @@ def band_table(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
     return lines
 
 
-def _fmt_gain(v) -> str:
-    return "n/a" if v is None or not math.isfinite(float(v)) else f"{100 * float(v):+.1f} %"
-
-
 def results_markdown(results: Mapping[str, Any]) -> str:
     """``results.md``: the metric table, the gains against no_ttr, time and the figure."""
     modes = [m for m in results.get("modes", MODES) if m in results]
@@ -105,19 +74,9 @@ def results_markdown(results: Mapping[str, Any]) -> str:
         f"{'on' if ev.get('eigen_crop') else 'off'}, median scaling "
         f"{'on' if ev.get('median_scaling', True) else 'off'}, depth cap "
         f"{ev.get('max_depth', 80)} m.")
-    lines += ["", format_table({m: {k: (math.nan if results[m].get(k) is None
-                                         else results[m].get(k))
-                                     for k in (*METRICS, 'frames')} for m in modes},
-                               decimals=4)]
+    lines += ["", metric_table({m: results[m] for m in modes})]
     lines += band_table(results, modes)
-    gains = results.get("relative_gain") or {}
-    if gains:
-        lines += ["Relative gain against no_ttr (positive = better):", "",
-                  "| method | " + " | ".join(METRICS) + " |",
-                  "|---|" + "---:|" * len(METRICS)]
-        for m, g in gains.items():
-            lines.append(f"| {m} | " + " | ".join(_fmt_gain(g.get(k)) for k in METRICS) + " |")
-        lines.append("")
+    lines += gain_table(results.get("relative_gain") or {})
     stages = ("sfm", "align", "refine", "predict_before", "predict_after", "predict", "check")
     lines += ["| method | s/frame | refined frames | windows (refined) | "
               + " | ".join(f"{s} s" for s in stages) + " |",
@@ -143,25 +102,26 @@ def results_markdown(results: Mapping[str, Any]) -> str:
 
 
 def window_check_lines(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:
-    """Markdown: per windowed mode, each window's outcome, reason key, held-out check error
-    before -> after and unsupported change; the window timeline figure."""
+    """Markdown: per windowed mode, each window's outcome (its reason key when not refined),
+    mean reprojection error and unsupported change; the window timeline figure."""
     logged = [m for m in modes if results[m].get("window_log")]
     if not logged:
         return []
-    lines = ["Windows (refused = a window check refused it; check = held-out error "
-             "before -> after; unsupported = share of the pixels far from every SfM point whose "
-             "depth the refinement moved):", "",
-             "| method | window | frames | outcome | check | unsupported |",
-             "|---|---:|---|---|---|---:|"]
+    lines = ["Windows (refused = a window check refused it; reprojection = the mean SfM "
+             "reprojection error, px; unsupported = share of the pixels far from every SfM "
+             "point whose depth the refinement moved):", "",
+             "| method | window | frames | outcome | reprojection | unsupported |",
+             "|---|---:|---|---|---:|---:|"]
     for m in logged:
         for w in results[m]["window_log"]:
             c = w.get("check") or {}
-            err = (f"{c['error_before']:.4f} -> {c['error_after']:.4f}"
-                   if c.get("check_points") else "-")
             frames = w.get("frames") or [0]
             what = "refined" if w.get("refined") else w.get("reason_key") or "unrefined"
-            u = c.get("unsupported_change")
-            u = f"{u:.3f}" if isinstance(u, float) and math.isfinite(u) else "-"
+            r, u = (_fixed(c.get(k), 3) for k in ("reprojection_error", "unsupported_change"))
             lines.append(f"| {m} | {w['index']} | {min(frames)}-{max(frames)} | {what} | "
-                         f"{err} | {u} |")
+                         f"{r} | {u} |")
     return lines + ["", "![windows](windows.png)", ""]
+
+
+def _fixed(v: Any, decimals: int) -> str:
+    return f"{v:.{decimals}f}" if isinstance(v, float) and math.isfinite(v) else "-"

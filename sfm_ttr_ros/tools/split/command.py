@@ -101,15 +101,37 @@ def check_split_args(args: argparse.Namespace) -> None:
 def run_split_command(args: argparse.Namespace, kind: str) -> int:
     """``sfm-ttr benchmark|run --split FILE``: 0 when every sequence is done, 1 when one
     failed, 130 when interrupted (the results so far written either way)."""
-    from sfm_ttr_ros.core.params import build
-    from sfm_ttr_ros.tools.cli_args import command_line, parameter_values
-    from sfm_ttr_ros.tools.split import cache, report
-    from sfm_ttr_ros.tools.split.engine import EngineConfig, Interrupted, run_tasks
-    from sfm_ttr_ros.tools.split.progress import SplitProgress
+    from sfm_ttr_ros.tools.cli_args import command_line
     from sfm_ttr_ros.tools.split.spec import read_split
     from sfm_ttr_ros.tools.split.task import SplitJob
 
     check_split_args(args)
+    params_path, values, options = _task_values(args, kind)
+    threads = size_threads(values, args, cluster=args.ray_address is not None)
+    _absolute_model_files(values)
+    config = _engine_config(args, values, threads)  # bad parameters fail here, before any task
+    specs = read_split(args.split, args.kitti_raw, args.kitti_gt, args.eigen_context)
+    job = SplitJob(kind, values, str(params_path or ""), options, threads, command_line())
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder {out}: {exc}") from exc
+    split = _SplitRun(out, specs, job, config, str(args.split), str(params_path or ""))
+    if not args.overwrite:
+        split.reuse_done()
+    res, interrupted = split.run()
+    _print_summary(res, out)
+    if interrupted:
+        return 130
+    return 1 if res["counts"]["failed"] else 0
+
+
+def _task_values(args: argparse.Namespace, kind: str) -> tuple[Any, dict[str, Any],
+                                                               dict[str, Any]]:
+    """(the parameter file, the parameter values, the command's own options) of a task."""
+    from sfm_ttr_ros.tools.cli_args import parameter_values
+
     if kind == "benchmark":
         from sfm_ttr_ros.tools.one_sequence import benchmark_values, check_benchmark_options
 
@@ -119,73 +141,96 @@ def run_split_command(args: argparse.Namespace, kind: str) -> int:
     else:
         params_path, values = parameter_values(args)
         names = RUN_OPTIONS
-    threads = size_threads(values, args, cluster=args.ray_address is not None)
-    _absolute_model_files(values)
-    settings = build(values)  # bad parameters fail here, before any task
+    return params_path, values, {k: getattr(args, k) for k in names}
+
+
+def _engine_config(args: argparse.Namespace, values: dict[str, Any], threads: int):
+    """Workers, threads, GPUs (1 per task with a cuda device unless --gpus-per-worker),
+    retries and the cluster address; the parameters are built (checked) on the way."""
+    from sfm_ttr_ros.core.params import build
+    from sfm_ttr_ros.tools.split.engine import EngineConfig
+
+    settings = build(values)
     gpus = args.gpus_per_worker
     if gpus is None:
         gpus = 1.0 if str(settings.model.device).startswith("cuda") else 0.0
-    config = EngineConfig(workers=args.workers, threads=threads, gpus=gpus,
-                          retries=args.retries, address=args.ray_address)
-    specs = read_split(args.split, args.kitti_raw, args.kitti_gt, args.eigen_context)
-    options = {k: getattr(args, k) for k in names}
-    job = SplitJob(kind, values, str(params_path or ""), options, threads, command_line())
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the output folder {out}: {exc}") from exc
+    return EngineConfig(workers=args.workers, threads=threads, gpus=gpus,
+                        retries=args.retries, address=args.ray_address)
 
-    keys = {s.id: cache.sequence_key(s, job) for s in specs}
-    records: dict[str, dict[str, Any]] = {}
-    reused: set[str] = set()
-    if not args.overwrite:
-        for s in specs:
-            rec = cache.load_done(out, s, keys[s.id])
+
+class _SplitRun:
+    """One ``--split`` run: the sequences' records (reused or computed), and the results
+    written again as each sequence ends."""
+
+    def __init__(self, out: Path, specs: list, job, config, split_file: str,
+                 params_file: str) -> None:
+        from sfm_ttr_ros.tools.split import cache
+
+        self.out, self.specs, self.job, self.config = out, specs, job, config
+        self.split_file = split_file
+        self.keys = {s.id: cache.sequence_key(s, job) for s in specs}
+        self.records: dict[str, dict[str, Any]] = {}
+        self.reused: set[str] = set()
+        self.retried: dict[str, int] = {}
+        self.engine_info: dict[str, Any] = {
+            "workers": config.workers, "threads_per_worker": job.threads,
+            "gpus_per_worker": config.gpus, "retries": config.retries,
+            "address": config.address, "where": "", "seconds": 0.0}
+        self.settings_info = {"params_file": params_file, "options": job.options,
+                              "values": job.values, "code": cache.code_fingerprint()}
+        self.progress = None
+
+    def reuse_done(self) -> None:
+        """Take the sequences already done with the same settings and code as they are."""
+        from sfm_ttr_ros.tools.split import cache
+
+        for s in self.specs:
+            rec = cache.load_done(self.out, s, self.keys[s.id])
             if rec is not None:
-                records[s.id] = rec
-                reused.add(s.id)
-    todo = [s for s in specs if s.id not in reused]
-    engine_info: dict[str, Any] = {"workers": args.workers, "threads_per_worker": threads,
-                                   "gpus_per_worker": gpus, "retries": args.retries,
-                                   "address": args.ray_address, "where": "", "seconds": 0.0}
-    settings_info = {"params_file": str(params_path or ""), "options": options,
-                     "values": values, "code": cache.code_fingerprint()}
-    retried: dict[str, int] = {}
+                self.records[s.id] = rec
+                self.reused.add(s.id)
 
-    def write(interrupted: bool = False) -> dict[str, Any]:
+    def run(self) -> tuple[dict[str, Any], bool]:
+        """Compute the sequences not reused; (the results written last, interrupted)."""
+        from sfm_ttr_ros.tools.split.engine import Interrupted, run_tasks
+        from sfm_ttr_ros.tools.split.progress import SplitProgress
+
+        todo = [s for s in self.specs if s.id not in self.reused]
+        self.progress = SplitProgress(len(self.specs), len(self.reused), label=self.job.command)
+        interrupted = False
+        try:
+            stats = run_tasks(todo, self.job, self.config, self.on_outcome) if todo else None
+        except Interrupted as exc:
+            stats, interrupted = exc.stats, True
+        finally:
+            self.progress.close()
+        if stats is not None:
+            self.retried.update({k: v for k, v in stats.retried.items()
+                                 if v > self.retried.get(k, 0)})
+            self.engine_info.update(where=stats.where, seconds=stats.seconds)
+        else:
+            self.engine_info.update(where="nothing to compute (every sequence reused)")
+        return self.write(interrupted), interrupted
+
+    def on_outcome(self, spec, outcome, attempts: int) -> None:
+        from sfm_ttr_ros.tools.split import cache
+
+        self.records[spec.id] = cache.store(self.out, spec, outcome, self.keys[spec.id],
+                                            attempts)
+        self.retried[spec.id] = attempts - 1
+        self.progress.update(self.records[spec.id])
+        self.write()
+
+    def write(self, interrupted: bool = False) -> dict[str, Any]:
+        from sfm_ttr_ros.tools.split import report
+
         res = report.build_results(
-            specs, records, reused, _modes(kind, options), split_file=str(args.split),
-            command=job.command_line, kind=kind, engine=engine_info, retried=retried,
-            interrupted=interrupted, settings=settings_info)
-        report.write_results(out, res)
+            self.specs, self.records, self.reused, _modes(self.job.command, self.job.options),
+            split_file=self.split_file, command=self.job.command_line, kind=self.job.command,
+            engine=self.engine_info, retried=self.retried, interrupted=interrupted,
+            settings=self.settings_info)
+        report.write_results(self.out, res)
         return res
-
-    progress = SplitProgress(len(specs), len(reused), label=kind)
-
-    def on_outcome(spec, outcome, attempts: int) -> None:
-        records[spec.id] = cache.store(out, spec, outcome, keys[spec.id], attempts)
-        retried[spec.id] = attempts - 1
-        progress.update(records[spec.id])
-        write()
-
-    interrupted = False
-    try:
-        stats = run_tasks(todo, job, config, on_outcome) if todo else None
-    except Interrupted as exc:
-        stats, interrupted = exc.stats, True
-    finally:
-        progress.close()
-    if stats is not None:
-        retried.update({k: v for k, v in stats.retried.items() if v > retried.get(k, 0)})
-        engine_info.update(where=stats.where, seconds=stats.seconds)
-    else:
-        engine_info.update(where="nothing to compute (every sequence reused)")
-    res = write(interrupted)
-    _print_summary(res, out)
-    if interrupted:
-        return 130
-    return 1 if res["counts"]["failed"] else 0
 
 
 def _modes(kind: str, options: dict[str, Any]) -> list[str]:

@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import csv
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -204,9 +203,9 @@ def results_markdown(res: Mapping[str, Any]) -> str:
 
 
 def write_results(out: Path, results: dict[str, Any]) -> None:
-    from sfm_ttr_ros.tools.benchmark import json_safe
+    from sfm_ttr_ros.tools.report import write_json
 
     out = Path(out)
-    (out / "results.json").write_text(json.dumps(json_safe(results), indent=2) + "\n")
+    write_json(out / "results.json", results)
     (out / "results.md").write_text(results_markdown(results))
     merge_per_frame(out, [q["id"] for q in results["sequences"] if q["status"] == "done"])
