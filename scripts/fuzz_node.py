@@ -391,7 +391,7 @@ def invalid_parameter_sets() -> list[tuple[str, object]]:
         ("sfm.init_min_tri_angle", 91.0), ("sfm.max_num_features", 0), ("sfm.num_threads", 0),
         ("sfm.overlap", 0), ("sfm.first_octave", -2), ("sfm.mapping_attempts", 0),
         ("alignment.tau", 0.0),
-        ("alignment.tau", -1.0), ("alignment.ransac_iterations", 0),
+        ("alignment.tau", -1.0), ("alignment.tau", float("nan")),
         ("min_supervision_points", 0), ("fallback_intrinsics", "-1 1 0 0"),
         ("fallback_intrinsics", "nan 1 0 0"), ("fallback_intrinsics", "700 0 1 1"),
         ("fallback_intrinsics", "700 700 -5 1"), ("fallback_intrinsics", "700 700 1 inf"),

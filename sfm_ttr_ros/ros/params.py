@@ -107,7 +107,7 @@ def validate(values: Mapping[str, Any]) -> str:
 
 
 def build_settings(values: Mapping[str, Any]) -> schema.Settings:
-    return schema.build(_ours(values))
+    return schema.build(_ours(values), as_node=True)
 
 
 def build_ttr_config(values: Mapping[str, Any]) -> TTRConfig:

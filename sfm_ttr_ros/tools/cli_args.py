@@ -30,7 +30,6 @@ PARAM_FLAGS: dict[str, tuple[str, str]] = {
     "--lr": ("refinement.lr", "method"),
     "--bn-mode": ("refinement.bn_mode", "method"),
     "--weighting": ("refinement.weighting", "method"),
-    "--ransac-iterations": ("alignment.ransac_iterations", "method"),
     "--tau": ("alignment.tau", "method"),
     "--sfm-max-image-size": ("sfm.max_image_size", "method"),
     "--seed": ("seed", "method"),

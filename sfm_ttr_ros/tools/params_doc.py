@@ -37,6 +37,7 @@ Names of the last release that still work for one more release, with a warning a
 `reset_each_window` (now `weight_policy`). Parameters that became config fields (settable as
 `--set section.field` in `sfm-ttr` for experiments, or under their old name for one release):
 `num_layers`, `live_max_queue`, `worker_nice`, `sfm.prefetch`, `sfm.refine_intrinsics`,
+`sfm.min_points`, `alignment.ransac_iterations`,
 `sfm.retry_above_error`, `sfm.retry_above_ratio`, `alignment.relaxed_tau`,
 `alignment.affine_ransac_iterations`, `refinement.photometric_alpha`,
 `refinement.smoothness_weight`, `refinement.photometric_sources`, `refinement.lora_rank`.

@@ -69,6 +69,9 @@ LEGACY: tuple[Legacy, ...] = (
            _field("stream.prefetch_sfm")),
     Legacy("sfm.refine_intrinsics", False, "the field sfm.refine_intrinsics",
            _field("sfm.refine_intrinsics")),
+    Legacy("sfm.min_points", 20, "the field sfm.min_points", _field("sfm.min_points")),
+    Legacy("alignment.ransac_iterations", 20, "the field alignment.ransac_iterations",
+           _field("alignment.ransac_iterations")),
     Legacy("sfm.retry_above_error", 0.8, "the field sfm.retry_above_error",
            _field("sfm.retry_above_error")),
     Legacy("sfm.retry_above_ratio", 1.3, "the field sfm.retry_above_ratio",
@@ -101,17 +104,27 @@ LEGACY: tuple[Legacy, ...] = (
 BY_NAME: dict[str, Legacy] = {row.name: row for row in LEGACY}
 
 
-def resolve(values: Mapping[str, Any], defaults: Mapping[str, Any]
-            ) -> tuple[dict[str, Any], list[str]]:
+def same_field(row: Legacy) -> bool:
+    """A parameter that became the config field of the same name (``sfm.min_points``): as a
+    ``section.field`` value it is an experiment's setting, not a legacy name."""
+    return row.becomes == f"the field {row.name}"
+
+
+def resolve(values: Mapping[str, Any], defaults: Mapping[str, Any], *,
+            as_node: bool = False) -> tuple[dict[str, Any], list[str]]:
     """``values`` with every legacy name replaced by what it became, and one warning per
-    legacy name. A value given under its new name wins over a translated one unless it is that
-    parameter's default (a node holds every parameter, given or not). Raises
+    legacy name (a same-named config field only for the node, ``as_node``: there it is a
+    parameter that goes away). A value given under its new name wins over a translated one
+    unless it is that parameter's default (a node holds every parameter, given or not). Raises
     :class:`InputError` for a removed parameter set to anything but its old default."""
     new = {k: v for k, v in values.items() if k not in BY_NAME}
     warnings, translated = [], {}
     for name, value in values.items():
         row = BY_NAME.get(name)
         if row is None:
+            continue
+        if same_field(row) and not as_node:
+            new[name] = value
             continue
         if row.translate is None:
             if value != row.default:

@@ -173,13 +173,9 @@ PARAMS: tuple[Param, ...] = (
        "window, each with the next seed, while the best reconstruction so far fits badly (mean "
        "reprojection error high in itself or against the stream's last reconstructions); the "
        "one with the most registered frames, then the lowest error, is kept.", 1, 100),
-    _p("sfm.min_points", "sfm.min_points", "A reconstruction with fewer 3D points than this "
-       "fails the window ('sfm_failed').", 1, 1_000_000),
     _p("sfm.num_threads", "sfm.num_threads", "Threads of feature extraction, matching and "
        "mapping.", 1, 256),
     # -- alignment (live) ---------------------------------------------------------------------
-    _p("alignment.ransac_iterations", "alignment.ransac_iterations", "RANSAC iterations of the "
-       "one-point scale model (Eq. (4)).", 1, 1_000_000),
     _p("alignment.tau", "alignment.tau", "RANSAC inlier threshold on (s*D_sfm - D_nn)^2 / "
        "(s*D_sfm).", 0.0, 1e6, constraints="> 0"),
     _p("min_supervision_points", "ttr.min_supervision_points", "A window whose alignment "

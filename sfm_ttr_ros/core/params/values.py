@@ -117,15 +117,17 @@ def _check_model(values: Mapping[str, Any]) -> None:
         raise InputError("give both encoder_path and decoder_path, or neither")
 
 
-def build(values: Mapping[str, Any]) -> Settings:
+def build(values: Mapping[str, Any], *, as_node: bool = False) -> Settings:
     """The configs of ``values`` (parameters not given keep their defaults; legacy names are
     translated, :attr:`Settings.warnings` says which; ``section.field`` entries set config
-    fields no parameter targets). :class:`InputError` says what is wrong."""
+    fields no parameter targets; ``as_node``: the values of the node's declared parameters,
+    see :func:`~sfm_ttr_ros.core.params.legacy.resolve`). :class:`InputError` says what is
+    wrong."""
     for name, value in values.items():
         reason = check_value(name, value)
         if reason:
             raise InputError(reason)
-    given, warnings = legacy.resolve(values, defaults())
+    given, warnings = legacy.resolve(values, defaults(), as_node=as_node)
     full = {**defaults(), **given}
     _check_model(full)
     sections: dict[str, dict[str, Any]] = {s: {} for s in SECTIONS}
