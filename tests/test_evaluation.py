@@ -107,7 +107,7 @@ def test_median_scaling_makes_scaled_prediction_perfect():
     assert r.metrics["a1"] == 1.0
     # without scaling: |gt - gt/4| / gt = 0.75 everywhere, every ratio is 4 > 1.25**3
     r2 = evaluate_frame(pred, gt, EvalConfig(median_scaling=False))
-    assert r2.ratio is None
+    assert r2.ratio == pytest.approx(4.0)  # measured (the scale's spread), not applied
     assert r2.metrics["abs_rel"] == pytest.approx(0.75)
     assert r2.metrics["a3"] == 0.0
 
@@ -355,11 +355,13 @@ def _protocol_written_out(pred, gt, cfg):
         pred_v = inverse_affine_to_depth(pred_v, gt_v, cfg.max_depth)
         if pred_v is None:
             return None
-    elif cfg.median_scaling:
-        if float(np.median(pred_v)) <= 0:
-            return None
-        ratio = float(np.median(gt_v)) / float(np.median(pred_v))
-        pred_v = pred_v * ratio
+    else:
+        if float(np.median(pred_v)) > 0:
+            ratio = float(np.median(gt_v)) / float(np.median(pred_v))
+        if cfg.median_scaling:
+            if ratio is None:
+                return None
+            pred_v = pred_v * ratio
     pred_v = np.clip(pred_v, cfg.min_depth, cfg.max_depth)
     return compute_errors(gt_v, pred_v), ratio, gt_v.size, int(np.count_nonzero(~finite))
 
@@ -400,7 +402,7 @@ def test_scaled_prediction_keeps_non_finite_predictions_out_of_range_clamping():
     gt = np.full((2, 3), 10.0)
     pred = np.array([[np.inf, -np.inf, np.nan], [-1.0, 5.0, 1e6]])
     s = scaled_prediction(pred, gt, EvalConfig(median_scaling=False))
-    assert s.skip is None and s.invalid_pred == 3 and s.ratio is None
+    assert s.skip is None and s.invalid_pred == 3 and s.ratio == 2.0  # measured, not applied
     assert s.pixels.tolist() == [[False, False, False], [True, True, True]]
     assert np.isnan(s.depth[0]).all() and s.depth[1].tolist() == [MIN_DEPTH, 5.0, MAX_DEPTH]
     assert scaled_prediction(pred, np.zeros((2, 3))).skip == "no_valid_gt"

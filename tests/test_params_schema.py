@@ -24,7 +24,8 @@ PARAM_FILES = sorted((REPO / "params").glob("*.yaml"))
 def _section(settings: Settings, section: str):
     return {"sfm": settings.ttr.sfm, "alignment": settings.ttr.alignment,
             "refinement": settings.ttr.refinement, "ttr": settings.ttr,
-            "check": settings.ttr.check, "stream": settings.stream, "model": settings.model,
+            "check": settings.ttr.check, "metric": settings.ttr.metric,
+            "stream": settings.stream, "model": settings.model,
             "node": settings.node}[section]
 
 

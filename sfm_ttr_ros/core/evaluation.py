@@ -85,7 +85,8 @@ class EvalConfig:
 
 @dataclass
 class FrameResult:
-    """Metrics of one frame. ``ratio`` is the median-scaling ratio (None without scaling)."""
+    """Metrics of one frame. ``ratio``: median GT / median prediction over the evaluated
+    pixels (the median-scaling factor, applied or not; None for an affine fit)."""
 
     metrics: dict[str, float]
     ratio: float | None
@@ -164,7 +165,8 @@ class ScaledPrediction:
     gt: np.ndarray  # H x W ground truth, metres (float64)
     depth: np.ndarray  # H x W prediction at the GT size, scaled and clamped; NaN = no prediction
     pixels: np.ndarray  # H x W bool: valid GT and a finite prediction, the pixels evaluated
-    ratio: float | None  # the median-scaling ratio (None without median scaling)
+    ratio: float | None  # median GT / median prediction (applied with median scaling); None
+    #                      for an affine fit or a non-positive median
     invalid_pred: int  # valid-GT pixels whose prediction is not finite (left out)
     skip: str | None = None  # why the frame is not evaluated (SKIP_*), None when it is
 
@@ -214,13 +216,15 @@ def scaled_prediction(pred_depth: np.ndarray, gt_depth: np.ndarray,
             skip = skip or SKIP_NO_AFFINE_FIT
         else:
             pred[pixels] = fitted
-    elif config.median_scaling and skip is None:
+    elif skip is None:
         med_pred = float(np.median(pred[pixels]))
-        if med_pred <= 0:
-            skip = SKIP_NONPOSITIVE_MEDIAN
-        else:
+        if med_pred > 0:  # measured without median scaling too: the scale's frame-to-frame spread
             ratio = float(np.median(gt[pixels])) / med_pred
-            pred = pred * ratio
+        if config.median_scaling:
+            if ratio is None:
+                skip = SKIP_NONPOSITIVE_MEDIAN
+            else:
+                pred = pred * ratio
     depth = np.clip(pred, config.min_depth, config.max_depth)
     return ScaledPrediction(gt, depth, pixels, ratio, invalid, skip)
 

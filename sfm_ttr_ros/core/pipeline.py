@@ -32,6 +32,9 @@ from sfm_ttr_ros.core.checks.measures import CheckConfig, WindowCheck
 from sfm_ttr_ros.core.checks.window import WindowChecks
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.metric.config import MetricConfig
+from sfm_ttr_ros.core.metric.odometry import OdometryTrack
+from sfm_ttr_ros.core.metric.scale import MetricScale, WindowMetric, estimate
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.outcomes import Stop, Unrefined
 from sfm_ttr_ros.core.prediction import Predictor
@@ -61,6 +64,7 @@ class TTRConfig:
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
     check: CheckConfig = field(default_factory=CheckConfig)  # core/checks/measures.py
+    metric: MetricConfig = field(default_factory=MetricConfig)  # core/metric/
     # Weights across windows (WEIGHT_POLICIES): "continue" every window starts from the last
     # ACCEPTED window's weights (a refused or rolled-back window leaves them as they were;
     # measured best on real video: docs/decisions.md); "reset" from the start-up weights (the
@@ -107,6 +111,7 @@ class WindowResult:
     sfm: SfmResult | None = None
     alignment: AlignmentResult | None = None
     refinement: RefinementResult | None = None
+    metric: WindowMetric | None = None  # the window's metric estimate (core/metric/)
     scale: float = float("nan")
     loss_before: float = float("nan")
     loss_after: float = float("nan")
@@ -142,6 +147,7 @@ class _Window:
     d_sfm: np.ndarray = field(default_factory=lambda: np.zeros(0))  # their D_sfm, concatenated
     d_nn: np.ndarray = field(default_factory=lambda: np.zeros(0))  # D_nn at the same pixels
     scaled: bool = False  # the alignment is the paper's scale fit (depth up to scale)
+    metric: WindowMetric | None = None  # metres per SfM / network unit (core/metric/)
     supervision: list[FrameSupervision] = field(default_factory=list)  # Eq. (5) per frame
 
     def __post_init__(self) -> None:
@@ -194,6 +200,8 @@ class SfmTTR:
                                    self.config.reuse_predictions)
         self.weights = WeightPolicy(self.model, on_reset=self.predictor.original_restored)
         self.checks = WindowChecks()  # the window checks and their references across windows
+        self.metric = MetricScale()  # the steady metric factor of the accepted windows
+        self.odometry = OdometryTrack()  # positions for metric.source odometry (the node's)
         self._stop = False
         # called with the step count after each refinement step of a window whose current
         # weights may be served before its end (the live server's interim weights,
@@ -327,6 +335,8 @@ class SfmTTR:
                                                 w.d_nn, res.alignment, w.scaled)
         if res.check.reason_key:
             return _unrefined(res, Stop(res.check.reason_key, f"check: {res.check.reason}"))
+        if stop := self._measure_metric(w):  # metres per unit: ground plane or odometry
+            return _unrefined(res, stop)
         self._supervise(w)  # Eq. (5) per frame and the window's loss before
         plan = self.weights.begin(cfg.weight_policy, cfg.refinement)  # where it starts
         res.refinement = self._refine(w, plan, should_stop)  # Adam on the encoder (Sec. 3.3)
@@ -350,6 +360,7 @@ class SfmTTR:
             return _unrefined(res, Stop(c.reason_key, f"rejected by check: {c.reason}"),
                               w.before)
         self.checks.accept(c, res.sfm, w.registered, res.scale, w.scaled)
+        self.metric.accept(cfg.metric, w.metric)
         self._cloud(res, res.sfm, w.registered)
         return res
 
@@ -365,6 +376,24 @@ class SfmTTR:
     def interim_unsupported(self) -> float:
         """U of the last interim weights checked (:meth:`interim_refusal`)."""
         return self.checks.interim_unsupported
+
+    def metric_status(self) -> dict[str, object]:
+        """What the outputs' units are now, for /diagnostics: ``source``, ``state``
+        (``not_metric``: metric.source none; ``waiting``: no accepted estimate yet;
+        ``metric``), ``metres_per_unit``, the relative ``spread`` of the accepted windows'
+        estimates and how many there are."""
+        cfg = self.config.metric
+        k = self.metres_per_unit
+        state = "not_metric" if cfg.source == "none" else ("waiting" if k is None else "metric")
+        return {"source": cfg.source, "state": state,
+                "metres_per_unit": float("nan") if k is None else k,
+                "spread": self.metric.spread(), "windows": len(self.metric.history)}
+
+    @property
+    def metres_per_unit(self) -> float | None:
+        """The metric factor of the outputs now (core/metric/scale.py): metres per network
+        depth unit of the current weights; None = not metric."""
+        return self.metric.factor(self.config.metric)
 
     # -- the stages of one window (Fig. 2) -----------------------------------------------
     def _predict_before(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> _Window:
@@ -418,6 +447,23 @@ class SfmTTR:
             return Stop(Unrefined.TOO_FEW_POINTS,
                         f"too few supervision points: {int(align.selected.sum())} selected of "
                         f"{w.d_sfm.size} (< {cfg.min_supervision_points})")
+        return None
+
+    def _measure_metric(self, w: _Window) -> Stop | None:
+        """Metres per SfM unit of the window (``metric.source``: a ground plane under the
+        camera, or odometry) and per network unit; refused when it jumps against the stream's
+        steady factor (core/metric/scale.py). With ``metric.learn`` the supervision becomes
+        metric (the targets m·D_sfm)."""
+        cfg, res = self.config, w.result
+        stamps = [f.stamp for f in w.frames if f.name in set(w.registered)]
+        w.metric = res.metric = estimate(cfg.metric, res.sfm, w.registered, stamps,
+                                         res.scale if w.scaled else float("nan"),
+                                         self.odometry)
+        if cfg.metric.learn and w.metric.ok:
+            res.alignment = dataclasses.replace(res.alignment, scale=w.metric.m)
+            res.scale, w.metric.k = w.metric.m, 1.0
+        if why := self.metric.refusal(cfg.metric, w.metric):
+            return Stop(Unrefined.CHECK_SCALE_JUMP, f"check: {why}")
         return None
 
     def _supervise(self, w: _Window) -> None:

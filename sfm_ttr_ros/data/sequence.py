@@ -14,7 +14,9 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics, list_images, load_rgb
 
 @dataclass
 class ImageSequence:
-    """Frames of one camera with known intrinsics; ``gt_paths`` maps frame name → GT PNG."""
+    """Frames of one camera with known intrinsics; ``gt_paths`` maps frame name → GT PNG;
+    ``poses`` (N x 4 x 4 camera-to-world, metres) when the sequence has a ``poses.txt``: an
+    odometry source for the metric scale (core/metric/odometry.py)."""
 
     name: str
     image_paths: list[Path]
@@ -22,6 +24,7 @@ class ImageSequence:
     stamps: list[float]
     gt_paths: dict[str, Path] = field(default_factory=dict)
     gt_scale: float = 256.0
+    poses: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -62,7 +65,8 @@ def open_kitti(raw_root: str | Path, drive: str, gt_root: str | Path | None = No
         p = kd.gt_path(i)
         if p is not None:
             gt[name] = Path(p)
-    return ImageSequence(drive, paths, kd.intrinsics, list(kd.stamps), gt, 256.0)
+    return ImageSequence(drive, paths, kd.intrinsics, list(kd.stamps), gt, 256.0,
+                         _poses(kd.drive_dir / "poses.txt", len(paths)))
 
 
 def open_image_folder(images: str | Path, intrinsics: str | Path,
@@ -83,4 +87,18 @@ def open_image_folder(images: str | Path, intrinsics: str | Path,
                 gt[p.stem] = q
     stamps = [i / fps for i in range(len(paths))]
     return ImageSequence(Path(images).resolve().parent.name or "images", paths, intr, stamps,
-                         gt, float(gt_scale))
+                         gt, float(gt_scale), _poses(Path(images).parent / "poses.txt",
+                                                     len(paths)))
+
+
+def _poses(path: Path, frames: int) -> np.ndarray | None:
+    """The camera poses of ``path`` (``poses.txt``: one 4x4 camera-to-world row per frame,
+    metres) when it exists; InputError when it does not hold one pose per frame."""
+    if not path.is_file():
+        return None
+    from sfm_ttr_ros.core.metric.odometry import read_poses_file
+
+    poses = read_poses_file(path)
+    if len(poses) < frames:
+        raise InputError(f"{path}: {len(poses)} poses for {frames} frames")
+    return poses[:frames]

@@ -12,6 +12,7 @@ what it is lives in docs/decisions.md, not here. Sections:
 ``refinement``:class:`~sfm_ttr_ros.core.refinement.config.RefinementConfig`
 ``ttr``       :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` (its own fields)
 ``check``     :class:`~sfm_ttr_ros.core.checks.measures.CheckConfig` (the window checks)
+``metric``    :class:`~sfm_ttr_ros.core.metric.config.MetricConfig` (metres)
 ``stream``    :class:`~sfm_ttr_ros.core.stream.windows.StreamSettings`
 ``model``     :class:`~sfm_ttr_ros.core.models.registry.ModelConfig`
 ``node``      :class:`~sfm_ttr_ros.core.params.node.NodeSettings`
@@ -31,6 +32,7 @@ from dataclasses import dataclass
 
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
 from sfm_ttr_ros.core.checks.measures import CheckConfig
+from sfm_ttr_ros.core.metric.config import METRIC_SOURCES, MetricConfig
 from sfm_ttr_ros.core.models.hf import OUTPUT_KINDS
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params.node import (
@@ -57,7 +59,8 @@ INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in
 SECTIONS: dict[str, type] = {"sfm": SfmConfig, "alignment": AlignmentConfig,
                              "refinement": RefinementConfig, "ttr": TTRConfig,
-                             "check": CheckConfig, "stream": StreamSettings,
+                             "check": CheckConfig, "metric": MetricConfig,
+                             "stream": StreamSettings,
                              "model": ModelConfig, "node": NodeSettings}
 TYPE_NAMES = {bool: "bool", int: "integer", float: "double", str: "string"}
 
@@ -241,6 +244,16 @@ PARAMS: tuple[Param, ...] = (
        "check.max_unsupported_change: refuse only when the share is also above this factor x "
        "its median over the stream's last 10 accepted windows (none refused before 3); 0 = "
        "the absolute threshold alone.", 0.0, 1000.0, constraints="0 or >= 1"),
+    # -- metric scale (live) ------------------------------------------------------------------
+    _p("metric.source", "metric.source", "Where the outputs' metres come from: none = the "
+       "network's units (diagnostics say not metric); camera_height = the camera's height above "
+       "a ground plane of each window's SfM points (metric.camera_height); odometry = the "
+       "distance nav_msgs/Odometry on 'odom' says the camera travelled; fixed = "
+       "metric.factor.", choices=METRIC_SOURCES),
+    _p("metric.camera_height", "metric.camera_height", "camera_height: the camera's height "
+       "above the ground, metres.", 0.0, 1e3, constraints="> 0"),
+    _p("metric.factor", "metric.factor", "fixed: metres per network depth unit.", 0.0, 1e9,
+       constraints="> 0"),
     _p("seed", "sfm.seed,alignment.seed,refinement.seed", "Random seed of SfM, RANSAC and "
        "refinement.", 0, INT_MAX),
     # -- model (start-up) ---------------------------------------------------------------------

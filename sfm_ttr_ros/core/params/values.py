@@ -19,6 +19,7 @@ from typing import Any
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
 from sfm_ttr_ros.core.checks.measures import CheckConfig
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params import legacy
 from sfm_ttr_ros.core.params.docs import number
@@ -142,6 +143,7 @@ def build(values: Mapping[str, Any], *, as_node: bool = False) -> Settings:
             ttr=TTRConfig(sfm=SfmConfig(**sections["sfm"]),
                           alignment=AlignmentConfig(**sections["alignment"]),
                           check=CheckConfig(**sections["check"]),
+                          metric=MetricConfig(**sections["metric"]),
                           refinement=RefinementConfig(**sections["refinement"]), **ttr_top),
             model=ModelConfig(**sections["model"]),
             node=NodeSettings(**sections["node"]), warnings=warnings)

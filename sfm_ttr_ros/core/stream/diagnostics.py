@@ -130,6 +130,9 @@ class StreamDiagnostics:
                       "serving.reverts": lv["serving_reverts"],
                       "serving.interim_refused": lv["serving_interim_refused"]})
             v.update({f"live.{k}": lv[k] for k in LATENCY_KEYS})
+        metric = getattr(self.stream.ttr, "metric_status", None)
+        if metric is not None:  # the outputs' units (core/metric/)
+            v.update({f"metric.{k}": x for k, x in metric().items()})
         w = self.stream.last_window
         if w is not None:
             v.update({
@@ -148,6 +151,8 @@ class StreamDiagnostics:
                 "last_window.steps": w.steps,
                 "last_window.steps_done": w.steps_done,
                 "last_window.unsupported_change": w.unsupported_change,
+                "last_window.metric_estimate": w.metric_estimate,
+                "last_window.metric_reason": w.metric_reason,
             })
             v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
         return v
@@ -165,6 +170,9 @@ class StreamDiagnostics:
                                 "unrefined")
             if w is not None and not w.refined:
                 problems.append(f"last window not refined: {w.reason}")
+            if v.get("metric.state") == "waiting" and w is not None:
+                problems.append("depth not metric yet" + (f": {w.metric_reason}"
+                                                          if w.metric_reason else ""))
             if v["frames_held_no_intrinsics"]:
                 problems.append("no intrinsics: frames held")
             if v["qos_incompatible"]:

@@ -77,6 +77,7 @@ class StreamRefiner:
                                       on_output=on_refined, on_window=self._window_done,
                                       on_drop=on_drop, logger=self.log)
         self.serving = ServingModel(ttr.model)
+        self.serving.set_metres_per_unit(ttr.metres_per_unit)  # metric.source fixed: at once
         self.live = LiveServer(self.serving, on_live or (lambda out: None),
                                max_queue=settings.live_max_queue, logger=self.log)
         self._nice = settings.worker_nice
@@ -188,7 +189,8 @@ class StreamRefiner:
     def _window_done(self, stats: WindowStats) -> None:
         if stats.refined:
             try:
-                self.serving.update(self.ttr.model.encoder.state_dict(), stats.index + 1)
+                self.serving.update(self.ttr.model.encoder.state_dict(), stats.index + 1,
+                                    self.ttr.metres_per_unit)
                 self.serving_updates += 1
                 self._mark(stats.index, "final")
             except Exception as exc:  # noqa: BLE001 - keep serving the previous weights
@@ -198,6 +200,8 @@ class StreamRefiner:
                 self._revert(stats)
         else:
             self._revert(stats)
+            # the weights before the window stay; a parameter may have changed the factor
+            self.serving.set_metres_per_unit(self.ttr.metres_per_unit)
         if self.on_window is not None:
             self.on_window(stats)
 

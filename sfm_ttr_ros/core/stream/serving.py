@@ -41,8 +41,12 @@ class ServingModel:
         self._version = 0
         self._updated = time.monotonic()
         self._interim_step = 0
-        # (encoder state, version, swapped-in time) the first preview of a window replaced
-        self._before_preview: tuple[dict[str, torch.Tensor], int, float] | None = None
+        # metres per network unit of the served weights (core/metric/); None: network units
+        self._metres_per_unit: float | None = None
+        # (encoder state, version, swapped-in time, metric factor) a window's first preview
+        # replaced
+        self._before_preview: tuple[dict[str, torch.Tensor], int, float, float | None] | None \
+            = None
         self.predictions = 0
 
     @property
@@ -64,13 +68,25 @@ class ServingModel:
         """The refinement step of previewed weights; 0 for a finished window's weights."""
         return self._interim_step
 
-    def update(self, encoder_state: dict[str, torch.Tensor], version: int) -> None:
-        """Serve these encoder weights from the next prediction on. ``load_state_dict`` copies
-        them into the serving copy's own tensors, so the caller may go on changing its own."""
+    @property
+    def metres_per_unit(self) -> float | None:
+        """The metric factor the served depth is multiplied by (None: network units)."""
+        return self._metres_per_unit
+
+    def set_metres_per_unit(self, factor: float | None) -> None:
+        with self._lock:
+            self._metres_per_unit = factor
+
+    def update(self, encoder_state: dict[str, torch.Tensor], version: int,
+               metres_per_unit: float | None = None) -> None:
+        """Serve these encoder weights (and their metric factor) from the next prediction on.
+        ``load_state_dict`` copies them into the serving copy's own tensors, so the caller may
+        go on changing its own."""
         if not finite_state(encoder_state):
             raise ValueError("refusing to serve non-finite encoder weights")
         with self._lock:
             self._model.encoder.load_state_dict(encoder_state)
+            self._metres_per_unit = metres_per_unit
             self._version = int(version)
             self._updated = time.monotonic()
             self._interim_step = 0
@@ -84,7 +100,7 @@ class ServingModel:
         with self._lock:
             if self._before_preview is None:
                 self._before_preview = (copy.deepcopy(self._model.encoder.state_dict()),
-                                        self._version, self._updated)
+                                        self._version, self._updated, self._metres_per_unit)
             self._model.encoder.load_state_dict(encoder_state)
             self._version, self._interim_step = int(version), int(step)
             self._updated = time.monotonic()
@@ -95,7 +111,7 @@ class ServingModel:
         with self._lock:
             if self._before_preview is None:
                 return False
-            state, self._version, self._updated = self._before_preview
+            state, self._version, self._updated, self._metres_per_unit = self._before_preview
             self._model.encoder.load_state_dict(state)
             self._interim_step = 0
             self._before_preview = None
@@ -108,8 +124,11 @@ class ServingModel:
             self._model.predict([warm_up_image(self._model)])
 
     def predict(self, image: np.ndarray) -> tuple[np.ndarray, int]:
-        """(depth H x W float32 at the image's size, version of the weights that made it)."""
+        """(depth H x W float32 at the image's size, version of the weights that made it);
+        in metres when the served weights have a metric factor."""
         with self._lock, torch.inference_mode():
             depth = self._model.predict([image])[0]
             self.predictions += 1
+            if self._metres_per_unit is not None:
+                depth = depth * np.float32(self._metres_per_unit)
             return depth, self._version

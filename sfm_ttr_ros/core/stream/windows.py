@@ -187,6 +187,9 @@ class WindowStats:
     steps: int = 0  # configured refinement steps for this window
     steps_done: int = 0
     unsupported_change: float = float("nan")  # share of unsupported pixels moved
+    # metres per network unit of the window's own estimate (NaN: none; metric_reason says why)
+    metric_estimate: float = float("nan")
+    metric_reason: str = ""
     timings: dict[str, float] = field(default_factory=dict)
     # time.monotonic() when the worker began the window and when its outputs were ready
     started_at: float = float("nan")
@@ -214,6 +217,8 @@ class FrameOutput:
     reason_key: Unrefined | None = None
     reason: str = ""
     window: int | None = None  # index of the window that produced it
+    # metres per network unit ``depth`` was multiplied by (core/metric/); None: network units
+    metres_per_unit: float | None = None
 
     @property
     def live_only(self) -> bool:
@@ -225,6 +230,13 @@ class FrameOutput:
 class _Entry:
     frame: Frame
     published: bool = False
+
+
+def _in_metres(depth: np.ndarray | None, metres_per_unit: float | None) -> np.ndarray | None:
+    """A depth map in the outputs' units: times the metric factor when there is one."""
+    if depth is None or metres_per_unit is None:
+        return depth
+    return (depth * np.float32(metres_per_unit)).astype(np.float32, copy=False)
 
 
 def _thumb(image: np.ndarray) -> np.ndarray:
@@ -661,12 +673,11 @@ class StreamProcessor:
             stats.cloud_frame = (None if cloud_frame is None
                                  else dataclasses.replace(cloud_frame, image=RELEASED_IMAGE))
             self.windows.append(stats)
-            outs = []
-            for f in new:
-                out = FrameOutput(f, res.depths[f.name], res.refined,
-                                  None if res.refined else stats.reason_key,
-                                  "" if res.refined else stats.reason, window=index)
-                outs.append(out)
+            k = getattr(self.ttr, "metres_per_unit", None)
+            outs = [FrameOutput(f, _in_metres(res.depths[f.name], k), res.refined,
+                                None if res.refined else stats.reason_key,
+                                "" if res.refined else stats.reason, window=index,
+                                metres_per_unit=k) for f in new]
             self._account(outs)
         with self._cv:
             if stats.refined:
@@ -710,6 +721,8 @@ class StreamProcessor:
         stats.steps_done = res.refinement.steps_done if res.refinement is not None else 0
         if res.check is not None:
             stats.unsupported_change = res.check.unsupported_change
+        if res.metric is not None:
+            stats.metric_estimate, stats.metric_reason = res.metric.k, res.metric.reason
         stats.timings = dict(res.timings)
         # The history keeps the SfM/alignment summary but not the per-frame depth maps: a deque of
         # 100 windows x 10 full-size maps each would grow memory for the whole first 100 windows.
@@ -750,7 +763,9 @@ class StreamProcessor:
                     self._emit_drop(f, Dropped.PREDICTION_ERROR, msg)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
-        outs = [FrameOutput(f, depths.get(id(f)), False, key, reason, window) for f in frames]
+        k = getattr(self.ttr, "metres_per_unit", None)
+        outs = [FrameOutput(f, _in_metres(depths.get(id(f)), k), False, key, reason, window,
+                            metres_per_unit=k) for f in frames]
         self._account(outs)
         return outs
 

@@ -23,7 +23,7 @@ from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.windows import StreamSettings, WindowStats
 from sfm_ttr_ros.data.sequence import ImageSequence
-from sfm_ttr_ros.tools.benchmark.runners import ModeRun, log, window_record
+from sfm_ttr_ros.tools.benchmark.runners import ModeRun, feed_odometry, log, window_record
 
 #: Frames timed for the network's bare forward pass before the run starts.
 FORWARD_PROBES = 10
@@ -53,6 +53,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     ttr = SfmTTR(model, copy.deepcopy(cfg))
     forward = bare_forward_s(ttr.model, seq.frame(indices[0]).image)
     live = _LiveRun(run, indices, progress)
+    feed_odometry(ttr, seq, indices)
     online = StreamRefiner(ttr, copy.deepcopy(settings), on_live=live.on_live,
                            on_window=live.on_window, logger=log)
     live.online = online
@@ -66,6 +67,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     live.add_cut_short_windows()
     run.seconds = fed_s
     _record(live, ttr.config.refinement.loss, cfg.weight_policy, rate, forward)
+    run.extra["metric"] = ttr.metric_status()
 
 
 class _LiveRun:

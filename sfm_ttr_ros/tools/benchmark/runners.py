@@ -159,7 +159,17 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
             "registered": ws.registered, "points": ws.points, "scale": ws.scale,
             "sfm_attempts": list(res.sfm.attempts) if res is not None and res.sfm else [],
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
-            "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check}
+            "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check,
+            "metric_estimate": ws.metric_estimate, "metric_reason": ws.metric_reason}
+
+
+def feed_odometry(ttr: SfmTTR, seq: ImageSequence, indices: Sequence[int]) -> None:
+    """The sequence's camera positions (its ``poses.txt``) at its frames' stamps, as the node
+    gets them on ``odom``: the odometry source of ``metric.source: odometry``."""
+    if seq.poses is None:
+        return
+    for i in indices:
+        ttr.odometry.add(seq.stamps[i], seq.poses[i][:3, 3])
 
 
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
@@ -192,6 +202,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         for o in outs:
             run.add(o.frame.index, o.depth, o.refined, o.reason_key)
 
+    feed_odometry(ttr, seq, indices)
     stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
                              on_drop=on_drop, logger=log)
     # the node's worker pays these before its first frame (StreamRefiner.start): not timed
@@ -219,6 +230,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     counters = stream.counters()
     run.extra.update(windows)
     run.extra["stream_counters"] = counters
+    run.extra["metric"] = ttr.metric_status()
 
 
 def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,

@@ -1,0 +1,58 @@
+"""The metric scale's settings (the node's ``metric.*`` parameters)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from sfm_ttr_ros.core.errors import InputError
+
+#: Where the metric scale comes from: none (the network's units, said in the diagnostics),
+#: camera_height (a ground plane under the camera), odometry (travelled distance), fixed (a
+#: factor the user gives).
+METRIC_SOURCES = ("none", "camera_height", "odometry", "fixed")
+
+
+@dataclass
+class MetricConfig:
+    source: str = "none"
+    camera_height: float = 1.65  # m above the ground plane (KITTI's colour cameras)
+    factor: float = 1.0  # fixed: metres per network depth unit
+    # windows whose estimates make the steady factor (their median)
+    history: int = 10
+    # a window's estimate further than this factor from the steady one is refused like a scale
+    # jump (0 = never): its reconstruction or its ground plane is wrong
+    max_jump: float = 1.5
+    # the supervision targets in metres (the network learns metres) instead of the network's
+    # own units: a study, off (docs/decisions.md)
+    learn: bool = False
+    # camera_height: a ground plane's normal within this angle (degrees) of the cameras' down
+    # axis, inliers within this share of the camera height, at least this many of them, and the
+    # registered cameras' heights above it within this relative spread
+    max_tilt_deg: float = 20.0
+    inlier_tolerance: float = 0.04
+    min_ground_points: int = 30
+    max_height_spread: float = 0.25
+    # ... and the cameras looking along it (their optical axis within this angle of the plane:
+    # a vehicle's camera, not one looking down at a table), the plane's inliers spanning at
+    # least this many camera heights (a ground, not a table top)
+    max_pitch_deg: float = 25.0
+    min_ground_extent: float = 3.0
+    # odometry: the least travel (m) a window's frames must span
+    min_travel: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.source not in METRIC_SOURCES:
+            raise InputError(f"metric.source must be one of {', '.join(METRIC_SOURCES)}; got "
+                             f"{self.source!r}")
+        for name in ("camera_height", "factor", "inlier_tolerance", "min_travel"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"metric.{name} must be a finite number > 0, got {v}")
+        if not (self.max_jump == 0 or self.max_jump >= 1):
+            raise InputError(f"metric.max_jump is a factor >= 1 (or 0 = off), got "
+                             f"{self.max_jump}")
+        if self.history < 1 or self.min_ground_points < 3:
+            raise InputError("metric.history must be >= 1 and min_ground_points >= 3")
+        if not 0 < self.max_tilt_deg < 90 or not self.max_height_spread > 0:
+            raise InputError("metric.max_tilt_deg must lie in (0, 90) and max_height_spread > 0")

@@ -1,0 +1,95 @@
+"""Travelled distance from an odometry source, against SfM's camera path.
+
+An odometry source (wheel odometry, a VIO, GNSS/INS like KITTI's OXTS, a pose file) gives the
+camera's (or the robot's) position in metres at its own stamps. :class:`OdometryTrack` keeps the
+last of them; for a window, the path length through the positions at its registered frames'
+stamps (linear interpolation) over the SfM camera centres' path length is metres per SfM unit:
+
+    m = Σ_j |p(t_{j+1}) − p(t_j)| / Σ_j |C_{j+1} − C_j|.
+
+A path that runs along the robot's body frame and not its camera's differs by the lever arm
+under rotation; over a window's second of driving that is well under a per cent.
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+from collections import deque
+from collections.abc import Sequence
+
+import numpy as np
+
+from sfm_ttr_ros.core.errors import InputError
+
+#: Positions kept (at 100 Hz: 50 s).
+TRACK_LENGTH = 5000
+
+
+class OdometryTrack:
+    """Positions by stamp, added from any thread (the node's odometry callback)."""
+
+    def __init__(self, length: int = TRACK_LENGTH):
+        self._lock = threading.Lock()
+        self._stamps: deque[float] = deque(maxlen=length)
+        self._positions: deque[np.ndarray] = deque(maxlen=length)
+        self.received = 0
+        self.rejected = 0
+
+    def add(self, stamp: float, position: Sequence[float]) -> bool:
+        """Keep a position (metres) at ``stamp`` (seconds); one out of order or non-finite is
+        rejected and counted (False)."""
+        p = np.asarray(position, np.float64).reshape(-1)[:3]
+        with self._lock:
+            self.received += 1
+            if (p.shape != (3,) or not np.isfinite(p).all() or not np.isfinite(stamp)
+                    or (self._stamps and stamp <= self._stamps[-1])):
+                self.rejected += 1
+                return False
+            self._stamps.append(float(stamp))
+            self._positions.append(p)
+        return True
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._stamps)
+
+    def positions_at(self, stamps: Sequence[float]) -> np.ndarray | None:
+        """Positions at ``stamps`` (linear interpolation), None when one lies outside the
+        track's span."""
+        with self._lock:
+            ts, ps = list(self._stamps), list(self._positions)
+        if len(ts) < 2:
+            return None
+        out = []
+        for t in stamps:
+            i = bisect.bisect_left(ts, t)
+            if i < len(ts) and ts[i] == t:
+                out.append(ps[i])
+                continue
+            if i == 0 or i == len(ts):
+                return None
+            a = (t - ts[i - 1]) / (ts[i] - ts[i - 1])
+            out.append((1 - a) * ps[i - 1] + a * ps[i])
+        return np.stack(out)
+
+
+def path_length(points: np.ndarray) -> float:
+    """Σ |P_{j+1} − P_j| of an N x 3 path."""
+    p = np.asarray(points, np.float64)
+    if p.shape[0] < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def read_poses_file(path) -> np.ndarray:
+    """A poses file (one row per frame: a 4x4 camera-to-world matrix, row-major, metres, as
+    hololens_000's ``poses.txt``) → N x 4 x 4."""
+    try:
+        rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read poses file {path}: {exc}") from exc
+    if rows.shape[1] != 16:
+        raise InputError(f"{path}: expected 16 numbers per row (a 4x4 matrix), got "
+                         f"{rows.shape[1]}")
+    return rows.reshape(-1, 4, 4)

@@ -1,0 +1,124 @@
+"""One steady metric factor from the windows' estimates.
+
+Per window w with alignment scale ŝ_w (D_nn ≈ ŝ_w·D_sfm, Eq. (4)) and metres per SfM unit
+m_w (:mod:`.ground`, :mod:`.odometry`), the window's weights predict in units of
+k_w = m_w / ŝ_w metres (refinement pulls the network onto ŝ_w·D_sfm; with ``learn`` the
+targets are m_w·D_sfm and k_w → 1 as the network learns metres). Frame-to-frame scale that
+wanders breaks what consumes the depth (SLAM, odometry, costmaps), so the outputs are scaled by
+the median of the last ``history`` ACCEPTED windows' k_w, not by each window's own; a window
+whose k_w lies more than ``max_jump`` from that median is refused like a scale jump (its
+reconstruction or its ground plane is wrong). ``fixed`` uses the user's factor from the start;
+``none`` leaves the network's units (and says so).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from sfm_ttr_ros.core.metric.config import MetricConfig
+from sfm_ttr_ros.core.metric.ground import cameras, ground_plane
+from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
+from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+
+
+@dataclass
+class WindowMetric:
+    """One window's metric estimate: metres per SfM unit ``m`` and per network unit ``k``
+    (NaN when there is none, ``reason`` says why), and what the ground plane or the odometry
+    measured."""
+
+    source: str
+    m: float = float("nan")
+    k: float = float("nan")
+    reason: str = ""
+    ground_inliers: int = 0
+    height_spread: float = float("nan")
+    travel_m: float = float("nan")
+
+    @property
+    def ok(self) -> bool:
+        return math.isfinite(self.k) and self.k > 0
+
+
+def estimate(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
+             stamps: Sequence[float], alignment_scale: float,
+             odometry: OdometryTrack | None) -> WindowMetric:
+    """The window's metric estimate by ``cfg.source`` (module docstring)."""
+    w = WindowMetric(cfg.source)
+    if cfg.source in ("none", "fixed"):
+        return w
+    if cfg.source == "camera_height":
+        plane = ground_plane(sfm, registered, cfg)
+        w.ground_inliers, w.height_spread = plane.inliers, plane.spread
+        if not math.isfinite(plane.height):
+            w.reason = f"no ground plane: {plane.reason}"
+            return w
+        w.m = cfg.camera_height / plane.height
+    else:
+        w.m, w.travel_m, w.reason = _odometry_scale(cfg, sfm, registered, stamps, odometry)
+    if math.isfinite(w.m) and alignment_scale > 0:
+        w.k = w.m / alignment_scale
+    return w
+
+
+def _odometry_scale(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
+                    stamps: Sequence[float], odometry: OdometryTrack | None
+                    ) -> tuple[float, float, str]:
+    """(m, travelled metres, reason) from the odometry track over the registered frames."""
+    if odometry is None or len(odometry) < 2:
+        return float("nan"), float("nan"), "no odometry received"
+    positions = odometry.positions_at(stamps)
+    if positions is None:
+        return float("nan"), float("nan"), "odometry does not cover the window's stamps"
+    travel = path_length(positions)
+    sfm_path = path_length(cameras(sfm, registered)[0])
+    if travel < cfg.min_travel or sfm_path <= 0:
+        return float("nan"), travel, f"travelled {travel:.2f} m < metric.min_travel"
+    return travel / sfm_path, travel, ""
+
+
+class MetricScale:
+    """The steady factor (metres per network unit) of a stream's accepted windows."""
+
+    def __init__(self) -> None:
+        self.history: deque[float] = deque()
+
+    def factor(self, cfg: MetricConfig) -> float | None:
+        """Metres per network unit for the outputs now; None = not metric (``none``, or no
+        accepted estimate yet)."""
+        if cfg.source == "fixed":
+            return float(cfg.factor)
+        if cfg.source == "none" or not self.history:
+            return None
+        return float(np.median(self.history))
+
+    def spread(self) -> float:
+        """Relative standard deviation of the accepted windows' k (NaN with fewer than 2)."""
+        if len(self.history) < 2:
+            return float("nan")
+        h = np.asarray(self.history)
+        return float(h.std() / h.mean())
+
+    def refusal(self, cfg: MetricConfig, window: WindowMetric) -> str:
+        """Why ``window``'s estimate refuses it ("" = not refused): further than max_jump
+        from the steady factor."""
+        current = self.factor(cfg)
+        if cfg.source in ("none", "fixed") or not window.ok or current is None \
+                or cfg.max_jump <= 0:
+            return ""
+        ratio = max(window.k / current, current / window.k)
+        if ratio <= cfg.max_jump:
+            return ""
+        return (f"metric scale {window.k:.4g} m per unit is {ratio:.2f}x the stream's "
+                f"{current:.4g} > metric.max_jump {cfg.max_jump:g}")
+
+    def accept(self, cfg: MetricConfig, window: WindowMetric) -> None:
+        if window.ok:
+            self.history.append(window.k)
+            while len(self.history) > cfg.history:
+                self.history.popleft()
