@@ -18,6 +18,8 @@ INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_mono
                          "qos_incompatible", "windows_ok", "windows_failed",
                          "windows_skipped_overload", "windows_disabled",
                          "windows_rejected_by_check", "windows_remapped", "faults"]
+KEYFRAME_KEYS = ["keyframes.policy", "keyframes.interval_s", "keyframes.needed_s",
+                 "keyframes.reason", "keyframes.stale", "keyframes.behind_s"]
 
 
 def frame(i: int) -> Frame:
@@ -39,8 +41,11 @@ def test_an_idle_stream_is_ok_with_every_counter_at_zero(stream):
     diag = StreamDiagnostics(stream)
     status = diag.status()
     assert status == Status("ok", "0 refined, 0 window(s) ok", status.values)
-    assert list(status.values) == FRAME_KEYS + INPUT_AND_WINDOW_KEYS
-    assert set(status.values.values()) == {0}
+    assert list(status.values) == FRAME_KEYS + INPUT_AND_WINDOW_KEYS + KEYFRAME_KEYS
+    assert {status.values[k] for k in FRAME_KEYS + INPUT_AND_WINDOW_KEYS} == {0}
+    # the keyframe rule, before any frame: every frame a keyframe, nothing behind
+    assert [status.values[k] for k in KEYFRAME_KEYS] == ["auto", 0.0, 0.0, "every_frame", 0,
+                                                         0.0]
 
 
 def test_held_frames_count_as_received_and_pending(stream):

@@ -209,7 +209,8 @@ def test_overflow_drops_the_oldest_pending_frame():
 def test_overload_skips_refinement_until_the_queue_drains():
     ttr = ScriptedTTR()
     stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
-                                                 overload_pending=2, max_pending=50))
+                                                 overload_pending=2, max_pending=50,
+                                                 keyframe_policy="all"))
     for f in frames(8):
         stream.submit(f, INTR)
     outs = stream.process_available()
@@ -225,7 +226,8 @@ def overloaded_stream(ttr, republish: bool) -> StreamProcessor:
     """Windows of 2, refinement skipped while more than 2 frames wait (backlog bound: 4)."""
     return StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
                                                overload_pending=2, max_pending=50,
-                                               republish_unrefined=republish))
+                                               republish_unrefined=republish,
+                                               keyframe_policy="all"))
 
 
 def test_frames_served_live_are_not_predicted_again_unless_republished():
@@ -520,11 +522,14 @@ def test_zero_steps_publishes_unrefined_as_disabled_without_running_sfm(sequence
 
 def test_the_next_windows_sfm_begins_while_a_window_runs():
     """While window 0 refines, the frames of window 1 (its 5 overlap frames + 5 new ones) are
-    all queued: their SfM is asked for ahead, once; with keyframe selection on, never."""
-    for interval, want in ((0.0, [[f"{k:010d}" for k in range(5, 15)]]), (0.05, [])):
+    all queued: their SfM is asked for ahead, once (keyframe_policy all: every frame a
+    keyframe); with keyframe selection on (an interval, or the auto policy), never."""
+    for policy, interval, want in (("all", 0.0, [[f"{k:010d}" for k in range(5, 15)]]),
+                                   ("all", 0.05, []), ("auto", 0.0, [])):
         ttr = ScriptedTTR(delay=0.3)
         s = StreamProcessor(ttr, StreamSettings(window_size=10, window_stride=5,
                                                 min_keyframe_interval_s=interval,
+                                                keyframe_policy=policy,
                                                 overload_pending=0))
         worker = threading.Thread(target=lambda st=s: [st.step(timeout=0.05) for _ in range(60)])
         fs = frames(16)
@@ -536,7 +541,7 @@ def test_the_next_windows_sfm_begins_while_a_window_runs():
         for k in range(10, 16):
             s.submit(fs[k], INTR)
         worker.join()
-        assert ttr.prefetched == want, interval
+        assert ttr.prefetched == want, (policy, interval)
         assert s.counters()["sfm_ahead"]["started"] == len(want)
 
 

@@ -32,6 +32,7 @@ class Unrefined(StrEnum):
     CHECK_UNSUPPORTED_CHANGE = "check_unsupported_change"
     # -- the stream passed the frame on (core/stream/windows.py)
     NOT_KEYFRAME = "not_keyframe"
+    STALE = "stale"
     OVERLOAD = "overload"
     RESOLUTION_CHANGE = "resolution_change"
     INTRINSICS_CHANGE = "intrinsics_change"
@@ -102,6 +103,7 @@ _UNREFINED = {
     Unrefined.CHECK_UNSUPPORTED_CHANGE: "refined weights rejected: depth changed where SfM has "
                                         "no points",
     Unrefined.NOT_KEYFRAME: "not a keyframe",
+    Unrefined.STALE: "skipped behind: the frames queued after it span the next window",
     Unrefined.OVERLOAD: "overload: refinement skipped",
     Unrefined.RESOLUTION_CHANGE: "image resolution changed",
     Unrefined.INTRINSICS_CHANGE: "intrinsics changed",

@@ -130,6 +130,11 @@ class StreamDiagnostics:
                       "serving.reverts": lv["serving_reverts"],
                       "serving.interim_refused": lv["serving_interim_refused"]})
             v.update({f"live.{k}": lv[k] for k in LATENCY_KEYS})
+        kf = self.stream.keyframes  # the keyframe rule now (core/stream/keyframes.py)
+        v.update({"keyframes.policy": self.stream.settings.keyframe_policy,
+                  "keyframes.interval_s": kf.interval_s, "keyframes.needed_s": kf.needed_s,
+                  "keyframes.reason": kf.reason, "keyframes.stale": kf.stale,
+                  "keyframes.behind_s": self.stream.behind_s()})
         metric = getattr(self.stream.ttr, "metric_status", None)
         if metric is not None:  # the outputs' units (core/metric/)
             v.update({f"metric.{k}": x for k, x in metric().items()})
@@ -173,6 +178,11 @@ class StreamDiagnostics:
             if v.get("metric.state") == "waiting" and w is not None:
                 problems.append("depth not metric yet" + (f": {w.metric_reason}"
                                                           if w.metric_reason else ""))
+            if v["keyframes.reason"] == "widest":
+                problems.append(f"the camera outruns the windows: keyframes "
+                                f"{v['keyframes.needed_s']:.2f} s apart needed, at most "
+                                f"{v['keyframes.interval_s']:.2f} s (max_keyframe_interval_s): "
+                                "frames are skipped as stale")
             if v["frames_held_no_intrinsics"]:
                 problems.append("no intrinsics: frames held")
             if v["qos_incompatible"]:

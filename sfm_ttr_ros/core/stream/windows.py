@@ -77,7 +77,6 @@ from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
@@ -85,9 +84,9 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import CHECKS, Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm.reconstruction import SfmCancelled
+from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES, KeyframeSelector
 from sfm_ttr_ros.core.stream.throttle import Throttle
 
-THUMB_WIDTH = 64
 # the idle flush waits at least this many median frame intervals of the last
 # IDLE_CADENCE_FRAMES arrivals (a 0.5 Hz camera with idle_flush_s 2 s: 6 s)
 IDLE_INTERVALS = 3.0
@@ -107,7 +106,11 @@ class StreamSettings:
     # > 0: the stream's first window closes after this many keyframes instead of window_size,
     # so that the first refined weights reach the live output sooner (a short clip); 0 = off
     first_window_size: int = 0
+    # which frames are keyframes (core/stream/keyframes.py): auto = at the rate the windows
+    # can afford, all = every frame, newest = windows of the newest consecutive frames
+    keyframe_policy: str = "auto"
     min_keyframe_interval_s: float = 0.0
+    max_keyframe_interval_s: float = 1.0  # auto: the widest spacing of keyframes
     min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
     max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
     overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
@@ -147,9 +150,13 @@ class StreamSettings:
         if not 1 <= self.window_stride <= self.window_size:
             raise InputError(f"window_stride must be in [1, window_size={self.window_size}], "
                              f"got {self.window_stride}")
+        if self.keyframe_policy not in KEYFRAME_POLICIES:
+            raise InputError(f"keyframe_policy must be one of {', '.join(KEYFRAME_POLICIES)}; "
+                             f"got {self.keyframe_policy!r}")
         if self.max_pending < 1:
             raise InputError(f"max_pending must be >= 1, got {self.max_pending}")
-        for name in ("min_keyframe_interval_s", "min_keyframe_motion", "idle_flush_s"):
+        for name in ("min_keyframe_interval_s", "max_keyframe_interval_s",
+                     "min_keyframe_motion", "idle_flush_s"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"{name} must be a finite number >= 0, got {v}")
@@ -239,14 +246,6 @@ def _in_metres(depth: np.ndarray | None, metres_per_unit: float | None) -> np.nd
     return (depth * np.float32(metres_per_unit)).astype(np.float32, copy=False)
 
 
-def _thumb(image: np.ndarray) -> np.ndarray:
-    h, w = image.shape[:2]
-    tw = min(THUMB_WIDTH, w)
-    th = max(1, round(h * tw / w))
-    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    return cv2.resize(grey, (tw, th), interpolation=cv2.INTER_AREA).astype(np.float32)
-
-
 class StreamProcessor:
     """Sliding-window SfM-TTR over a stream (see the module docstring for the rules).
 
@@ -308,8 +307,7 @@ class StreamProcessor:
         self._intr: Intrinsics | None = None
         self._intr_fallback = False  # self._intr are the fallback's (replaced by received ones)
         self._last_stamp: float | None = None
-        self._kf_stamp: float | None = None
-        self._kf_thumb: np.ndarray | None = None
+        self.keyframes = KeyframeSelector()  # which frames are keyframes (keyframes.py)
         self._window_index = 0
         # the window being processed (frames, intrinsics): what the next one overlaps
         self._running: tuple[list[Frame], Intrinsics] | None = None
@@ -411,7 +409,7 @@ class StreamProcessor:
                 outs += self._flush_unrefined(Unrefined.END_OF_STREAM, "end of stream: a "
                                               "single frame cannot make a window")
         self._buffer = []
-        self._kf_stamp = self._kf_thumb = None
+        self.keyframes.reset()
         return outs
 
     # -- introspection ---------------------------------------------------------------------------
@@ -517,7 +515,7 @@ class StreamProcessor:
                              "a new window started")
             outs += self._flush_unrefined(Unrefined.STAMP_JUMP_BACK,
                                           "stamp went back: window reset")
-            self._kf_stamp = self._kf_thumb = None
+            self.keyframes.reset()
         self._last_stamp = frame.stamp
 
         if frame.image is RELEASED_IMAGE:  # the backlog bound took its image: no window
@@ -525,7 +523,7 @@ class StreamProcessor:
                       "window_size images kept); served live")
             self._warn("overload", reason)
             outs += self._flush_unrefined(Unrefined.OVERLOAD, reason)
-            self._kf_stamp = self._kf_thumb = None
+            self.keyframes.reset()
             outs += self._unrefined([frame], Unrefined.OVERLOAD, reason)
             return outs
 
@@ -543,7 +541,16 @@ class StreamProcessor:
                 outs += self._intrinsics_changed(intr, size_changed)
         self._intr, self._intr_fallback = intr, frame.fallback_intrinsics
 
-        if not self._is_keyframe(frame, s):
+        verdict = self.keyframes.judge(frame, s.keyframe_policy, s.min_keyframe_interval_s,
+                                       s.max_keyframe_interval_s, s.min_keyframe_motion,
+                                       s.window_size, s.window_stride, self._newest_stamp())
+        if verdict.stale:
+            why = ("stale: the frames queued after it span the next window "
+                   f"(keyframe_policy {s.keyframe_policy})")
+            outs += self._flush_unrefined(Unrefined.STALE, why)
+            outs += self._unrefined([frame], Unrefined.STALE, why)
+            return outs
+        if not verdict.keyframe:
             outs += self._unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
             return outs
         self._buffer.append(_Entry(frame))
@@ -565,21 +572,21 @@ class StreamProcessor:
         self.log.warning(f"{what}: {self._n_unpublished} pending frame(s) published "
                          "unrefined and a new window started")
         outs = self._flush_unrefined(key, what)
-        self._kf_stamp = self._kf_thumb = None
+        self.keyframes.reset()
         return outs
 
-    def _is_keyframe(self, frame: Frame, s: StreamSettings) -> bool:
-        thumb = _thumb(frame.image)
-        if self._kf_stamp is not None:
-            if (s.min_keyframe_interval_s > 0
-                    and frame.stamp - self._kf_stamp < s.min_keyframe_interval_s):
-                return False
-            if (s.min_keyframe_motion > 0 and self._kf_thumb is not None
-                    and self._kf_thumb.shape == thumb.shape
-                    and float(np.mean(np.abs(thumb - self._kf_thumb))) < s.min_keyframe_motion):
-                return False
-        self._kf_stamp, self._kf_thumb = frame.stamp, thumb
-        return True
+    def behind_s(self) -> float:
+        """How far the worker is behind the camera: the newest queued frame's stamp minus the
+        stamp of the last frame it took (0 when nothing waits)."""
+        newest = self._newest_stamp()
+        if newest is None or self._last_stamp is None:
+            return 0.0
+        return max(0.0, newest - self._last_stamp)
+
+    def _newest_stamp(self) -> float | None:
+        """The stamp of the newest frame queued (None: the queue is empty)."""
+        with self._cv:
+            return self._queue[-1][0].stamp if self._queue else None
 
     def _prefetch_next(self) -> None:
         """While a window runs: once the frames of the window after it are all queued (its
@@ -589,7 +596,8 @@ class StreamProcessor:
         has ended: asked again at every frame that arrives). Called by :meth:`submit`; cheap
         when there is nothing to do."""
         s = self.settings
-        if not s.prefetch_sfm or s.min_keyframe_interval_s > 0 or s.min_keyframe_motion > 0:
+        if (not s.prefetch_sfm or s.keyframe_policy != "all" or s.min_keyframe_interval_s > 0
+                or s.min_keyframe_motion > 0):
             return
         with self._cv:
             if self._running is None or len(self._queue) < s.window_stride:
@@ -699,6 +707,8 @@ class StreamProcessor:
         """Mark the window's frames published and report it (``stats`` is already in
         :attr:`windows`: it goes there before the window's first output is published)."""
         stats.finished_at = time.monotonic()
+        if stats.reason_key != Unrefined.OVERLOAD:  # the worker's pace (auto keyframes)
+            self.keyframes.window_done(stats.finished_at - stats.started_at)
         for e in entries:
             e.published = True
         if self.on_window is not None:
