@@ -23,7 +23,13 @@ from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.windows import StreamSettings, WindowStats
 from sfm_ttr_ros.data.sequence import ImageSequence
-from sfm_ttr_ros.tools.benchmark.runners import ModeRun, feed_odometry, log, window_record
+from sfm_ttr_ros.tools.benchmark.runners import (
+    ModeRun,
+    feed_odometry,
+    feed_stamp,
+    log,
+    window_record,
+)
 
 #: Frames timed for the network's bare forward pass before the run starts.
 FORWARD_PROBES = 10
@@ -53,7 +59,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     ttr = SfmTTR(model, copy.deepcopy(cfg))
     forward = bare_forward_s(ttr.model, seq.frame(indices[0]).image)
     live = _LiveRun(run, indices, progress)
-    feed_odometry(ttr, seq, indices)
+    feed_odometry(ttr, seq, indices, rate)
     online = StreamRefiner(ttr, copy.deepcopy(settings), on_live=live.on_live,
                            on_window=live.on_window, logger=log)
     live.online = online
@@ -136,6 +142,7 @@ def _feed(seq: ImageSequence, indices: Sequence[int], rate: float, live: _LiveRu
     t_start = time.monotonic()
     for k, i in enumerate(indices):
         frame = seq.frame(i)  # read before its due time
+        frame.stamp = feed_stamp(seq, indices, k, rate)  # a camera at the feed rate
         due = t_start + k / rate
         live.evaluate(until=due)
         delay = due - time.monotonic()

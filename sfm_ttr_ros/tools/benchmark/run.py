@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -183,8 +184,11 @@ def _run_mode(bench: _Benchmark, mode: str, model) -> ModeRun:
     if mode == "no_ttr":
         run_no_ttr(run, seq, indices, model, bench.ttr, progress)
     elif mode.endswith("_online"):  # sfm_ttr / ph_ttr / hybrid: the mode's loss
-        run_online(run, seq, indices, model, mode_config(mode, bench.ttr), bench.stream,
-                   progress)
+        stream = bench.stream if mode == "node_online" else \
+            dataclasses.replace(bench.stream, keyframe_policy="all")  # the paper's windows
+        realtime = mode == "node_online" and stream.keyframe_policy != "all"
+        run_online(run, seq, indices, model, mode_config(mode, bench.ttr), stream, progress,
+                   opts.rate if realtime else None)
     elif mode == "sfm_ttr_live":
         run_live(run, seq, indices, model, bench.ttr, bench.stream, progress, opts.rate)
     else:

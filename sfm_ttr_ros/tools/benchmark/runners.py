@@ -163,17 +163,31 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
             "metric_estimate": ws.metric_estimate, "metric_reason": ws.metric_reason}
 
 
-def feed_odometry(ttr: SfmTTR, seq: ImageSequence, indices: Sequence[int]) -> None:
+def feed_stamp(seq: ImageSequence, indices: Sequence[int], k: int, rate: float | None) -> float:
+    """The stamp of the ``k``-th fed frame: the sequence's own, or with a feed ``rate`` (Hz) the
+    time it is fed at (a camera at that rate; the keyframe rule reads stamps)."""
+    if rate is None:
+        return float(seq.stamps[indices[k]])
+    return float(seq.stamps[indices[0]]) + k / rate
+
+
+def feed_odometry(ttr: SfmTTR, seq: ImageSequence, indices: Sequence[int],
+                  rate: float | None = None) -> None:
     """The sequence's camera positions (its ``poses.txt``) at its frames' stamps, as the node
     gets them on ``odom``: the odometry source of ``metric.source: odometry``."""
     if seq.poses is None:
         return
-    for i in indices:
-        ttr.odometry.add(seq.stamps[i], seq.poses[i][:3, 3])
+    for k, i in enumerate(indices):
+        ttr.odometry.add(feed_stamp(seq, indices, k, rate), seq.poses[i][:3, 3])
 
 
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
-                cfg: TTRConfig, settings: StreamSettings, progress) -> None:
+               cfg: TTRConfig, settings: StreamSettings, progress,
+               rate: float | None = None) -> None:
+    """Every frame through the node's :class:`StreamProcessor`, synchronously (each frame
+    waits for the one before: the windows' accuracy at any speed), or with ``rate`` (Hz) in
+    virtual time: frames arrive at that rate while the worker spends its measured time on each
+    (:func:`_push_in_virtual_time`), as the node's keyframe rule sees a camera."""
     ttr = SfmTTR(model, copy.deepcopy(cfg))
     dropped: list[tuple[Any, str]] = []
     windows: dict[str, Any] = {"windows": 0, "windows_refined": 0, "window_log": []}
@@ -202,18 +216,21 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         for o in outs:
             run.add(o.frame.index, o.depth, o.refined, o.reason_key)
 
-    feed_odometry(ttr, seq, indices)
+    feed_odometry(ttr, seq, indices, rate)
     stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
                              on_drop=on_drop, logger=log)
     # the node's worker pays these before its first frame (StreamRefiner.start): not timed
     run.extra["warm_up_s"] = ttr.warm_up()
     try:
-        for i in indices:
-            f = seq.frame(i)
-            t0 = time.perf_counter()
-            outs = stream.push(f, seq.intrinsics)
-            run.seconds += time.perf_counter() - t0
-            take(outs)
+        if rate is None:
+            for i in indices:
+                f = seq.frame(i)
+                t0 = time.perf_counter()
+                outs = stream.push(f, seq.intrinsics)
+                run.seconds += time.perf_counter() - t0
+                take(outs)
+        else:
+            _push_in_virtual_time(stream, seq, indices, rate, take, run)
         t0 = time.perf_counter()
         outs = stream.flush()
         run.seconds += time.perf_counter() - t0
@@ -231,6 +248,28 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra.update(windows)
     run.extra["stream_counters"] = counters
     run.extra["metric"] = ttr.metric_status()
+
+
+def _push_in_virtual_time(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int],
+                          rate: float, take, run: ModeRun) -> None:
+    """Frame k arrives at k / rate s (its stamp rewritten to that time); the worker takes one
+    queued frame at a time and its processing time (measured) advances the clock, so the frames
+    due meanwhile are queued before its next step: the queue, the stale frames and the
+    keyframe intervals of a camera at ``rate`` on this machine, without the live server."""
+    clock, k, n = 0.0, 0, len(indices)
+    while k < n or stream.queued():
+        if not stream.queued():
+            clock = max(clock, k / rate)  # idle until the next frame arrives
+        while k < n and k / rate <= clock:
+            frame = seq.frame(indices[k])
+            frame.stamp = feed_stamp(seq, indices, k, rate)
+            stream.submit(frame, seq.intrinsics)
+            k += 1
+        t0 = time.perf_counter()
+        take(stream.step(timeout=0.0))
+        dt = time.perf_counter() - t0
+        run.seconds += dt
+        clock += dt
 
 
 def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
