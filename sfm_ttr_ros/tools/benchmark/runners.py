@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator
+from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator, mean_over_frames
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream.windows import (
     FrameOutput,
@@ -116,6 +116,10 @@ class ModeRun:
         out["ratio_median"] = s["ratio_median"]
         out["ratio_std"] = s["ratio_std"]
         out["timings"] = dict(self.timings)
+        # the frames a window refined (a keyframe rule leaves others unrefined): their means
+        covered = [r for r in self.per_frame.values() if r["refined"] and r.get("abs_rel")
+                   is not None]
+        out["covered"] = mean_over_frames(covered)
         out["bands"] = self.bands.bands()
         out["error_by_depth"] = self.bands.by_depth()
         out.update(self.extra)
