@@ -126,6 +126,8 @@ class WindowResult:
             "scale": self.scale,
             "loss_before": self.loss_before,
             "loss_after": self.loss_after,
+            "step_mode": ([self.refinement.step_mode, self.refinement.step_mode_reason]
+                          if self.refinement is not None else None),
             "check": self.check.summary() if self.check else None,
         }
 

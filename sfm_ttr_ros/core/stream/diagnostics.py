@@ -147,6 +147,7 @@ class StreamDiagnostics:
                 "last_window.loss_after": w.loss_after,
                 "last_window.steps": w.steps,
                 "last_window.steps_done": w.steps_done,
+                "last_window.step_mode": w.step_mode,
                 "last_window.unsupported_change": w.unsupported_change,
             })
             v.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
