@@ -133,7 +133,7 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     cfg.refinement.loss = "sfm"  # never refines: a loss this model cannot run must not stop it
     ttr = SfmTTR(model, cfg)
     try:
-        b = max(1, cfg.predict_batch)
+        b = ttr.predictor.effective_batch
         for k in range(0, len(indices), b):
             frames = [seq.frame(i) for i in indices[k:k + b]]
             t0 = time.perf_counter()
