@@ -363,6 +363,25 @@ class SfmTTR:
         self._cloud(res, res.sfm, w.registered)
         return res
 
+    def refinement_inputs(self, frames: Sequence[Frame], intrinsics: Intrinsics
+                          ) -> tuple[list[FrameSupervision], list[PhotometricFrame]] | Stop:
+        """A window's inputs to the refinement, as :meth:`process_window` makes them (Fig. 2 up
+        to Sec. 3.3: the predictions before, SfM, the scale, Eq. (5)'s supervision per frame,
+        the photometric frames), without the checks and without refining: what a profile of
+        the refinement's steps runs on (tools/step_profile.py). The weights are not touched;
+        a window that stops before refining gives its :class:`Stop`."""
+        check_window(frames, intrinsics)
+        self._stop = False
+        w = self._predict_before(frames, intrinsics)
+        if stop := self._reconstruct(w):
+            return stop
+        if stop := self._align(w):
+            return stop
+        self._supervise(w)
+        res = w.result
+        return w.supervision, self._photometric_frames(w.names, w.images, res.sfm, res.scale,
+                                                       w.intrinsics)
+
     def interim_refusal(self) -> str:
         """Why the refining window's current weights may not be served yet ("" = they may).
         With ``check.max_unsupported_change`` on, its unsupported change
