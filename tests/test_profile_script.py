@@ -85,3 +85,23 @@ def test_the_script_runs_and_refuses_a_window_outside_the_drive(data):
                                         "frames": 4, "image_size": [320, 96],
                                         "stop": "SfM failed"})
     assert lines[-1] == "window not refined: SfM failed"
+
+
+def test_the_gpu_checks_summary(data, report, tmp_path):
+    """scripts/gpu_window_check.sh's check.json from the files its parts write (here: the
+    profile above, a parts line, a benchmark's results.json in short)."""
+    (tmp_path / "profile.json").write_text(json.dumps(report))
+    (tmp_path / "parts.jsonl").write_text('{"part": "profile", "rc": 0, "seconds": 3}\n')
+    bench = tmp_path / "bench_graph"
+    bench.mkdir()
+    (bench / "results.json").write_text(json.dumps({"modes": ["node_online"], "node_online": {
+        "abs_rel": 0.1, "seconds_per_frame": 0.3, "timings": {"refine": 2.0}, "windows": 2,
+        "window_log": [{"step_mode": "graph"}, {"step_mode": "graph"}]}}))
+    path = step_profile.write_check_summary(tmp_path)
+    s = json.loads(path.read_text())
+    assert s["parts"] == [{"part": "profile", "rc": 0, "seconds": 3}]
+    assert s["profile"]["profile"]["auto"]["reason"] == "not on CUDA (cpu)"
+    assert s["profile"]["micro"]["eager"]["step_mode"] == "eager" and s["profile"]["sfm"]
+    assert s["bench_graph"]["node_online"]["step_modes"] == {"graph": 2}
+    assert s["bench_graph"]["node_online"]["refine_s"] == 2.0
+    assert s["timing"] == {} and s["bench_eager"] is None  # parts that wrote nothing

@@ -340,3 +340,65 @@ def main(argv: Sequence[str] | None = None) -> int:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(report, indent=1, default=str) + "\n")
     return 0
+
+
+# -- scripts/gpu_window_check.sh's summary ---------------------------------------------------
+
+def _mode_summary(r: dict[str, Any]) -> dict[str, Any]:
+    keys = ("step_mode", "reason", "steps", "steady_ms_per_step", "launches_steady_median",
+            "launches_kind", "device_busy_ms_per_step", "max_rel_loss_diff", "seconds")
+    return {k: r.get(k) for k in keys if k in r}
+
+
+def _bench_summary(path: Path) -> dict[str, Any] | None:
+    """A benchmark's results.json in short: per mode accuracy, seconds per frame, the
+    refinement's seconds, how the windows' steps ran, live latency and first weights."""
+    if not path.is_file():
+        return None
+    r = json.loads(path.read_text())
+    out = {}
+    for mode in r.get("modes", []):
+        m = r[mode]
+        modes: dict[str, int] = {}
+        for w in m.get("window_log", []):
+            modes[w.get("step_mode") or "none"] = modes.get(w.get("step_mode") or "none", 0) + 1
+        out[mode] = {"abs_rel": m.get("abs_rel"), "rmse": m.get("rmse"),
+                     "seconds_per_frame": m.get("seconds_per_frame"),
+                     "refine_s": (m.get("timings") or {}).get("refine"),
+                     "windows": m.get("windows"), "windows_refined": m.get("windows_refined"),
+                     "step_modes": modes}
+        for k in ("latency_p95_s", "first_weights_s", "last_frame_to_first_weights_s"):
+            if k in m:
+                out[mode][k] = m[k]
+    return out
+
+
+def check_summary(out: str | Path) -> dict[str, Any]:
+    """What ``scripts/gpu_window_check.sh`` measured, from the files it wrote in ``out``: the
+    device, each part's exit status and seconds, per step mode the profile's and timing's
+    figures, the micro-benchmark, the SfM per feature kind, the two benchmarks in short."""
+    out = Path(out)
+    res: dict[str, Any] = {}
+    for name in ("device", "profile", "timing"):
+        p = out / f"{name}.json"
+        res[name] = json.loads(p.read_text()) if p.is_file() else None
+    parts = out / "parts.jsonl"
+    res["parts"] = [json.loads(line) for line in parts.read_text().splitlines()
+                    if line.strip()] if parts.is_file() else []
+    for name in ("profile", "timing"):
+        r = res[name] or {}
+        res[name] = {key: {m: _mode_summary(v) for m, v in r[key].items()
+                           if isinstance(v, dict)}
+                     for key in ("profile", "timing", "micro") if key in r} | (
+            {"sfm": r["sfm"]} if "sfm" in r else {}) | (
+            {"stop": r["stop"]} if "stop" in r else {})
+    res["bench_graph"] = _bench_summary(out / "bench_graph" / "results.json")
+    res["bench_eager"] = _bench_summary(out / "bench_eager" / "results.json")
+    return res
+
+
+def write_check_summary(out: str | Path) -> Path:
+    """:func:`check_summary` written to ``out/check.json``; its path."""
+    path = Path(out) / "check.json"
+    path.write_text(json.dumps(check_summary(out), indent=1, default=str) + "\n")
+    return path

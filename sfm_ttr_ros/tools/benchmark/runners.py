@@ -151,7 +151,8 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 
 def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[str, Any]:
     """One window of a windowed mode for results.json: its frames (sequence
-    indices), outcome and reason key, and what the window checks measured."""
+    indices), outcome and reason key, what the window checks measured, and how its refinement
+    steps ran (``step_mode``: graph, or eager / static with the reason)."""
     res = ws.result
     check = res.check.summary() if res is not None and res.check is not None else None
     return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
@@ -159,7 +160,8 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
             "registered": ws.registered, "points": ws.points, "scale": ws.scale,
             "sfm_attempts": list(res.sfm.attempts) if res is not None and res.sfm else [],
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
-            "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check}
+            "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check,
+            "step_mode": ws.step_mode}
 
 
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
