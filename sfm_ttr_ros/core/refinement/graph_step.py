@@ -255,7 +255,7 @@ class StaticStepRunner:
         # what ran when it is not what was planned ("" = as planned)
         self.mode, self.reason = ("graph" if capture else "static"), ""
         self.graph = None
-        self.steps_run = 0
+        self.steps_run = self.replays = 0
         self._side = torch.cuda.Stream(self.device) if capture and cuda else None
 
     def _body(self) -> None:
@@ -304,6 +304,7 @@ class StaticStepRunner:
         if self.graph is not None:
             self._load(frame)
             self.graph.replay()
+            self.replays += 1
         else:
             with self._warm_up_stream():
                 self._load(frame)
@@ -316,7 +317,13 @@ class StaticStepRunner:
         return self.history[:steps].tolist() if steps else []
 
     def close(self) -> None:
-        """Release the graph, its gradients and the window's buffers."""
+        """Release the graph, its gradients and the window's buffers. Replays change the
+        weights and BatchNorm statistics in place without bumping their version counters,
+        which the predictions' cache keys on (core/prediction.py): bumped here once."""
+        if self.replays:
+            from torch.autograd.graph import increment_version
+
+            increment_version([*self.model.parameters(), *self.model.buffers()])
         self.graph = None
         self.optimizer.zero_grad(set_to_none=True)
         self.frames, self.buffers = [], {}
