@@ -18,7 +18,8 @@
 #     the step micro-benchmark (200 steps, Eq. (5) at 600 points); timing.json: the same
 #     window without the profiler and its SfM with pycolmap's SIFT against the batched torch
 #     SIFT; bench_graph/: `sfm-ttr benchmark --modes node_online sfm_ttr_live --set
-#     device=cuda` (step_mode auto: the graph); bench_eager/: node_online with step_mode eager;
+#     device=cuda` (step_mode auto: the graph; live at 3 Hz); bench_eager/: node_online with
+#     step_mode eager;
 # (d) parts.jsonl: each part's exit status and seconds; check.json: all of it in short
 #     (sfm_ttr_ros/tools/step_profile.py check_summary); summary.txt: the lines people read.
 set -uo pipefail
@@ -86,7 +87,9 @@ else
     DEVICE=cuda
     SETS=(--set device=cuda)
 fi
-DATA="$OUT/data"
+# the drive lives outside $OUT: what is under $OUT comes back from the device machine
+DATA=${GPU_CHECK_DATA:-${TMPDIR:-/tmp}/sfm_ttr_gpu_check}
+rm -rf "$DATA"
 D=(--kitti-raw "$DATA/raw" --kitti-gt "$DATA/gt" --drive 2011_09_26_drive_0001_sync)
 CLI=("$PY" -m sfm_ttr_ros)
 PROFILE=("$PY" scripts/profile_refinement.py --kitti-raw "$DATA/raw" --window "$WINDOW"
@@ -98,9 +101,11 @@ part generate 120 "${CLI[@]}" generate --kitti-raw "$DATA/raw" --kitti-gt "$DATA
 # (c) eager against the graph, under the profiler, and the step micro-benchmark
 part profile 150 "${PROFILE[@]}" --modes eager auto --micro-steps "$MICRO" \
     --micro-points "$POINTS" --out "$OUT/profile.json"
-# the node's windows and live output with the graph (step_mode auto on CUDA)
+# the node's windows and live output with the graph (step_mode auto on CUDA); the live feed at
+# 3 Hz: 30 frames last 10 s, so that the first window ends before the feed does (the end of
+# the feed cancels a running window)
 part bench_graph 150 "${CLI[@]}" benchmark "${D[@]}" "${SETS[@]}" \
-    --modes node_online sfm_ttr_live --rate 10 --figure-frames 0 --out "$OUT/bench_graph"
+    --modes node_online sfm_ttr_live --rate 3 --figure-frames 0 --out "$OUT/bench_graph"
 # the same window timed without the profiler; its SfM with pycolmap's and the torch SIFT
 part timing 120 "${PROFILE[@]}" --modes eager auto --no-profile \
     --sfm-features colmap torch --out "$OUT/timing.json"

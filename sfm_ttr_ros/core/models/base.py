@@ -116,7 +116,7 @@ def _to_cuda_float(images, device: torch.device) -> torch.Tensor:
     staging copy), converted on the device (the same numbers as on the host)."""
     batch = torch.from_numpy(np.stack([np.ascontiguousarray(im) for im in images]))
     x = batch.pin_memory().to(device, non_blocking=True)
-    return x.permute(0, 3, 1, 2).float() / 255.0
+    return x.permute(0, 3, 1, 2).contiguous().float() / 255.0  # N x 3 x H x W, as on the host
 
 
 #: (height, width) of :func:`warm_up_image` for a model that sizes its own input (``()``).
