@@ -183,5 +183,21 @@ def test_why_a_window_is_not_captured(drive):
     assert plan(model, terms, cfg) == ("eager", "not on CUDA (cpu)")
     assert plan(model, terms, RefinementConfig(step_mode="static"))[0] == "static"
     terms[1].x = torch.zeros(1, 3, 32, 64)
-    assert plan(model, terms, RefinementConfig(step_mode="static"))[0] == "eager"
-    assert "differ in shape" in plan(model, terms, cfg)[1]
+    mode, why = plan(model, terms, RefinementConfig(step_mode="static"))
+    assert mode == "eager" and "differ in shape" in why
+
+
+def test_step_inputs_of_any_structure():
+    """A staged encoder's cached input may nest tuples, lists, named tuples and constants (a
+    transformer's patch grid): the tensors go to buffers, the rest is kept as it is."""
+    from collections import namedtuple
+
+    Grid = namedtuple("Grid", "tokens size")
+    x = (torch.ones(2), [torch.zeros(3), 7, "patch", None], Grid(torch.ones(1, 4), (3, 5)))
+    leaves = graph_step._leaves(x)
+    assert [tuple(t.shape) for t in leaves] == [(2,), (3,), (1, 4)]
+    again = graph_step._rebuild(x, iter([t + 1 for t in leaves]))
+    assert torch.equal(again[0], torch.full((2,), 2.0)) and again[1][1:] == [7, "patch", None]
+    assert isinstance(again[2], Grid) and again[2].size == (3, 5)
+    other = (torch.ones(2), [torch.zeros(3), 8, "patch", None], Grid(torch.ones(1, 4), (3, 5)))
+    assert graph_step._signature(x) != graph_step._signature(other)

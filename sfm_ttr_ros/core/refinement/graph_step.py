@@ -67,23 +67,38 @@ SSIM_KEYS = ("ssim_padded", "ssim_mu", "ssim_sigma")
 
 def _leaves(x) -> list[torch.Tensor]:
     """The tensors of a step input (a tensor, or the cached (output, features) of frozen
-    leading stages: nested tuples and lists), in order."""
+    leading stages: nested tuples and lists; anything else in them is a constant), in order."""
     if torch.is_tensor(x):
         return [x]
-    return [t for item in x for t in _leaves(item)]
+    if isinstance(x, list | tuple):
+        return [t for item in x for t in _leaves(item)]
+    return []
 
 
 def _rebuild(like, leaves: Iterator[torch.Tensor]):
-    """``like``'s structure with its tensors taken from ``leaves`` in order."""
+    """``like``'s structure with its tensors taken from ``leaves`` in order (its constants
+    kept)."""
     if torch.is_tensor(like):
         return next(leaves)
-    return type(like)(_rebuild(item, leaves) for item in like)
+    if isinstance(like, list | tuple):
+        items = [_rebuild(item, leaves) for item in like]
+        return type(like)(*items) if hasattr(like, "_fields") else type(like)(items)
+    return like
+
+
+def _signature(x):
+    """What must match for two step inputs to share buffers: tensors' shapes and dtypes,
+    the structure, the constants."""
+    if torch.is_tensor(x):
+        return tuple(x.shape), str(x.dtype)
+    if isinstance(x, list | tuple):
+        return type(x).__name__, tuple(_signature(item) for item in x)
+    return repr(x)
 
 
 def _shapes(t: FrameTerms) -> tuple:
-    shapes = tuple(tuple(v.shape) for v in _leaves(t.x))
     ph = t.photometric
-    return shapes, None if ph is None else tuple(ph.target.shape)
+    return _signature(t.x), None if ph is None else tuple(ph.target.shape)
 
 
 def shape_mismatch(frames: Sequence[FrameTerms]) -> str:
@@ -102,17 +117,18 @@ def plan_step_mode(model: DepthModel, frames: Sequence[FrameTerms],
     reason the window does not run as a CUDA graph (``cfg.step_mode``, module docstring)."""
     if cfg.step_mode == "eager":
         return "eager", "step_mode eager"
+    if cfg.step_mode == "auto":
+        if cfg.trainable == "lora":
+            return "eager", "LoRA adapters are not captured"
+        if model.device.type != "cuda":
+            return "eager", f"not on CUDA ({model.device.type})"
+        if cfg.steps <= GRAPH_WARM_UP_STEPS:
+            return "eager", (f"{cfg.steps} steps: no more than the {GRAPH_WARM_UP_STEPS} "
+                             "warm-up steps before a capture")
     if why := shape_mismatch(frames):
         return "eager", why
     if cfg.step_mode == "static":
         return "static", "step_mode static (not captured)"
-    if cfg.trainable == "lora":
-        return "eager", "LoRA adapters are not captured"
-    if model.device.type != "cuda":
-        return "eager", f"not on CUDA ({model.device.type})"
-    if cfg.steps <= GRAPH_WARM_UP_STEPS:
-        return "eager", (f"{cfg.steps} steps: no more than the {GRAPH_WARM_UP_STEPS} warm-up "
-                         "steps before a capture")
     return "graph", ""
 
 
