@@ -172,6 +172,77 @@ def test_mutual_ratio_matching_on_a_synthetic_pair():
     assert match_mutual_ratio(d1[:0], d2).shape == (0, 2)
 
 
+# ------------------------------------------------------------------------------- batches
+#: A batch's features against each image's alone (CPU): the same keypoints, in the same order;
+#: positions and angles within 1e-4 (px, rad), descriptors within 1e-5. The scale spaces are
+#: equal bit for bit (the blur runs per image on the CPU); what remains is the last bit of
+#: vectorised transcendental functions (exp, pow, atan2), which depends on where an element
+#: falls in a tensor (measured: <= 1e-6 px, 1.6e-7 per descriptor value).
+BATCH_ATOL_KP, BATCH_ATOL_DESC = 1e-4, 1e-5
+
+
+def test_a_batch_gives_each_image_its_own_features(drive):
+    from sfm_ttr_ros.core.sfm.features.sift_torch import detect_and_describe_batch
+
+    seq, _ = drive
+    images = seq.images[:4]
+    alone = [detect_and_describe(im) for im in images]
+    together = detect_and_describe_batch(images)
+    assert len(together) == 4
+    for a, b in zip(alone, together, strict=True):
+        assert len(a) == len(b) >= 100
+        torch.testing.assert_close(b.keypoints, a.keypoints, rtol=0, atol=BATCH_ATOL_KP)
+        torch.testing.assert_close(b.descriptors, a.descriptors, rtol=0, atol=BATCH_ATOL_DESC)
+    assert detect_and_describe_batch([]) == []
+    with pytest.raises(ValueError):  # one size per batch
+        detect_and_describe_batch([images[0], images[1][:, :200]])
+
+
+def test_a_batched_blur_stays_within_rounding(drive):
+    """The blur as one batch (what CUDA runs) against one image at a time (the CPU's): the
+    convolution's algorithm may change with the batch size, the numbers only in the last bits."""
+    from sfm_ttr_ros.core.sfm.features.sift_torch import build_octaves, gray_batch
+
+    seq, _ = drive
+    img = gray_batch(seq.images[:3], "cpu")
+    for (_, g1, d1), (_, g2, d2) in zip(build_octaves(img, TorchSiftConfig(), True),
+                                        build_octaves(img, TorchSiftConfig(), False),
+                                        strict=True):
+        assert g1.shape[0] == 3
+        torch.testing.assert_close(g2, g1, rtol=0, atol=1e-6)
+        torch.testing.assert_close(d2, d1, rtol=0, atol=1e-6)
+
+
+def test_matches_read_back_once_equal_pair_by_pair():
+    from sfm_ttr_ros.core.sfm.features.database import _read_matches, _runs
+    from sfm_ttr_ros.core.sfm.features.matching_torch import mutual_ratio_candidates
+
+    g = torch.Generator().manual_seed(1)
+    descs = [torch.nn.functional.normalize(torch.rand(n, 128, generator=g), dim=1)
+             for n in (120, 90, 1, 150)]
+    pairs = [(0, 1), (1, 3), (0, 3), (2, 3), (0, 2)]
+    cands = [mutual_ratio_candidates(descs[a], descs[b]) if len(descs[b]) >= 2 else None
+             for a, b in pairs]
+    for (a, b), m in zip(pairs, _read_matches(cands), strict=True):
+        assert np.array_equal(m, match_mutual_ratio(descs[a], descs[b]))
+    im = np.zeros((4, 4, 3), np.uint8)
+    items = [("a", im, 1.0), ("b", im, 1.0), ("c", im, 1.0), ("d", im[:2], 1.0), ("e", im, 1.0)]
+    assert [[n for n, _, _ in r] for r in _runs(items, 2)] == [["a", "b"], ["c"], ["d"], ["e"]]
+
+
+def test_a_window_extracted_as_one_batch_reconstructs(drive, monkeypatch):
+    """The database's batched extraction (CUDA's path, here forced on the CPU): the window
+    reconstructs as with one frame at a time."""
+    import sfm_ttr_ros.core.sfm.features.database as database
+
+    seq, frames = drive
+    monkeypatch.setattr(database, "CPU_FEATURE_BATCH", 8)
+    with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
+        res = rec.reconstruct(frames, seq.intrinsics)
+        assert rec._torch_db.batch == 8
+    assert res.ok and res.num_registered == 8 and res.num_points >= 150
+
+
 # --------------------------------------------------------------------------- reconstruction
 def test_unknown_feature_backend_is_refused():
     with pytest.raises(InputError, match="sfm.features"):

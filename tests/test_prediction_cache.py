@@ -170,3 +170,29 @@ def test_cache_is_bounded_and_can_be_off(one_thread):
     ttr.predict(imgs[:2])
     ttr.predict(imgs[:2])
     assert ttr.predictions_computed == before + 4 and len(ttr.predictor._original_cache) == 0
+
+
+def test_frames_per_pass_depend_on_the_device(one_thread, monkeypatch):
+    """``predict_batch`` on the CPU (unchanged), ``predict_batch_cuda`` on CUDA (a window in one
+    pass; 0 = predict_batch); the passes the network makes follow it."""
+    from sfm_ttr_ros.core.errors import InputError
+    from sfm_ttr_ros.core.prediction import Predictor
+
+    model = bn_model()
+    p = Predictor(model, batch=2, cuda_batch=16)
+    assert p.effective_batch == 2
+    passes = []
+    real = model.predict
+    model.predict = lambda ims: passes.append(len(ims)) or real(ims)
+    p.run(images(5))
+    assert passes == [2, 2, 1]
+    model.predict = real
+    cuda = type("Dev", (), {"type": "cuda"})()  # as if on CUDA: only the batch is read
+    monkeypatch.setattr(type(model), "device", property(lambda self: cuda))
+    assert p.effective_batch == 16
+    p.cuda_batch = 0
+    assert p.effective_batch == 2
+    monkeypatch.undo()
+    assert TTRConfig().predict_batch_cuda == 16 and TTRConfig().predict_batch == 2
+    with pytest.raises(InputError, match="predict_batch_cuda"):
+        TTRConfig(predict_batch_cuda=-1)

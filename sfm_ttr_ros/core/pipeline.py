@@ -79,6 +79,10 @@ class TTRConfig:
     # and +45 MiB of RSS at the peak against +220-237 MiB (scripts/studies/predict_batch.py,
     # BENCHMARKS.md "Memory").
     predict_batch: int = 2
+    # Frames per forward pass when the model is on CUDA (0 = predict_batch): a window's
+    # frames in one batched pass there (the GPU is launch-bound at small batches and has the
+    # memory); the CPU keeps predict_batch.
+    predict_batch_cuda: int = 16
     # Reuse a prediction made with the same weights for the same pixels instead of running the
     # network again (the overlap frames of consecutive windows: the previous window's refined
     # prediction is the next window's "before"). The same numbers as computing it again (up to
@@ -90,6 +94,8 @@ class TTRConfig:
         if self.weight_policy not in WEIGHT_POLICIES:
             raise InputError(f"weight_policy must be one of {WEIGHT_POLICIES}, got "
                              f"{self.weight_policy!r}")
+        if self.predict_batch_cuda < 0:
+            raise InputError(f"predict_batch_cuda must be >= 0, got {self.predict_batch_cuda}")
         v = float(self.max_loss_ratio)
         if not (math.isfinite(v) and v >= 0):
             raise InputError(f"max_loss_ratio must be a finite number >= 0, got {v}")
@@ -131,6 +137,8 @@ class WindowResult:
             "scale": self.scale,
             "loss_before": self.loss_before,
             "loss_after": self.loss_after,
+            "step_mode": ([self.refinement.step_mode, self.refinement.step_mode_reason]
+                          if self.refinement is not None else None),
             "check": self.check.summary() if self.check else None,
         }
 
@@ -197,7 +205,7 @@ class SfmTTR:
         # where each window starts and what an accepted one leaves to the next (weight policy)
         # D_nn = h(g(I)) with a cache of the latest predictions (core/prediction.py)
         self.predictor = Predictor(self.model, self.config.predict_batch,
-                                   self.config.reuse_predictions)
+                                   self.config.reuse_predictions, self.config.predict_batch_cuda)
         self.weights = WeightPolicy(self.model, on_reset=self.predictor.original_restored)
         self.checks = WindowChecks()  # the window checks and their references across windows
         self.metric = MetricScale()  # the steady metric factor of the accepted windows
@@ -239,6 +247,7 @@ class SfmTTR:
         self.config = config
         self.reconstructor.config = config.sfm
         self.predictor.batch, self.predictor.reuse = config.predict_batch, config.reuse_predictions
+        self.predictor.cuda_batch = config.predict_batch_cuda
         if self._prefetch is not None:
             self._prefetch.set_config(config.sfm)
 
@@ -297,11 +306,12 @@ class SfmTTR:
     def warm_up(self) -> float:
         """Pay a window's one-time costs now, in the calling thread (the window worker's, before
         its first window; on CUDA kernels load at first use and each thread makes its own
-        cuDNN / cuBLAS handles): the network's forward pass on ``predict_batch`` grey frames
+        cuDNN / cuBLAS handles): the network's forward pass on a batch of grey frames
+        (``predict_batch``, ``predict_batch_cuda`` on CUDA)
         (nothing cached) and two refinement steps on a copy of the model
         (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_refinement`). Returns the seconds."""
         t0 = time.perf_counter()
-        self.predictor.run([warm_up_image(self.model)] * max(1, self.config.predict_batch))
+        self.predictor.run([warm_up_image(self.model)] * self.predictor.effective_batch)
         warm_up_refinement(self.model, self.config.refinement)
         return time.perf_counter() - t0
 
@@ -363,6 +373,25 @@ class SfmTTR:
         self.metric.accept(cfg.metric, w.metric)
         self._cloud(res, res.sfm, w.registered)
         return res
+
+    def refinement_inputs(self, frames: Sequence[Frame], intrinsics: Intrinsics
+                          ) -> tuple[list[FrameSupervision], list[PhotometricFrame]] | Stop:
+        """A window's inputs to the refinement, as :meth:`process_window` makes them (Fig. 2 up
+        to Sec. 3.3: the predictions before, SfM, the scale, Eq. (5)'s supervision per frame,
+        the photometric frames), without the checks and without refining: what a profile of
+        the refinement's steps runs on (tools/step_profile.py). The weights are not touched;
+        a window that stops before refining gives its :class:`Stop`."""
+        check_window(frames, intrinsics)
+        self._stop = False
+        w = self._predict_before(frames, intrinsics)
+        if stop := self._reconstruct(w):
+            return stop
+        if stop := self._align(w):
+            return stop
+        self._supervise(w)
+        res = w.result
+        return w.supervision, self._photometric_frames(w.names, w.images, res.sfm, res.scale,
+                                                       w.intrinsics)
 
     def interim_refusal(self) -> str:
         """Why the refining window's current weights may not be served yet ("" = they may).

@@ -24,13 +24,16 @@ PREDICTION_CACHE_FRAMES = 16
 
 
 class Predictor:
-    """The network's depth of images, ``batch`` frames per forward pass, with a cache
-    (``reuse`` off: always computed). ``computed`` / ``reused`` count the images the network
-    ran on and those the cache answered."""
+    """The network's depth of images, ``batch`` frames per forward pass (``cuda_batch`` when
+    the model is on CUDA and it is > 0), with a cache (``reuse`` off: always computed).
+    ``computed`` / ``reused`` count the images the network ran on and those the cache
+    answered."""
 
-    def __init__(self, model: DepthModel, batch: int = 2, reuse: bool = True):
+    def __init__(self, model: DepthModel, batch: int = 2, reuse: bool = True,
+                 cuda_batch: int = 0):
         self.model = model
         self.batch = batch
+        self.cuda_batch = cuda_batch
         self.reuse = reuse
         self._key: tuple | None = None  # the weights of _cache
         self._cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
@@ -94,10 +97,19 @@ class Predictor:
         self._original_cache.clear()
         self._original_key = None  # until the next reset: nothing is known original
 
+    @property
+    def effective_batch(self) -> int:
+        """Frames per forward pass on the model's device now: ``cuda_batch`` on CUDA (when
+        > 0: a window in one pass, the GPU being launch-bound at small batches), else
+        ``batch``."""
+        m = self.model
+        on_cuda = getattr(m, "device", None) is not None and m.device.type == "cuda"
+        return max(1, self.cuda_batch if on_cuda and self.cuda_batch > 0 else self.batch)
+
     def run(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """The network on ``images``, ``batch`` at a time, no cache."""
+        """The network on ``images``, :attr:`effective_batch` at a time, no cache."""
         out: list[np.ndarray] = []
-        b = max(1, self.batch)
+        b = self.effective_batch
         for i in range(0, len(images), b):
             out.extend(self.model.predict(list(images[i:i + b])))
         return out

@@ -41,6 +41,11 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.refinement.config import RefinementConfig, resolve_loss
+from sfm_ttr_ros.core.refinement.graph_step import (
+    GRAPH_WARM_UP_STEPS,
+    StaticStepRunner,
+    plan_step_mode,
+)
 from sfm_ttr_ros.core.refinement.objective import frame_terms, step_loss
 from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_frames
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
@@ -54,6 +59,10 @@ class RefinementResult:
     cancelled: bool = False
     frames_used: int = 0
     seconds: float = 0.0
+    # how the steps ran (core/refinement/graph_step.py): "eager", "static" or "graph"; and why
+    # not "graph" when it is not ("" = captured; e.g. "not on CUDA (cpu)", "capture failed: ...")
+    step_mode: str = ""
+    step_mode_reason: str = ""
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -109,7 +118,9 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     :class:`~sfm_ttr_ros.core.refinement.photometric.PhotometricFrame` s (prepared once per
     window with the SfM poses), used by ``photometric`` and ``hybrid``. ``should_stop`` is
     polled between steps (cancellation); ``on_step(steps_done)`` is called after each step (the
-    live server's interim weights). Deterministic for a seed on CPU."""
+    live server's interim weights). ``config.step_mode`` says how a step runs: eagerly, or on
+    static buffers captured as one CUDA graph (:mod:`~sfm_ttr_ros.core.refinement.graph_step`;
+    ``result.step_mode`` says which ran). Deterministic for a seed on CPU."""
     cfg = resolve_loss(config or RefinementConfig(), model, bool(photometric))
     result = RefinementResult()
     usable = _training_frames(supervision, photometric, cfg)
@@ -127,31 +138,64 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     by_name = {f.name: f for f in photometric} if cfg.uses_photometric else {}
     # everything per frame that does not change between steps, prepared once
     frames = [frame_terms(model, s, frozen, cfg, by_name.get(s.name)) for s in usable]
-    photometric_cfg = cfg.photometric_config()
-    optimizer = torch.optim.Adam(params, lr=cfg.lr)
-    order: list[int] = []
+    result.step_mode, result.step_mode_reason = plan_step_mode(model, frames, cfg)
+    runner = None
     try:
-        for _ in range(cfg.steps):
-            if should_stop is not None and should_stop():
-                result.cancelled = True
-                break
-            if not order:
-                order = list(rng.permutation(len(frames)))
-            loss = step_loss(model, frames[order.pop()], frozen, cfg, photometric_cfg)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            result.loss_history.append(float(loss.detach()))
-            result.steps_done += 1
-            if on_step is not None:
-                on_step(result.steps_done)
+        if result.step_mode == "eager":
+            step = _eager_step(model, frames, params, frozen, cfg, result)
+        else:
+            runner = StaticStepRunner(model, frames, params, cfg, frozen,
+                                      capture=result.step_mode == "graph")
+            step = runner.step
+        _run_steps(step, len(frames), cfg.steps, rng, result, should_stop, on_step)
     finally:
+        if runner is not None:
+            result.loss_history = runner.losses(result.steps_done)
+            if runner.reason:  # the capture failed: the same step ran eagerly
+                result.step_mode, result.step_mode_reason = runner.mode, runner.reason
+            runner.close()
         model.eval()
         merge_lora(model)  # the encoder leaves with its own module tree and state_dict keys
         for p in model.parameters():
             p.requires_grad_(False)
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _eager_step(model: DepthModel, frames: Sequence, params, frozen: int,
+                cfg: RefinementConfig, result: RefinementResult) -> Callable[[int], None]:
+    """The eager step (the reference): one frame's objective, backward, Adam; the loss read
+    back at every step."""
+    photometric_cfg = cfg.photometric_config()
+    optimizer = torch.optim.Adam(params, lr=cfg.lr)
+
+    def step(frame: int) -> None:
+        loss = step_loss(model, frames[frame], frozen, cfg, photometric_cfg)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        result.loss_history.append(float(loss.detach()))
+
+    return step
+
+
+def _run_steps(step: Callable[[int], None], n_frames: int, steps: int,
+               rng: np.random.Generator, result: RefinementResult,
+               should_stop: Callable[[], bool] | None,
+               on_step: Callable[[int], None] | None) -> None:
+    """Sec. 3.3's loop: ``steps`` steps, one frame each, the frames shuffled per pass (seeded);
+    cancellation polled between steps; ``on_step(steps_done)`` after each."""
+    order: list[int] = []
+    for _ in range(steps):
+        if should_stop is not None and should_stop():
+            result.cancelled = True
+            break
+        if not order:
+            order = list(rng.permutation(n_frames))
+        step(order.pop())
+        result.steps_done += 1
+        if on_step is not None:
+            on_step(result.steps_done)
 
 
 def _training_frames(supervision: Sequence[FrameSupervision],
@@ -196,7 +240,9 @@ def warm_up_refinement(model: DepthModel, config: RefinementConfig) -> float:
     the window worker before it takes frames, these costs are paid at start-up. Two frames of
     grey at the network's input size, 1 unit apart sideways, a grid of SfM points at depth 1:
     :data:`WARM_UP_STEPS` steps of ``config``'s objective (Eq. (5), with the photometric term
-    when ``config`` uses it). ``model`` itself is not touched."""
+    when ``config`` uses it); on CUDA ``GRAPH_WARM_UP_STEPS`` more
+    (:mod:`~sfm_ttr_ros.core.refinement.graph_step`), so that the step's capture as a CUDA
+    graph is paid too. ``model`` itself is not touched."""
     t0 = time.perf_counter()
     twin = copy.deepcopy(model)
     image = warm_up_image(twin)
@@ -209,6 +255,8 @@ def warm_up_refinement(model: DepthModel, config: RefinementConfig) -> float:
     poses["b"][0, 3] = -1.0
     cfg = copy.deepcopy(config)
     cfg.steps, cfg.min_points = WARM_UP_STEPS, 1
+    if twin.device.type == "cuda":  # past the eager steps before a capture: the graph's too
+        cfg.steps += GRAPH_WARM_UP_STEPS
     photometric = (prepare_frames(twin, ["a", "b"], {"a": image, "b": image}, poses, 1.0,
                                   Intrinsics(w, w, (w - 1) / 2, (h - 1) / 2, w, h),
                                   cfg.photometric_config())

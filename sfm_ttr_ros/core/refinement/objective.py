@@ -99,7 +99,7 @@ def step_loss(model: DepthModel, terms: FrameTerms, frozen_stages: int, cfg: Ref
         depth = forward(model, terms.x, frozen_stages)
         return weighted_l1(sample_depth(depth, terms.grid, cfg.sampling), terms.target,
                            terms.weight)
-    outputs = _scale_outputs(model, terms.x, frozen_stages, photometric_cfg.scales)
+    outputs = network_outputs(model, terms.x, frozen_stages, photometric_cfg.scales)
     ph = photometric_objective(outputs, frame.target, frame.sources, frame.K, frame.poses,
                                photometric_cfg, frame.identity, frame.ssim_target).total
     if cfg.loss == "photometric":
@@ -109,7 +109,7 @@ def step_loss(model: DepthModel, terms: FrameTerms, frozen_stages: int, cfg: Ref
     return sfm + cfg.photometric_weight * ph
 
 
-def _scale_outputs(model: DepthModel, x, frozen_stages: int,
+def network_outputs(model: DepthModel, x, frozen_stages: int,
                    scales: Sequence[int]) -> list[ScaleOutput]:
     """The photometric loss's depth / disparity per output scale from one forward pass; a
     model with its own ``forward`` (not encoder → decoder, e.g. a transformers model) gives

@@ -242,7 +242,8 @@ def _batched(matrix, n: int, size: int, like: torch.Tensor, what: str) -> torch.
 
 
 def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
-         T_source_from_target) -> tuple[torch.Tensor, torch.Tensor]:
+         T_source_from_target, K_inv: torch.Tensor | None = None
+         ) -> tuple[torch.Tensor, torch.Tensor]:
     """The source image seen from the target camera, I_{s→t}, and where it is valid.
 
     ``source_image`` N x C x H x W, ``depth_target`` N x 1 x H x W (same H x W), ``K`` 3 x 3
@@ -254,7 +255,9 @@ def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
     "border" padding. Coordinates are normalised by (W − 1) and (H − 1): Monodepth2's
     convention, which is PyTorch's ``align_corners=True``. Returns (warped N x C x H x W,
     valid N x 1 x H x W bool: the point lies in front of the source camera). Points that project
-    outside the image are not masked (Monodepth2: border padding)."""
+    outside the image are not masked (Monodepth2: border padding). ``K_inv``: K⁻¹ computed
+    before (a tensor on the device: no inversion per call; ``torch.linalg.inv`` syncs with the
+    host on CUDA)."""
     if source_image.ndim != 4 or depth_target.ndim != 4 or depth_target.shape[1] != 1:
         raise InputError(f"warp needs an N x C x H x W image and an N x 1 x H x W depth, got "
                          f"{tuple(source_image.shape)} and {tuple(depth_target.shape)}")
@@ -262,7 +265,7 @@ def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
     if source_image.shape[0] != n or source_image.shape[-2:] != depth_target.shape[-2:]:
         raise InputError(f"source image {tuple(source_image.shape)} and target depth "
                          f"{tuple(depth_target.shape)} differ in batch or size")
-    uv, cam = _project(depth_target, K, T_source_from_target)
+    uv, cam = _project(depth_target, K, T_source_from_target, K_inv)
     grid = torch.stack([uv[:, 0] / (w - 1) * 2 - 1, uv[:, 1] / (h - 1) * 2 - 1], dim=-1)
     warped = F.grid_sample(source_image, grid.reshape(n, h, w, 2), mode="bilinear",
                            padding_mode="border", align_corners=True)
@@ -270,9 +273,10 @@ def warp(source_image: torch.Tensor, depth_target: torch.Tensor, K,
     return warped, valid
 
 
-def _project(depth_target: torch.Tensor, K, T_source_from_target):
+def _project(depth_target: torch.Tensor, K, T_source_from_target,
+             K_inv: torch.Tensor | None = None):
     """Every target pixel's point moved into the source camera and projected: (uv N x 2 x HW in
-    pixels, camera points N x 3 x HW)."""
+    pixels, camera points N x 3 x HW); ``K_inv``: K⁻¹ if computed before."""
     n, _, h, w = depth_target.shape
     K = _batched(K, n, 3, depth_target, "K")
     T = _batched(T_source_from_target, n, 4, depth_target, "T_source_from_target")
@@ -280,7 +284,9 @@ def _project(depth_target: torch.Tensor, K, T_source_from_target):
                             torch.arange(w, dtype=depth_target.dtype, device=K.device),
                             indexing="ij")
     pix = torch.stack([xs, ys, torch.ones_like(xs)]).reshape(1, 3, h * w)
-    rays = torch.linalg.inv(K) @ pix  # N x 3 x HW
+    K_inv = (torch.linalg.inv(K) if K_inv is None
+             else _batched(K_inv, n, 3, depth_target, "K_inv"))
+    rays = K_inv @ pix  # N x 3 x HW
     cam = T[:, :3, :3] @ (rays * depth_target.reshape(n, 1, h * w)) + T[:, :3, 3:]
     return _pixels(K @ cam), cam
 
@@ -407,7 +413,7 @@ def photometric_loss(depth_target: torch.Tensor, target_image: torch.Tensor,
                      T_sources_from_target: Sequence, alpha: float = ALPHA,
                      automask: bool = True, seed: int = 0, return_maps: bool = False,
                      identity: torch.Tensor | None = None,
-                     target_stats: SsimTarget | None = None):
+                     target_stats: SsimTarget | None = None, K_inv: torch.Tensor | None = None):
     """Monodepth2's photometric term: mean over pixels of min over sources of pe(I_t, I_{s→t}).
 
     ``depth_target`` N x 1 x H x W (network units), ``target_image`` and each source
@@ -416,7 +422,8 @@ def photometric_loss(depth_target: torch.Tensor, target_image: torch.Tensor,
     precomputed ``identity``) join the minimum. Warped errors of points behind a source camera
     do not join it; pixels left with no term at all (no automask, no valid source) are left out of
     the mean. ``target_stats``: the target's :func:`ssim_target` (else computed once here, for all
-    sources). Returns the loss, or (loss, :class:`PhotometricMaps`) with ``return_maps``."""
+    sources). ``K_inv``: K⁻¹ computed before (:func:`warp`). Returns the loss, or (loss,
+    :class:`PhotometricMaps`) with ``return_maps``."""
     sources = list(source_images)
     poses = list(T_sources_from_target)
     if not sources:
@@ -440,7 +447,7 @@ def photometric_loss(depth_target: torch.Tensor, target_image: torch.Tensor,
     if target_stats is None and alpha != 0:
         target_stats = ssim_target(target_image)
     for src, T in zip(sources, poses, strict=True):
-        warped, valid = warp(src, depth_target, K, T)
+        warped, valid = warp(src, depth_target, K, T, K_inv)
         err = reprojection_error(warped, target_image, alpha, target_stats)
         errors.append(torch.where(valid, err, torch.full_like(err, math.inf)))
     min_error, idx = torch.cat(errors, 1).min(1, keepdim=True)
@@ -506,11 +513,13 @@ def photometric_objective(outputs: Sequence[ScaleOutput], target_image: torch.Te
                           T_sources_from_target: Sequence,
                           config: PhotometricConfig | None = None,
                           identity: torch.Tensor | None = None,
-                          target_stats: SsimTarget | None = None) -> PhotometricTerms:
+                          target_stats: SsimTarget | None = None,
+                          K_inv: torch.Tensor | None = None) -> PhotometricTerms:
     """Monodepth2's total: 1/|S| Σ_scale (L_p(depth_scale) + w_s / 2^scale · L_s(disp_scale)),
     every scale warped at the full input size with the full-size images and K. ``identity``
     and ``target_stats``: the frame's precomputed :func:`identity_errors` and
-    :func:`ssim_target` (else computed here, once for all scales)."""
+    :func:`ssim_target` (else computed here, once for all scales); ``K_inv``: K⁻¹ computed
+    before (:func:`warp`)."""
     cfg = config or PhotometricConfig()
     if not outputs:
         raise InputError("photometric_objective needs at least one output scale")
@@ -523,7 +532,7 @@ def photometric_objective(outputs: Sequence[ScaleOutput], target_image: torch.Te
     for o in outputs:
         p = photometric_loss(o.depth, target_image, sources, K, T_sources_from_target,
                              cfg.alpha, cfg.automask, cfg.seed, identity=identity,
-                             target_stats=target_stats)
+                             target_stats=target_stats, K_inv=K_inv)
         s = smoothness_loss(o.disp, target_image)
         ph.append(p)
         sm.append(s)

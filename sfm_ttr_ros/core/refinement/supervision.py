@@ -65,6 +65,15 @@ def weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor)
     return (weights * (pred - target).abs()).mean()
 
 
+def padded_weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
+                       count: torch.Tensor) -> torch.Tensor:
+    """Eq. (5) on a frame's points padded to a window's largest frame (the padding's weights
+    0): Σ_l exp(−r²)·|ŝ·D_sfm − D_nn| / |S_j|, ``count`` = |S_j| a tensor (no host value: fit
+    for a CUDA graph). :func:`weighted_l1` of the unpadded points up to the order of the sum;
+    the gradients are the same (a padded point adds 0)."""
+    return (weights * (pred - target).abs()).sum() / count
+
+
 def sample_at(depth: np.ndarray, pixels: np.ndarray, mode: str = "bilinear") -> np.ndarray:
     """An image-resolution depth map read at pixels (OpenCV convention)."""
     d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]

@@ -155,6 +155,7 @@ class StreamDiagnostics:
                 "last_window.loss_after": w.loss_after,
                 "last_window.steps": w.steps,
                 "last_window.steps_done": w.steps_done,
+                "last_window.step_mode": w.step_mode,
                 "last_window.unsupported_change": w.unsupported_change,
                 "last_window.metric_estimate": w.metric_estimate,
                 "last_window.metric_reason": w.metric_reason,

@@ -193,6 +193,9 @@ class WindowStats:
     loss_after: float = float("nan")
     steps: int = 0  # configured refinement steps for this window
     steps_done: int = 0
+    # how the steps ran (RefinementResult.step_mode): "eager", "static" or "graph", with the
+    # reason after a colon when it is not "graph" ("" = no step ran)
+    step_mode: str = ""
     unsupported_change: float = float("nan")  # share of unsupported pixels moved
     # metres per network unit of the window's own estimate (NaN: none; metric_reason says why)
     metric_estimate: float = float("nan")
@@ -729,6 +732,10 @@ class StreamProcessor:
         stats.scale, stats.loss_before, stats.loss_after = res.scale, res.loss_before, \
             res.loss_after
         stats.steps_done = res.refinement.steps_done if res.refinement is not None else 0
+        if res.refinement is not None and res.refinement.steps_done:
+            r = res.refinement
+            stats.step_mode = f"{r.step_mode}: {r.step_mode_reason}" if r.step_mode_reason \
+                else r.step_mode
         if res.check is not None:
             stats.unsupported_change = res.check.unsupported_change
         if res.metric is not None:

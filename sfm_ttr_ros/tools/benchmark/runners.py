@@ -137,7 +137,7 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     cfg.refinement.loss = "sfm"  # never refines: a loss this model cannot run must not stop it
     ttr = SfmTTR(model, cfg)
     try:
-        b = max(1, cfg.predict_batch)
+        b = ttr.predictor.effective_batch
         for k in range(0, len(indices), b):
             frames = [seq.frame(i) for i in indices[k:k + b]]
             t0 = time.perf_counter()
@@ -155,7 +155,8 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 
 def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[str, Any]:
     """One window of a windowed mode for results.json: its frames (sequence
-    indices), outcome and reason key, and what the window checks measured."""
+    indices), outcome and reason key, what the window checks measured, and how its refinement
+    steps ran (``step_mode``: graph, or eager / static with the reason)."""
     res = ws.result
     check = res.check.summary() if res is not None and res.check is not None else None
     return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
@@ -164,7 +165,8 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
             "sfm_attempts": list(res.sfm.attempts) if res is not None and res.sfm else [],
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
             "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check,
-            "metric_estimate": ws.metric_estimate, "metric_reason": ws.metric_reason}
+            "metric_estimate": ws.metric_estimate, "metric_reason": ws.metric_reason,
+            "step_mode": ws.step_mode}
 
 
 def feed_stamp(seq: ImageSequence, indices: Sequence[int], k: int, rate: float | None) -> float:

@@ -8,6 +8,12 @@ incremental mapper then runs on the database exactly as after its own SIFT.
 
 Descriptors stay on the feature device for the frames that later frames are matched with (the
 last ``overlap`` frames); older ones are read back from the database when needed.
+
+On CUDA a window's frames of one size are extracted as one batch (their scale spaces built at
+once: :func:`~sfm_ttr_ros.core.sfm.features.sift_torch.detect_and_describe_batch`, images copied
+from pinned memory), and its new pairs are matched back to back on the device and read back
+once (:func:`~sfm_ttr_ros.core.sfm.features.matching_torch.mutual_ratio_candidates`): fewer
+host round trips. On the CPU one frame at a time (compute-bound there: a batch buys nothing).
 """
 
 from __future__ import annotations
@@ -21,12 +27,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.sfm.features.matching_torch import MatchConfig, match_mutual_ratio
+from sfm_ttr_ros.core.sfm.features.matching_torch import (
+    MatchConfig,
+    matches_from_candidates,
+    mutual_ratio_candidates,
+)
 from sfm_ttr_ros.core.sfm.features.sift_torch import (
     SiftFeatures,
     TorchSiftConfig,
-    detect_and_describe,
+    detect_and_describe_batch,
 )
+
+#: Frames per extraction batch on CUDA (a window: 10-15 frames) and on the CPU.
+CUDA_FEATURE_BATCH = 16
+CPU_FEATURE_BATCH = 1
 
 
 def default_device() -> str:
@@ -56,13 +70,17 @@ class _Cached:
 class TorchFeatureDatabase:
     """Torch features and matches of the frames of one COLMAP database (one per
     :class:`~sfm_ttr_ros.core.sfm.reconstruction.SfmReconstructor` generation). ``timings``
-    accumulates the seconds of the last :meth:`extract` / :meth:`match` calls by step."""
+    accumulates the seconds of the last :meth:`extract` / :meth:`match` calls by step.
+    ``batch``: frames of one size extracted together (default :data:`CUDA_FEATURE_BATCH` on
+    CUDA, :data:`CPU_FEATURE_BATCH` on the CPU)."""
 
     def __init__(self, database_path: Path, device: str | None = None,
                  sift: TorchSiftConfig | None = None, matching: MatchConfig | None = None,
-                 keep: int = 12):
+                 keep: int = 12, batch: int | None = None):
         self.database_path = Path(database_path)
         self.device = device or default_device()
+        cuda = str(self.device).startswith("cuda")
+        self.batch = max(1, int(batch or (CUDA_FEATURE_BATCH if cuda else CPU_FEATURE_BATCH)))
         self.sift = sift or TorchSiftConfig()
         self.matching = matching or MatchConfig()
         self.keep = max(2, int(keep))
@@ -78,11 +96,11 @@ class TorchFeatureDatabase:
         import pycolmap
 
         t0 = time.perf_counter()
+        small = [(name, *downscale(image, max_image_size)) for name, image in images]
         feats: list[tuple[str, SiftFeatures, float]] = []
-        for name, image in images:
-            small, f = downscale(image, max_image_size)
-            sf = detect_and_describe(small, self.sift, self.device)
-            feats.append((name, sf, f))
+        for group in _runs(small, self.batch):
+            found = detect_and_describe_batch([im for _, im, _ in group], self.sift, self.device)
+            feats += [(name, sf, f) for (name, _, f), sf in zip(group, found, strict=True)]
         self._sync()
         t1 = time.perf_counter()
         with pycolmap.Database.open(self.database_path) as db:
@@ -132,20 +150,22 @@ class TorchFeatureDatabase:
         import pycolmap
 
         t0 = time.perf_counter()
-        done = 0
         with pycolmap.Database.open(self.database_path) as db:
             ids = {img.name: int(img.image_id) for img in db.read_all_images()}
-            for i, a in enumerate(names):
-                for b in names[i + 1:i + 1 + overlap]:
-                    if (a, b) in self._matched:
-                        continue
-                    if check is not None:
-                        check()
-                    fa, fb = self._features(db, a, ids[a]), self._features(db, b, ids[b])
-                    m = match_mutual_ratio(fa.descriptors, fb.descriptors, self.matching)
-                    db.write_matches(ids[a], ids[b], m.astype(np.uint32))
-                    self._matched.add((a, b))
-                    done += 1
+            pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:i + 1 + overlap]
+                     if (a, b) not in self._matched]
+            candidates = []
+            for a, b in pairs:
+                if check is not None:
+                    check()
+                fa, fb = self._features(db, a, ids[a]), self._features(db, b, ids[b])
+                candidates.append(mutual_ratio_candidates(fa.descriptors, fb.descriptors,
+                                                          self.matching)
+                                  if len(fa.descriptors) and len(fb.descriptors) >= 2 else None)
+            for (a, b), m in zip(pairs, _read_matches(candidates), strict=True):
+                db.write_matches(ids[a], ids[b], m.astype(np.uint32))
+                self._matched.add((a, b))
+        done = len(pairs)
         t1 = time.perf_counter()
         if done:
             verifier = pycolmap.GeometricVerifierOptions()
@@ -154,3 +174,30 @@ class TorchFeatureDatabase:
                                             cancellation_token=token)
         self.timings = {"match": t1 - t0, "verify": time.perf_counter() - t1}
         return done
+
+
+def _runs(items: list[tuple[str, np.ndarray, float]], batch: int):
+    """Consecutive runs of at most ``batch`` (name, image, factor) items of one image size."""
+    run: list[tuple[str, np.ndarray, float]] = []
+    for item in items:
+        if run and (len(run) == batch or run[0][1].shape != item[1].shape):
+            yield run
+            run = []
+        run.append(item)
+    if run:
+        yield run
+
+
+def _read_matches(candidates: list) -> list[np.ndarray]:
+    """Every pair's (M, 2) matches from its device candidates (None: no match possible), the
+    device read once for all pairs."""
+    import torch
+
+    real = [c for c in candidates if c is not None]
+    if real:
+        best = torch.cat([b for b, _ in real]).cpu().numpy()
+        keep = torch.cat([k for _, k in real]).cpu().numpy()
+        sizes = np.cumsum([len(b) for b, _ in real])[:-1]
+        parts = iter(zip(np.split(best, sizes), np.split(keep, sizes), strict=True))
+    none = np.zeros((0, 2), np.int64)
+    return [none if c is None else matches_from_candidates(*next(parts)) for c in candidates]

@@ -50,6 +50,7 @@ DESC_BINS = 8  # ... of 8 orientations
 DESC_MAGNIFICATION = 3.0  # a spatial bin is 3 sigma wide (vlfeat / COLMAP, Lowe's code)
 DESC_CLIP = 0.2  # Sec. 6.1
 DESC_SAMPLES = 6  # samples per spatial bin side of the resampled descriptor window
+ORI_CHUNK_ELEMENTS = 1 << 24  # window samples per chunk of keypoints in the orientation step
 
 
 @dataclass
@@ -102,14 +103,28 @@ def gaussian_blur(img, sigma: float):
     return F.conv2d(x, k.view(1, 1, -1, 1))
 
 
-def build_octaves(img, cfg: TorchSiftConfig):
-    """Gaussian and DoG pyramids (Lowe 2004, Sec. 3): a list of (octave index o, Gaussian
-    levels (S+3, H_o, W_o), DoG levels (S+2, H_o, W_o)); octave o's pixel i has its centre at
-    (i + 0.5) * 2**o in the input image's corner convention."""
+def _blur(x, sigma: float, per_image: bool):
+    """:func:`gaussian_blur` of a batch, one image at a time with ``per_image`` (the numbers of
+    each image alone: on the CPU oneDNN picks its convolution by batch size, which moves the
+    last bit of small octaves), else as one batch (CUDA: one kernel per pass for the window)."""
+    if not per_image or x.shape[0] == 1:
+        return gaussian_blur(x, sigma)
+    return torch_cat([gaussian_blur(x[i:i + 1], sigma) for i in range(x.shape[0])])
+
+
+def build_octaves(img, cfg: TorchSiftConfig, per_image_blur: bool | None = None):
+    """Gaussian and DoG pyramids (Lowe 2004, Sec. 3) of one image (H, W) or of a batch of
+    images of one size (B, H, W): a list of (octave index o, Gaussian levels (S+3, H_o, W_o),
+    DoG levels (S+2, H_o, W_o)), each with the batch dimension in front for a batch; octave o's
+    pixel i has its centre at (i + 0.5) * 2**o in the input image's corner convention.
+    ``per_image_blur`` (default: on the CPU) blurs a batch's images one at a time (:func:`_blur`);
+    resampling and differences are per image in any case."""
     import torch.nn.functional as F
 
+    batched = img.ndim == 3
+    per_image = img.device.type == "cpu" if per_image_blur is None else per_image_blur
     S = cfg.num_scales
-    x = img[None, None]
+    x = img[:, None] if batched else img[None, None]
     o = int(cfg.first_octave)
     if o < 0:
         for _ in range(-o):
@@ -118,7 +133,7 @@ def build_octaves(img, cfg: TorchSiftConfig):
         for _ in range(o):
             x = F.avg_pool2d(x, 2)
     blur = INPUT_BLUR * 2.0 ** (-o)
-    x = gaussian_blur(x, math.sqrt(max(SIGMA0**2 - blur**2, 0.0)))
+    x = _blur(x, math.sqrt(max(SIGMA0**2 - blur**2, 0.0)), per_image)
     k = 2.0 ** (1.0 / S)
     out = []
     while min(x.shape[-2:]) >= cfg.min_octave_size:
@@ -126,51 +141,53 @@ def build_octaves(img, cfg: TorchSiftConfig):
         for s in range(1, S + 3):
             sig_prev = SIGMA0 * k ** (s - 1)
             sig_inc = sig_prev * math.sqrt(k * k - 1.0)
-            levels.append(gaussian_blur(levels[-1], sig_inc))
-        gauss = torch_cat([lv[0] for lv in levels])  # (S+3, H, W)
-        out.append((o, gauss, gauss[1:] - gauss[:-1]))
+            levels.append(_blur(levels[-1], sig_inc, per_image))
+        gauss = torch_cat(levels, 1)  # (B, S+3, H, W)
+        dog = gauss[:, 1:] - gauss[:, :-1]
+        out.append((o, gauss, dog) if batched else (o, gauss[0], dog[0]))
         x = F.avg_pool2d(levels[S], 2)  # twice sigma0: the next octave's first level
         o += 1
     return out
 
 
-def torch_cat(tensors):
+def torch_cat(tensors, dim: int = 0):
     import torch
 
-    return torch.cat(tensors, 0)
+    return torch.cat(tensors, dim)
 
 
 def _extrema(dog, cfg: TorchSiftConfig):
-    """Scale-space extrema of one octave's DoG (S+2, H, W): (s, y, x) integer indices (Sec.
-    3.1), one pixel away from every border."""
+    """Scale-space extrema of one octave's DoG of a batch (B, S+2, H, W): (b, s, y, x) integer
+    indices (Sec. 3.1), one pixel away from every border, in (b, s, y, x) order."""
     import torch
     import torch.nn.functional as F
 
-    d = dog[:, None]  # 3x3 in space (max_pool2d), then 3 in scale: cheaper than max_pool3d
-    mx = F.max_pool2d(d, 3, stride=1, padding=1)[:, 0]
-    mn = -F.max_pool2d(-d, 3, stride=1, padding=1)[:, 0]
-    mx = torch.maximum(torch.maximum(mx[:-2], mx[1:-1]), mx[2:])
-    mn = torch.minimum(torch.minimum(mn[:-2], mn[1:-1]), mn[2:])
-    pad = torch.zeros_like(dog[:1])
-    mx, mn = torch.cat([pad, mx, pad]), torch.cat([pad, mn, pad])  # ends are excluded below
+    B, L, H, W = dog.shape
+    d = dog.reshape(B * L, 1, H, W)  # 3x3 in space (max_pool2d), then 3 in scale
+    mx = F.max_pool2d(d, 3, stride=1, padding=1).reshape(B, L, H, W)
+    mn = -F.max_pool2d(-d, 3, stride=1, padding=1).reshape(B, L, H, W)
+    mx = torch.maximum(torch.maximum(mx[:, :-2], mx[:, 1:-1]), mx[:, 2:])
+    mn = torch.minimum(torch.minimum(mn[:, :-2], mn[:, 1:-1]), mn[:, 2:])
+    pad = torch.zeros_like(dog[:, :1])
+    mx, mn = torch.cat([pad, mx, pad], 1), torch.cat([pad, mn, pad], 1)  # ends excluded below
     thr = 0.8 * cfg.peak_threshold if cfg.refine else cfg.peak_threshold
     is_ext = ((dog == mx) & (dog > thr)) | ((dog == mn) & (dog < -thr))
-    is_ext[0] = False
-    is_ext[-1] = False
-    is_ext[:, :1] = False
-    is_ext[:, -1:] = False
+    is_ext[:, 0] = False
+    is_ext[:, -1] = False
     is_ext[:, :, :1] = False
     is_ext[:, :, -1:] = False
+    is_ext[:, :, :, :1] = False
+    is_ext[:, :, :, -1:] = False
     return torch.nonzero(is_ext, as_tuple=True)
 
 
-def _taylor(D, s, y, x):
-    """Value, gradient (3) and Hessian (3 x 3) of D in (x, y, sigma) at integer samples by
-    finite differences (Lowe 2004, Sec. 4)."""
+def _taylor(D, b, s, y, x):
+    """Value, gradient (3) and Hessian (3 x 3) of D (B, L, H, W) in (x, y, sigma) at integer
+    samples by finite differences (Lowe 2004, Sec. 4)."""
     import torch
 
     def at(ds, dy, dx):
-        return D[s + ds, y + dy, x + dx]
+        return D[b, s + ds, y + dy, x + dx]
 
     v = at(0, 0, 0)
     g = torch.stack([0.5 * (at(0, 0, 1) - at(0, 0, -1)), 0.5 * (at(0, 1, 0) - at(0, -1, 0)),
@@ -186,53 +203,63 @@ def _taylor(D, s, y, x):
     return v, g, H
 
 
-def _localise(dog, s, y, x, cfg: TorchSiftConfig):
-    """Sec. 4 and 4.1 for one octave: the subpixel / subscale offset x̂ = −H⁻¹ g of the
-    quadratic Taylor fit of D, Eq. (3); where it exceeds ``max_offset`` (0.5 in Lowe) in a
-    dimension the sample moves one step that way and the fit is repeated (up to
-    ``refine_iterations`` times; then discarded); the contrast of the fit D(x̂), Eq. (3), and
-    the edge test (ratio of principal curvatures of the 2 x 2 spatial Hessian, Sec. 4.1) at the
-    final sample. Returns (keep mask, xs, ys, ss: refined coordinates, value: D(x̂))."""
+def _fit(dog, b, s, y, x, cfg: TorchSiftConfig):
+    """Sec. 4's iterated fit: the offset x̂ = −H⁻¹ g of the quadratic Taylor fit of D, Eq. (3);
+    where it exceeds ``max_offset`` in a dimension the sample moves one step that way and the
+    fit is repeated (up to ``refine_iterations`` times). A converged candidate does not move,
+    so further rounds (another image of the batch still converging) leave it as it was.
+    Returns (ok, s, y, x, offset, value at the sample, gradient, Hessian)."""
     import torch
 
-    L, Hh, Ww = dog.shape
-    off = torch.zeros(s.shape[0], 3, device=dog.device, dtype=dog.dtype)
+    L, Hh, Ww = dog.shape[1:]
+    for it in range(max(1, cfg.refine_iterations)):
+        v, g, H = _taylor(dog, b, s, y, x)
+        det3 = torch.linalg.det(H)
+        solvable = det3.abs() > 1e-12
+        Hs = torch.where(solvable[:, None, None], H,
+                         torch.eye(3, device=H.device, dtype=H.dtype))
+        off = -torch.linalg.solve(Hs, g[..., None])[..., 0]
+        off = torch.where(solvable[:, None], off, torch.zeros_like(off))
+        ok = solvable & (off.abs() <= cfg.max_offset).all(-1)
+        if it == cfg.refine_iterations - 1 or bool(ok.all()):
+            break
+        step = torch.where(off.abs() > cfg.max_offset, torch.sign(off),
+                           torch.zeros_like(off)).long()
+        step = torch.where(solvable[:, None], step, torch.zeros_like(step))
+        x = (x + step[:, 0]).clamp(1, Ww - 2)
+        y = (y + step[:, 1]).clamp(1, Hh - 2)
+        s = (s + step[:, 2]).clamp(1, L - 2)
+    return ok, s, y, x, off, v, g, H
+
+
+def _localise(dog, b, s, y, x, cfg: TorchSiftConfig):
+    """Sec. 4 and 4.1 for one octave of a batch (B, L, H, W): the subpixel / subscale fit
+    (:func:`_fit`, else the sample itself), the contrast of the fit D(x̂), Eq. (3), and the edge
+    test (ratio of principal curvatures of the 2 x 2 spatial Hessian, Sec. 4.1) at the final
+    sample; candidates that converged on the same sample of the same image are one. Returns
+    (keep mask, xs, ys, ss: refined coordinates, value: D(x̂))."""
+    import torch
+
     if cfg.refine:
-        ok = torch.ones_like(s, dtype=torch.bool)
-        for it in range(max(1, cfg.refine_iterations)):
-            v, g, H = _taylor(dog, s, y, x)
-            det3 = torch.linalg.det(H)
-            solvable = det3.abs() > 1e-12
-            Hs = torch.where(solvable[:, None, None], H,
-                             torch.eye(3, device=H.device, dtype=H.dtype))
-            off = -torch.linalg.solve(Hs, g[..., None])[..., 0]
-            off = torch.where(solvable[:, None], off, torch.zeros_like(off))
-            ok = solvable & (off.abs() <= cfg.max_offset).all(-1)
-            if it == cfg.refine_iterations - 1 or bool(ok.all()):
-                break
-            step = torch.where(off.abs() > cfg.max_offset, torch.sign(off),
-                               torch.zeros_like(off)).long()
-            step = torch.where(solvable[:, None], step, torch.zeros_like(step))
-            x = (x + step[:, 0]).clamp(1, Ww - 2)
-            y = (y + step[:, 1]).clamp(1, Hh - 2)
-            s = (s + step[:, 2]).clamp(1, L - 2)
+        keep, s, y, x, off, v, g, H = _fit(dog, b, s, y, x, cfg)
         value = v + 0.5 * (g * off).sum(-1)  # D(x̂), Sec. 4
-        keep = ok
     else:
-        v, g, H = _taylor(dog, s, y, x)
-        value = v
+        value, g, H = _taylor(dog, b, s, y, x)
+        off = torch.zeros(s.shape[0], 3, device=dog.device, dtype=dog.dtype)
         keep = torch.ones_like(s, dtype=torch.bool)
     dxx, dyy, dxy = H[:, 0, 0], H[:, 1, 1], H[:, 0, 1]
     tr, det = dxx + dyy, dxx * dyy - dxy * dxy
     r = cfg.edge_threshold
     keep &= (det > 0) & (tr * tr * r < (r + 1) ** 2 * det)
     keep &= value.abs() > cfg.peak_threshold
-    # candidates that converged on the same sample are one keypoint
-    lin = (s * Hh + y) * Ww + x
-    first = torch.full((L * Hh * Ww,), lin.numel(), device=lin.device, dtype=torch.long)
+    # candidates that converged on the same sample are one keypoint: the first is kept
+    L, Hh, Ww = dog.shape[1:]
+    lin = ((b * L + s) * Hh + y) * Ww + x
+    _, inv = torch.unique(lin, return_inverse=True)
     idx = torch.arange(lin.numel(), device=lin.device)
-    first.scatter_reduce_(0, lin[keep], idx[keep], reduce="amin")
-    keep &= first[lin] == idx
+    first = torch.full((lin.numel(),), lin.numel(), device=lin.device, dtype=torch.long)
+    first.scatter_reduce_(0, inv[keep], idx[keep], reduce="amin")
+    keep &= first[inv] == idx
     xs = x.to(dog.dtype) + off[:, 0]
     ys = y.to(dog.dtype) + off[:, 1]
     ss = s.to(dog.dtype) + off[:, 2]
@@ -240,26 +267,53 @@ def _localise(dog, s, y, x, cfg: TorchSiftConfig):
 
 
 def _gradients(gauss):
-    """Gradient magnitude and orientation of Gaussian levels (L, H, W), central differences
+    """Gradient magnitude and orientation of Gaussian levels (B, L, H, W), central differences
     (Lowe 2004, Sec. 5)."""
     import torch
     import torch.nn.functional as F
 
-    p = F.pad(gauss[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
-    gx = 0.5 * (p[:, 1:-1, 2:] - p[:, 1:-1, :-2])
-    gy = 0.5 * (p[:, 2:, 1:-1] - p[:, :-2, 1:-1])
+    p = F.pad(gauss, (1, 1, 1, 1), mode="replicate")
+    gx = 0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2])
+    gy = 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])
     return torch.sqrt(gx * gx + gy * gy), torch.atan2(gy, gx)
 
 
-def _orientations(mag, ang, lvl, ys, xs, sigma, cfg: TorchSiftConfig):
-    """Sec. 5: dominant orientations of keypoints at (lvl, ys, xs) with scale ``sigma`` (octave
-    pixels). Returns (index of the keypoint, angle in radians) for every peak kept."""
+def orientation_radius(cfg: TorchSiftConfig) -> int:
+    """The half-width of the orientation window (Sec. 5: 3 x 1.5 sigma) for the largest sigma
+    a kept keypoint can have (scale index at most num_scales + max_offset): one window size for
+    every keypoint of every image, so that a keypoint's histogram does not depend on the others
+    it is computed with."""
+    top = cfg.num_scales + (cfg.max_offset if cfg.refine else 0.0)
+    return int(math.ceil(3.0 * ORI_SIGMA_FACTOR * SIGMA0 * 2.0 ** (top / cfg.num_scales)))
+
+
+def _orientations(mag, ang, b, lvl, ys, xs, sigma, cfg: TorchSiftConfig):
+    """Sec. 5: dominant orientations of keypoints at (image b, level, ys, xs) with scale
+    ``sigma`` (octave pixels), in chunks of keypoints (memory; each keypoint's numbers are its
+    own). Returns (index of the keypoint, angle in radians) for every peak kept."""
+    import torch
+
+    R = orientation_radius(cfg)
+    chunk = max(1, ORI_CHUNK_ELEMENTS // (2 * R + 1) ** 2)
+    parts = [_orientation_chunk(mag, ang, b[i:i + chunk], lvl[i:i + chunk], ys[i:i + chunk],
+                                xs[i:i + chunk], sigma[i:i + chunk], R, cfg)
+             for i in range(0, xs.shape[0], chunk)]
+    if not parts:
+        empty = torch.zeros(0, device=mag.device)
+        return empty.long(), empty.to(mag.dtype)
+    return (torch.cat([k + i * chunk for i, (k, _) in enumerate(parts)]),
+            torch.cat([t for _, t in parts]))
+
+
+def _orientation_chunk(mag, ang, b, lvl, ys, xs, sigma, R: int, cfg: TorchSiftConfig):
+    """:func:`_orientations` of one chunk: the 36-bin histogram of gradient orientations in a
+    Gaussian window of 1.5 sigma weighted by gradient magnitude, smoothed; every peak within
+    80 % of the highest, refined by a parabola through three bins (Sec. 5)."""
     import torch
 
     dev, dt = mag.device, mag.dtype
     n = xs.shape[0]
     win_sigma = ORI_SIGMA_FACTOR * sigma  # (n,)
-    R = int(math.ceil(3.0 * float(win_sigma.max()))) if n else 1
     off = torch.arange(-R, R + 1, device=dev)
     oy, ox = torch.meshgrid(off, off, indexing="ij")
     oy, ox = oy.reshape(-1), ox.reshape(-1)
@@ -268,21 +322,31 @@ def _orientations(mag, ang, lvl, ys, xs, sigma, cfg: TorchSiftConfig):
     py, px = cy[:, None] + oy[None], cx[:, None] + ox[None]  # (n, P)
     inside = (py >= 0) & (py < H) & (px >= 0) & (px < W)
     py, px = py.clamp(0, H - 1), px.clamp(0, W - 1)
-    L = lvl[:, None].expand_as(py)
-    m = mag[L, py, px]
-    a = ang[L, py, px]
+    B_, L = b[:, None].expand_as(py), lvl[:, None].expand_as(py)
+    m = mag[B_, L, py, px]
+    a = ang[B_, L, py, px]
     ry = py.to(dt) - ys[:, None]
     rx = px.to(dt) - xs[:, None]
     r2 = rx * rx + ry * ry
     w = torch.exp(-r2 / (2 * win_sigma[:, None] ** 2)) * m
     w = w * (inside & (r2 <= (3.0 * win_sigma[:, None]) ** 2))
-    b = (a % (2 * math.pi)) * (ORI_BINS / (2 * math.pi))
-    b0 = torch.floor(b)
-    frac = b - b0
+    bins = (a % (2 * math.pi)) * (ORI_BINS / (2 * math.pi))
+    b0 = torch.floor(bins)
+    frac = bins - b0
     b0 = b0.long() % ORI_BINS
     hist = torch.zeros(n, ORI_BINS, device=dev, dtype=dt)
     hist.scatter_add_(1, b0, w * (1 - frac))
     hist.scatter_add_(1, (b0 + 1) % ORI_BINS, w * frac)
+    return _orientation_peaks(hist, cfg)
+
+
+def _orientation_peaks(hist, cfg: TorchSiftConfig):
+    """Sec. 5's peaks of orientation histograms (n, 36): smoothed, every local peak within
+    80 % of the highest (at most ``max_orientations``, the highest first), its angle refined by
+    a parabola through three bins. Returns (index of the row, angle in radians)."""
+    import torch
+
+    n, dt = hist.shape[0], hist.dtype
     for _ in range(6):  # circular smoothing [1, 1, 1] / 3, as vlfeat / COLMAP
         hist = (torch.roll(hist, 1, 1) + hist + torch.roll(hist, -1, 1)) / 3.0
     left, right = torch.roll(hist, 1, 1), torch.roll(hist, -1, 1)
@@ -293,7 +357,7 @@ def _orientations(mag, ang, lvl, ys, xs, sigma, cfg: TorchSiftConfig):
     k = min(cfg.max_orientations, ORI_BINS)
     top, idx = score.topk(k, dim=1)
     sel = top > 0
-    kp_idx = torch.arange(n, device=dev)[:, None].expand(-1, k)[sel]
+    kp_idx = torch.arange(n, device=hist.device)[:, None].expand(-1, k)[sel]
     bins = idx[sel]
     hl, hc, hr = left[kp_idx, bins], hist[kp_idx, bins], right[kp_idx, bins]
     denom = hl - 2 * hc + hr
@@ -318,12 +382,13 @@ def _spatial_weights(cy, cx, d: int):
     return w.T.contiguous()
 
 
-def _descriptors(gauss, lvl, ys, xs, sigma, theta, cfg: TorchSiftConfig):
-    """Sec. 6.1: 128-d descriptors of keypoints (Gaussian level, position, sigma in octave
-    pixels, orientation). The window, 3 sigma per spatial bin, is resampled (bilinear) on a
-    grid rotated by the keypoint's orientation, so that gradients of the resampled patch are
-    already relative to it; each gradient is Gaussian-weighted (sigma: half the window) and
-    spread trilinearly over the 4x4x8 bins."""
+def _descriptors(gauss, b, lvl, ys, xs, sigma, theta, cfg: TorchSiftConfig):
+    """Sec. 6.1: 128-d descriptors of keypoints (image b of the batch, Gaussian level, position,
+    sigma in octave pixels, orientation), one level of one image at a time. The window, 3
+    sigma per spatial bin, is resampled (bilinear) on a grid rotated by the keypoint's
+    orientation, so that gradients of the resampled patch are already relative to it; each
+    gradient is Gaussian-weighted (sigma: half the window) and spread trilinearly over the
+    4x4x8 bins."""
     import torch
     import torch.nn.functional as F
 
@@ -345,10 +410,12 @@ def _descriptors(gauss, lvl, ys, xs, sigma, theta, cfg: TorchSiftConfig):
     H, W = gauss.shape[-2:]
     spatial = _spatial_weights(vy[1:-1, 1:-1], vx[1:-1, 1:-1], d)  # (16, P'^2)
     desc = torch.zeros(n, d * d * nb, device=dev, dtype=dt)
-    for level in torch.unique(lvl).tolist():
-        sel = torch.nonzero(lvl == level, as_tuple=True)[0]
+    levels = gauss.shape[1]
+    key = b * levels + lvl
+    for k in torch.unique(key).tolist():
+        sel = torch.nonzero(key == k, as_tuple=True)[0]
         grid = torch.stack([(gx[sel] + 0.5) / W * 2 - 1, (gy[sel] + 0.5) / H * 2 - 1], -1)
-        img = gauss[level][None, None].expand(sel.numel(), 1, H, W)
+        img = gauss[k // levels, k % levels][None, None].expand(sel.numel(), 1, H, W)
         patch = F.grid_sample(img, grid, mode="bilinear", padding_mode="border",
                               align_corners=False)[:, 0]  # (m, P, P)
         # gradients in the rotated frame (per sample spacing; magnitudes scale uniformly)
@@ -403,49 +470,97 @@ class SiftFeatures:
 def detect_and_describe(image, cfg: TorchSiftConfig | None = None, device: str = "cpu"
                         ) -> SiftFeatures:
     """SIFT keypoints and descriptors of one image (numpy RGB/gray or a 2-D torch tensor in
-    [0, 1]) on ``device``."""
+    [0, 1]) on ``device``: :func:`detect_and_describe_batch` of that one image."""
+    return detect_and_describe_batch([image], cfg, device)[0]
+
+
+def gray_batch(images, device: str):
+    """Images of one size (numpy RGB/gray, or 2-D torch tensors in [0, 1]) as a (B, H, W)
+    float32 batch on ``device``; numpy images go through pinned memory to a CUDA device (a copy
+    that does not block the host, no pageable staging)."""
+    import torch
+
+    if all(isinstance(im, torch.Tensor) for im in images):
+        img = torch.stack([im.to(device=device, dtype=torch.float32) for im in images])
+    else:
+        img = torch.from_numpy(np.stack([np.ascontiguousarray(to_gray(np.asarray(im)))
+                                         for im in images]))
+        if str(device).startswith("cuda"):
+            img = img.pin_memory()
+        img = img.to(device, non_blocking=True)
+    if img.ndim != 3:
+        raise ValueError(f"expected 2-D gray images, got shape {tuple(img.shape[1:])}")
+    return img
+
+
+def detect_and_describe_batch(images, cfg: TorchSiftConfig | None = None,
+                              device: str = "cpu") -> list[SiftFeatures]:
+    """SIFT keypoints and descriptors (Lowe 2004, Sec. 3-6, module docstring) of images of ONE
+    size, their scale spaces built as one batch (a window's frames at once: fewer, larger
+    kernels on a GPU). Each image's features are those it has alone: every step works on one
+    image's samples and a keypoint's numbers never depend on the others' (the tests hold the
+    batch to the images one by one)."""
     import torch
 
     cfg = cfg or TorchSiftConfig()
-    if isinstance(image, torch.Tensor):
-        img = image.to(device=device, dtype=torch.float32)
-    else:
-        img = torch.from_numpy(np.ascontiguousarray(to_gray(image))).to(device)
-    if img.ndim != 2:
-        raise ValueError(f"expected a 2-D gray image, got shape {tuple(img.shape)}")
-    S = cfg.num_scales
-    kps, descs, resp = [], [], []
+    if not len(images):
+        return []
+    img = gray_batch(list(images), device)
+    found = []  # per octave: (image index, keypoints (n, 4), descriptors, response)
     with torch.no_grad():
         for o, gauss, dog in build_octaves(img, cfg):
-            s, y, x = _extrema(dog, cfg)
-            if s.numel() == 0:
-                continue
-            keep, xs, ys, ss, value = _localise(dog, s, y, x, cfg)
-            xs, ys, ss, value = xs[keep], ys[keep], ss[keep], value[keep]
-            H, W = dog.shape[-2:]
-            inb = (xs >= 0) & (xs <= W - 1) & (ys >= 0) & (ys <= H - 1)
-            xs, ys, ss, value = xs[inb], ys[inb], ss[inb], value[inb]
-            if xs.numel() == 0:
-                continue
-            # the DoG level s lies between Gaussian levels s and s+1: sigma0 * k^s (Sec. 3)
-            sigma = SIGMA0 * 2.0 ** (ss / S)
-            lvl = torch.round(ss).long().clamp(0, S + 2)  # the Gaussian level nearest in scale
-            mag, ang = _gradients(gauss)
-            ki, theta = _orientations(mag, ang, lvl, ys, xs, sigma, cfg)
-            if ki.numel() == 0:
-                continue
-            d = _descriptors(gauss, lvl[ki], ys[ki], xs[ki], sigma[ki], theta, cfg)
-            f = 2.0 ** o
-            kp = torch.stack([(xs[ki] + 0.5) * f, (ys[ki] + 0.5) * f, sigma[ki] * f, theta], 1)
-            kps.append(kp)
-            descs.append(d)
-            resp.append(value[ki].abs())
-    dev = img.device
-    if not kps:
-        return SiftFeatures(torch.zeros(0, 4, device=dev), torch.zeros(0, 128, device=dev),
-                            torch.zeros(0, device=dev))
-    kp, desc, r = torch.cat(kps), torch.cat(descs), torch.cat(resp)
-    if kp.shape[0] > cfg.max_num_features:
-        top = torch.topk(r, cfg.max_num_features).indices
-        kp, desc, r = kp[top], desc[top], r[top]
-    return SiftFeatures(kp, desc.float(), r)
+            octave = _octave_features(o, gauss, dog, cfg)
+            if octave is not None:
+                found.append(octave)
+    return _split_by_image(found, img.shape[0], cfg, img.device)
+
+
+def _octave_features(o: int, gauss, dog, cfg: TorchSiftConfig):
+    """One octave of a batch: extrema (Sec. 3.1), localisation (Sec. 4), orientations (Sec. 5),
+    descriptors (Sec. 6.1); (image index, keypoints (x, y, sigma in input pixels, angle),
+    descriptors, |D|) or None when nothing was kept."""
+    import torch
+
+    S = cfg.num_scales
+    b, s, y, x = _extrema(dog, cfg)
+    if s.numel() == 0:
+        return None
+    keep, xs, ys, ss, value = _localise(dog, b, s, y, x, cfg)
+    b, xs, ys, ss, value = b[keep], xs[keep], ys[keep], ss[keep], value[keep]
+    H, W = dog.shape[-2:]
+    inb = (xs >= 0) & (xs <= W - 1) & (ys >= 0) & (ys <= H - 1)
+    b, xs, ys, ss, value = b[inb], xs[inb], ys[inb], ss[inb], value[inb]
+    if xs.numel() == 0:
+        return None
+    # the DoG level s lies between Gaussian levels s and s+1: sigma0 * k^s (Sec. 3)
+    sigma = SIGMA0 * 2.0 ** (ss / S)
+    lvl = torch.round(ss).long().clamp(0, S + 2)  # the Gaussian level nearest in scale
+    mag, ang = _gradients(gauss)
+    ki, theta = _orientations(mag, ang, b, lvl, ys, xs, sigma, cfg)
+    if ki.numel() == 0:
+        return None
+    d = _descriptors(gauss, b[ki], lvl[ki], ys[ki], xs[ki], sigma[ki], theta, cfg)
+    f = 2.0 ** o
+    kp = torch.stack([(xs[ki] + 0.5) * f, (ys[ki] + 0.5) * f, sigma[ki] * f, theta], 1)
+    return b[ki], kp, d, value[ki].abs()
+
+
+def _split_by_image(found, n_images: int, cfg: TorchSiftConfig, dev) -> list[SiftFeatures]:
+    """Each image's features from the octaves' (octave order, then the order found), the
+    ``max_num_features`` strongest |D| kept per image."""
+    import torch
+
+    if not found:
+        return [SiftFeatures(torch.zeros(0, 4, device=dev), torch.zeros(0, 128, device=dev),
+                             torch.zeros(0, device=dev)) for _ in range(n_images)]
+    b, kp, desc, r = (torch.cat([f[i] for f in found]) for i in range(4))
+    order = torch.argsort(b, stable=True)  # by image; within one, as found
+    counts = torch.bincount(b, minlength=n_images).tolist()
+    out = []
+    for kp_i, desc_i, r_i in zip(*(torch.split(t[order], counts) for t in (kp, desc, r)),
+                                 strict=True):
+        if kp_i.shape[0] > cfg.max_num_features:
+            top = torch.topk(r_i, cfg.max_num_features).indices
+            kp_i, desc_i, r_i = kp_i[top], desc_i[top], r_i[top]
+        out.append(SiftFeatures(kp_i, desc_i.float(), r_i))
+    return out
