@@ -183,7 +183,7 @@ def test_no_import_goes_up_a_layer():
 #: the stream uses the orchestrator; the schema reads every config.
 CORE_RANKS = (
     ("errors", "frames", "outcomes", "threads", "models", "visualize", "evaluation"),
-    ("sfm", "alignment", "refinement", "checks", "prediction"),
+    ("sfm", "alignment", "refinement", "checks", "metric", "prediction"),
     ("pipeline",),
     ("stream",),
     ("params",),
