@@ -378,7 +378,7 @@ def test_evaluate_bag_command(bags, tmp_path, capsys):
                               max_depth=80.0, out=str(out), quiet=True)
     assert evaluate_bag_command(args) == 0
     text = capsys.readouterr().out
-    assert "| /refiner/depth |" in text and "eigen crop on" in text
+    assert "| /refiner/depth/image |" in text and "eigen crop on" in text
     saved = json.loads(out.read_text())
     assert saved["frames"] == 4 and saved["abs_rel"] == pytest.approx(0.1, abs=1e-4)
     # no prediction stamp matches a GT stamp: exit code 1 and the counts, not an exception
@@ -450,7 +450,7 @@ def test_bad_input(drive, bags, tmp_path):
         list(read_bag(tmp_path / "nope"))
     with pytest.raises(InputError, match="/nope not in bag"):
         list(read_bag(bags["mcap"], ["/nope"]))
-    with pytest.raises(InputError, match="topic /refiner/depth not in bag"):
+    with pytest.raises(InputError, match="topic /refiner/depth/image not in bag"):
         evaluate_bag(bags["mcap"])
     with pytest.raises(InputError, match="CameraInfo, not"):
         evaluate_bag(bags["mcap"], pred_topic=CAMERA_INFO_TOPIC)

@@ -1,5 +1,5 @@
 """The demo end to end: a generated drive → rosbag2 → played into the `refiner` node (a real
-subprocess, as `ros2 run` starts it) → recorded ~/depth → evaluated against the GT topic.
+subprocess, as `ros2 run` starts it) → recorded ~/depth/image → evaluated against the GT topic.
 
 The refined depth must beat the unrefined one on abs rel and RMSE for that drive. Small frames
 and windows (8 frames every 4) keep it near a minute on 2 cores; everything

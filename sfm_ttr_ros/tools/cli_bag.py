@@ -62,7 +62,7 @@ def add_evaluate_bag_arguments(p: argparse.ArgumentParser) -> None:
     evaluate command's own."""
     g = p.add_argument_group("bag mode (a recorded bag of predicted depth, matched by stamp)")
     g.add_argument("--bag", help="rosbag2 holding the predicted depth (e.g. a recording of the "
-                                 "refiner's ~/depth)")
+                                 "refiner's ~/depth/image)")
     g.add_argument("--gt-bag", default=None,
                    help="rosbag2 holding the ground truth (default: the same bag)")
     g.add_argument("--pred-topic", default=DEFAULT_PRED_TOPIC,
