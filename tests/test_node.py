@@ -609,6 +609,20 @@ def test_start_up_failures_exit_1_with_one_line_before_spinning(case, tmp_path):
     assert len(lines) == 1, text[-2000:]
 
 
+def test_a_pycolmap_too_old_for_sfm_stops_the_start_with_one_line(tmp_path):
+    # 4.0.x / 4.1.x lack pycolmap.CancellationToken: every window would fail, silently
+    (tmp_path / "fake").mkdir()
+    (tmp_path / "fake" / "pycolmap.py").write_text('__version__ = "4.1.1"\n')
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "fake"), str(REPO)])}
+    out = subprocess.run([sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    text = out.stdout + out.stderr
+    assert out.returncode == 1, text[-2000:]
+    lines = [ln for ln in text.splitlines() if "cannot start" in ln]
+    assert len(lines) == 1 and "pycolmap 4.1.1 is too old" in lines[0], text[-2000:]
+    assert "Traceback" not in text and "refiner ready" not in text
+
+
 @pytest.mark.slow
 def test_stop_cancels_a_running_window(graph_factory, sequence):
     # a 3-frame window has little parallax: the parallax check would refuse it before refining

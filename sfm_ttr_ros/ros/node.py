@@ -45,7 +45,8 @@ still accounted for (``dropped.bad_image`` when its message could not be read). 
 change whose check raises is refused with the reason.
 
 Exit codes: 0 after a normal shutdown; 1 when the node cannot START (bad parameters, a missing
-or corrupt model / weights file: one ``cannot start: ...`` line, before spinning); 2 for a
+or corrupt model / weights file, a pycolmap or torch older than the floors of
+:mod:`sfm_ttr_ros.requirements`: one ``cannot start: ...`` line, before spinning); 2 for a
 fault of the run itself that escaped the containment (``run-time fault: ...``; none is known).
 
 Shutdown (SIGINT / SIGTERM / external shutdown): the worker is cancelled (``SfmTTR.cancel``:
@@ -98,6 +99,7 @@ from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S, Throttle
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
+from sfm_ttr_ros.requirements import check_sfm_dependencies
 from sfm_ttr_ros.ros import allocator, dds, names, outputs
 from sfm_ttr_ros.ros import params as node_params
 from sfm_ttr_ros.ros.camera import (
@@ -158,6 +160,7 @@ class RefinerNode(Node):
             raise
 
     def _setup(self, model: DepthModel | None) -> None:
+        check_sfm_dependencies()  # a pycolmap too old for SfM: "cannot start", not bad windows
         node_params.declare(self)
         values = node_params.current_values(self)
         reason = node_params.validate(values)

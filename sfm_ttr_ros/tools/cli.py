@@ -20,8 +20,10 @@ log = logging.getLogger("sfm_ttr_ros")
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Offline SfM-TTR over a whole sequence (the paper's setting) and write the results."""
+    from sfm_ttr_ros.requirements import check_sfm_dependencies
     from sfm_ttr_ros.tools.one_sequence import run_whole_sequence
 
+    check_sfm_dependencies()  # a pycolmap too old for SfM: one error now, not per window
     if getattr(args, "split", None):
         from sfm_ttr_ros.tools.split.command import run_split_command
 

@@ -552,6 +552,9 @@ def _paired_by_stamp(base_rows: list[dict], live_rows: list[dict]) -> tuple[list
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from sfm_ttr_ros.requirements import check_sfm_dependencies
+
+    check_sfm_dependencies()  # before minutes of preparation for a node that could not refine
     opts = DemoOptions(out=Path(args.out), kitti_raw=args.kitti_raw, kitti_gt=args.kitti_gt,
                        drive=args.drive, images=args.images, intrinsics=args.intrinsics,
                        gt_depth=args.gt_depth, gt_scale=args.gt_scale, start=args.start,
