@@ -6,8 +6,10 @@ Steps (each printed as it runs):
 1. the drive: with no arguments a synthetic KITTI-format drive of the held-out domain "B"
    (:mod:`sfm_ttr_ros.data.synthetic`, written in the real KITTI raw + improved-GT layouts),
    a real one with ``--kitti-raw/--kitti-gt/--drive``, or any image folder with its K and GT
-   depth (``--images/--intrinsics/--gt-depth``, e.g. hololens_000), written in those layouts;
-2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`);
+   depth (``--images/--intrinsics/--gt-depth``, e.g. hololens_000), written in those layouts
+   (with the camera poses of a ``poses.txt`` beside the folder, or of the synthetic drive);
+2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`; the poses on
+   ``/kitti/odom``);
 3. the unrefined network's depth for every image of the bag (same model, same weights) → a
    ``no_ttr`` bag with the same stamps;
 4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``--set`` overrides),
@@ -133,8 +135,9 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
 
 def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     """An image folder, its K file and GT depth written as a KITTI drive (stamps at 10 Hz,
-    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them), read one frame
-    at a time (a long folder is never all in memory)."""
+    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them, the camera poses
+    of a ``poses.txt`` beside the folder as the drive's, for /kitti/odom), read one frame at a
+    time (a long folder is never all in memory)."""
     from types import SimpleNamespace
 
     from sfm_ttr_ros.core.frames import load_rgb
@@ -148,9 +151,26 @@ def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     _say(f"1/5 writing {len(seq)} images of {opts.images} as a KITTI drive")
     drive_seq = SimpleNamespace(images=_Lazy(load_rgb, seq.image_paths),
                                 depths=_Lazy(seq.gt, seq.names), stamps=seq.stamps,
-                                intrinsics=seq.intrinsics)
+                                intrinsics=seq.intrinsics,
+                                cam_to_world=_folder_poses(opts.images, len(seq)))
     raw, gt = out / "kitti_raw", out / "kitti_gt"
     return str(raw), str(gt), write_kitti_drive(drive_seq, raw, gt, gt_skip_ends=0)
+
+
+def _folder_poses(images: str, frames: int):
+    """The camera poses of ``poses.txt`` beside the image folder (hololens_000's layout: one
+    4x4 camera-to-world row per image, in file order), or None when there is none."""
+    from sfm_ttr_ros.data.poses import POSES_FILE, read_poses
+
+    path = Path(images).resolve().parent / POSES_FILE
+    if not path.is_file():
+        _say(f"   no {POSES_FILE} beside {images}: the bag gets no odometry")
+        return None
+    poses = read_poses(path)
+    if len(poses) != frames:
+        raise InputError(f"{path} has {len(poses)} poses for the {frames} images of {images}")
+    _say(f"   camera poses from {path} (on /kitti/odom)")
+    return poses
 
 
 class _Lazy(Sequence):
