@@ -14,8 +14,8 @@ Steps (each printed as it runs):
    ``no_ttr`` bag with the same stamps;
 4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``--set`` overrides),
    remapped to the bag's topics; the bag played into it (:func:`sfm_ttr_ros.ros.player.play_bag`)
-   while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`) until every
-   image came back; then SIGINT;
+   while ``/refiner/depth/image`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`)
+   until every image came back; then SIGINT;
 5. both bags evaluated against the GT topic matched by stamp
    (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json`` /
@@ -46,7 +46,7 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros import names
 from sfm_ttr_ros.tools.process import interrupt
 
-DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live ~/depth: /refiner/depth
+DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
 LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
 NODE_START_TIMEOUT_S = 120.0  # from starting the refiner to its publishers being discovered
@@ -242,8 +242,8 @@ def node_arguments(items: list[str]) -> list[str]:
 
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
-    """Start the node, play the bag into it, record ``/refiner/depth`` (live) and
-    ``/refiner/depth_refined`` (windows) until every frame is back on both."""
+    """Start the node, play the bag into it, record ``/refiner/depth/image`` (live) and
+    ``/refiner/depth_refined/image`` (windows) until every frame is back on both."""
     from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC
     from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
