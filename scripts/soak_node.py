@@ -6,9 +6,9 @@
 Sampled: the node process's RSS (every ``--rss-period`` s, /proc); per frame, the latency from
 publishing the image to receiving its ``~/depth/image`` (live; taken by a listener process of its
 own, as a controller would be, unless ``--one-client``) and its ``~/depth_refined/image`` (window)
-message;
-with the RSS, the node's own live latency from /diagnostics (arrival in the node to published)
-and the machine's CPU steal, which tell a late depth made in the node from one late in DDS.
+message; with the RSS, the node's own live latency from /diagnostics (arrival in the node to
+published) and the machine's CPU steal, which tell a late depth made in the node from one late in
+DDS.
 Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
 "first / last 5 minutes" are the first / last sixth of the run):
 
