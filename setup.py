@@ -1,8 +1,10 @@
 """Build of the sfm_ttr_ros ament_python package (same shape as `ros2 pkg create --build-type
 ament_python`). Works with colcon (`colcon build --packages-select sfm_ttr_ros`) and with pip
-(`pip install -e .`). The version has a single source: package.xml."""
+(`pip install -e .`). The version has a single source: package.xml; the dependencies' minimum
+versions and their reasons too: sfm_ttr_ros/requirements.py (run by path, nothing imported)."""
 
 import re
+import runpy
 import xml.etree.ElementTree as ET
 from glob import glob
 from pathlib import Path
@@ -19,6 +21,14 @@ def package_xml_version() -> str:
     if not re.fullmatch(r"\d+\.\d+\.\d+", version):
         raise RuntimeError(f"package.xml has no valid <version> (got {version!r})")
     return version
+
+
+#: sfm_ttr_ros/requirements.py's names (FLOORS, requirement): the one statement of the floors
+REQUIREMENTS = runpy.run_path(str(HERE / PACKAGE_NAME / "requirements.py"))
+
+
+def requirement(name: str) -> str:
+    return REQUIREMENTS["requirement"](name)
 
 
 def readme() -> str:
@@ -48,17 +58,17 @@ setup(
         (f"share/{PACKAGE_NAME}/params", sorted(glob("params/*.yaml") + glob("params/*.xml"))),
         (f"share/{PACKAGE_NAME}/launch", sorted(glob("launch/*.launch.py"))),
     ],
-    # torch is deliberately loose: scripts/setup_env.sh installs torch==2.13.0 (the CPU wheel on
-    # this machine's disk) first, so pip never resolves an unpinned torch to a multi-GB build.
+    # torch has no upper bound: scripts/setup_env.sh installs torch==2.13.0 (the CPU wheel on
+    # this machine's disk) first, so pip never resolves torch to a multi-GB build.
     install_requires=[
         "numpy",
         "opencv-python-headless",
-        "torch>=2.1",
-        "pycolmap>=4.0,<5",
+        requirement("torch"),
+        requirement("pycolmap"),
         "pyyaml",
-        "rosbags>=0.10",
+        requirement("rosbags"),
         # the node's malloc (ros/allocator.py): a shared library in a wheel, MIT
-        "cmeel-mimalloc>=3.4,<4; sys_platform == 'linux'",
+        requirement("cmeel-mimalloc"),
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI wheels, for machines without a ROS install.

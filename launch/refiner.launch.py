@@ -7,7 +7,8 @@
 * ``image_topic`` / ``camera_info_topic``: what the node's ``image`` and ``camera_info``
   subscriptions are remapped to (default: not remapped);
 * ``namespace``: the node's namespace (default: none); the outputs are then
-  ``/<namespace>/refiner/depth``, ``.../depth_colored`` and ``.../points``.
+  ``/<namespace>/refiner/depth/image`` + ``.../depth/camera_info``, ``.../depth_refined/...``,
+  ``.../depth_colored/...``, ``.../cloud``, ``.../points``.
 
 The file's section for the node (``refiner:``, ``/refiner:``, ``/<ns>/refiner:`` and ``/**:``)
 is read and checked here (an unknown name, a wrong type or an out-of-range value stops the

@@ -1,6 +1,6 @@
 """Conversions between ROS 2 messages and the ROS-free core: the only code in the project that
 knows ROS message layouts (sensor_msgs Image / CompressedImage / CameraInfo / PointCloud2,
-diagnostic_msgs).
+diagnostic_msgs, nav_msgs Odometry).
 
 Importing the package is cheap and needs no ROS: the names are loaded on first use (PEP 562).
 Reading (``image_to_numpy``, ``image_to_depth``, ``camera_info_to_intrinsics``,
@@ -18,14 +18,18 @@ _LOCATIONS = {
     "CompressedImageError": "msg_adapters.compressed",
     "ImageConversionError": "msg_adapters.image",
     "MessageClasses": "msg_adapters.classes",
+    "ODOMETRY_MSGTYPE": "msg_adapters.odometry",
+    "OdometryError": "msg_adapters.odometry",
     "PointCloudError": "msg_adapters.pointcloud",
     "SUPPORTED_ENCODINGS": "msg_adapters.image",
+    "camera_info_for": "msg_adapters.camera_info",
     "camera_info_msg": "msg_adapters.camera_info",
     "clock_message": "msg_adapters.stamp",
     "compressed_to_rgb8": "msg_adapters.compressed",
     "camera_info_to_intrinsics": "msg_adapters.camera_info",
     "depth_to_colored_image": "msg_adapters.image",
     "depth_to_image": "msg_adapters.image",
+    "depth_to_pointcloud2": "msg_adapters.pointcloud",
     "diagnostic_values": "msg_adapters.diagnostics",
     "format_value": "msg_adapters.diagnostics",
     "image_to_depth": "msg_adapters.image",
@@ -37,13 +41,21 @@ _LOCATIONS = {
     "ns_to_stamp": "msg_adapters.stamp",
     "numpy_to_image": "msg_adapters.image",
     "numpy_to_pointcloud2": "msg_adapters.pointcloud",
+    "odometry_msg": "msg_adapters.odometry",
+    "odometry_to_position": "msg_adapters.odometry",
+    "pack_rgb": "msg_adapters.pointcloud",
     "pointcloud2_to_numpy": "msg_adapters.pointcloud",
     "pointcloud2_to_xyz": "msg_adapters.pointcloud",
+    "projection_of": "msg_adapters.camera_info",
+    "quaternion_to_rotation": "msg_adapters.odometry",
     "rclpy_classes": "msg_adapters.classes",
     "rgb8_to_compressed": "msg_adapters.compressed",
+    "rotation_to_quaternion": "msg_adapters.odometry",
+    "scale_camera_info": "msg_adapters.camera_info",
     "stamp_to_ns": "msg_adapters.stamp",
     "stamp_to_seconds": "msg_adapters.stamp",
     "typestore_classes": "msg_adapters.classes",
+    "unpack_rgb": "msg_adapters.pointcloud",
 }
 
 __all__ = sorted(_LOCATIONS)

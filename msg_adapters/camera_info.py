@@ -1,7 +1,14 @@
-"""sensor_msgs/CameraInfo <-> :class:`sfm_ttr_ros.core.frames.Intrinsics`.
+"""sensor_msgs/CameraInfo <-> :class:`sfm_ttr_ros.core.frames.Intrinsics`, and the CameraInfo
+published beside an image.
 
 Reading is duck-typed (rclpy and rosbags messages); building (:func:`camera_info_msg`) makes
-rclpy's class by default or a rosbags type store's (:mod:`msg_adapters.classes`)."""
+rclpy's class by default or a rosbags type store's (:mod:`msg_adapters.classes`).
+
+Beside each depth image the node publishes a CameraInfo (image_transport's camera-publisher
+convention): :func:`camera_info_for` republishes the CameraInfo the camera sent, with the
+image's header, scaled by :func:`scale_camera_info` only when the image has another size;
+:func:`intrinsics_to_camera_info` describes bare intrinsics (the node's fallback).
+:func:`projection_of` reads the pinhole a consumer such as depth_image_proc uses (P)."""
 
 from __future__ import annotations
 
@@ -109,14 +116,102 @@ def camera_info_msg(
 
 
 def intrinsics_to_camera_info(
-    intr: Intrinsics, header: Header | None = None, frame_id: str | None = None
+    intr: Intrinsics, header: Header | None = None, frame_id: str | None = None, *,
+    size: tuple[int, int] | None = None
 ) -> CameraInfo:
     """A CameraInfo for an undistorted pinhole camera: K from ``intr``, P = [K | 0], R = I,
-    D empty, distortion_model ``plumb_bob``. ``frame_id`` (when given) overrides the header's."""
+    D empty, distortion_model ``plumb_bob``. ``frame_id`` (when given) overrides the header's.
+    ``size`` = (width, height), when given, is the image size written (default ``intr``'s):
+    fx, fy, cx, cy stay as they are (the node's fallback intrinsics are in the pixels of
+    whatever image they stand for)."""
     c = rclpy_classes()
     if frame_id is not None:  # a new Header: never modify the caller's
         stamp = c.time() if header is None else header.stamp
         header = c.header(stamp=stamp, frame_id=str(frame_id))
     K = intr.K
-    return camera_info_msg(intr.width, intr.height, K, np.hstack([K, np.zeros((3, 1))]),
+    width, height = (intr.width, intr.height) if size is None else size
+    return camera_info_msg(width, height, K, np.hstack([K, np.zeros((3, 1))]),
                            header=header, classes=c)
+
+
+def _effective_size(msg) -> tuple[int, int]:
+    """The size of the images ``msg`` describes: its ROI when one is set, then divided by the
+    binning factors (image_geometry's rule, REP 104)."""
+    w, h = int(msg.width), int(msg.height)
+    roi = msg.roi
+    if int(roi.width) > 0 and int(roi.height) > 0:
+        w, h = int(roi.width), int(roi.height)
+    bx, by = max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
+    return w // bx, h // by
+
+
+def scale_camera_info(msg, width: int, height: int, header=None, *,
+                      classes: MessageClasses | None = None):
+    """A CameraInfo of the camera ``msg`` describes for its image resized to ``width`` x
+    ``height``: ROI and binning applied to K and P first (cx, cy shifted by the ROI offset, then
+    rows divided by the binning; the result has neither), then the first two rows of K and P
+    multiplied by width / w and height / h (P's Tx, Ty included), as the core's
+    ``Intrinsics.scaled``. D, R and the distortion model are kept. ``header`` (default
+    ``msg``'s) is the new message's."""
+    width, height = int(width), int(height)
+    if width <= 0 or height <= 0:
+        raise CameraInfoError(f"cannot scale a CameraInfo to {width}x{height}")
+    w, h = _effective_size(msg)
+    if w <= 0 or h <= 0:
+        raise CameraInfoError(f"CameraInfo describes a {w}x{h} image: nothing to scale")
+    K = _matrix(msg.k, 3, 3, "K").copy()
+    P = _matrix(msg.p, 3, 4, "P").copy()
+    roi = msg.roi
+    if int(roi.width) > 0 and int(roi.height) > 0:
+        for M in (K, P):
+            M[0, 2] -= float(roi.x_offset)
+            M[1, 2] -= float(roi.y_offset)
+    bx, by = max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
+    sx, sy = width / w / bx, height / h / by
+    for M in (K, P):
+        M[0] *= sx
+        M[1] *= sy
+    return camera_info_msg(width, height, K, P, D=np.asarray(msg.d, np.float64).reshape(-1),
+                           R=_matrix(msg.r, 3, 3, "R"),
+                           header=msg.header if header is None else header,
+                           distortion_model=str(msg.distortion_model), classes=classes)
+
+
+def camera_info_for(source, width: int, height: int, header, *,
+                    classes: MessageClasses | None = None):
+    """The CameraInfo to publish beside a ``width`` x ``height`` image of the camera that
+    ``source`` (a CameraInfo received from it) describes, with the image's ``header``.
+
+    When ``source`` describes images of that size (after its ROI and binning), every field is
+    kept as received (K, D, R, P, distortion model, binning, ROI) and only the header changes;
+    otherwise it is :func:`scale_camera_info` to that size."""
+    c = classes or rclpy_classes()
+    if _effective_size(source) != (int(width), int(height)):
+        return scale_camera_info(source, width, height, header, classes=c)
+    roi = source.roi
+    return c.camera_info(
+        header=header, height=int(source.height), width=int(source.width),
+        distortion_model=str(source.distortion_model),
+        d=c.doubles_field(np.asarray(source.d, np.float64)),
+        k=c.doubles_field(_matrix(source.k, 3, 3, "K")),
+        r=c.doubles_field(_matrix(source.r, 3, 3, "R")),
+        p=c.doubles_field(_matrix(source.p, 3, 4, "P")),
+        binning_x=int(source.binning_x), binning_y=int(source.binning_y),
+        roi=c.region_of_interest(x_offset=int(roi.x_offset), y_offset=int(roi.y_offset),
+                                 height=int(roi.height), width=int(roi.width),
+                                 do_rectify=bool(roi.do_rectify)))
+
+
+def projection_of(msg) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of the pinhole a depth image with CameraInfo ``msg`` is back-projected
+    with, as depth_image_proc does (image_geometry's ``fx()``, ``cx()`` read P); from K when P
+    is all zero (uncalibrated P). Raises :class:`CameraInfoError` when neither gives positive
+    finite focal lengths. ROI and binning are those of ``msg`` (a CameraInfo published beside
+    an image has none unless it was received so)."""
+    P = _matrix(msg.p, 3, 4, "P")
+    M = P if np.any(P) else _matrix(msg.k, 3, 3, "K")
+    fx, fy, cx, cy = float(M[0, 0]), float(M[1, 1]), float(M[0, 2]), float(M[1, 2])
+    if not all(np.isfinite((fx, fy, cx, cy))) or fx <= 0 or fy <= 0:
+        raise CameraInfoError(f"CameraInfo has no usable pinhole: fx={fx}, fy={fy}, cx={cx}, "
+                              f"cy={cy}")
+    return fx, fy, cx, cy

@@ -1,9 +1,13 @@
 """sensor_msgs/PointCloud2 <-> numpy, without sensor_msgs_py.
 
 Clouds written here are unorganized (height 1, width N), little-endian, float32 x, y, z at
-offsets 0, 4, 8 followed by one float32 per extra field (e.g. ``reprojection_error``), with no
-padding. Reading handles any scalar layout: all PointField datatypes, ``count`` > 1,
-``point_step`` padding, ``row_step`` padding, height > 1 and ``is_bigendian``.
+offsets 0, 4, 8 followed by one float32 per extra field (e.g. ``reprojection_error``, or
+``rgb``), with no padding. Reading handles any scalar layout: all PointField datatypes,
+``count`` > 1, ``point_step`` padding, ``row_step`` padding, height > 1 and ``is_bigendian``.
+
+:func:`depth_to_pointcloud2` back-projects a depth image with the CameraInfo published beside it,
+as depth_image_proc's ``point_cloud_xyzrgb`` does (P's fx, fy, cx, cy; x = (u - cx) z / fx),
+every ``stride``-th pixel, with PCL's packed ``rgb`` (:func:`pack_rgb`).
 """
 
 from __future__ import annotations
@@ -79,6 +83,68 @@ def numpy_to_pointcloud2(
     msg.is_dense = bool(np.isfinite(flat).all())
     msg.data = array.array("B", rec.tobytes())
     return msg
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """N x 3 uint8 RGB -> N float32 holding the bits 0x00RRGGBB (PCL's ``rgb`` field, as RViz
+    and depth_image_proc read it)."""
+    c = np.asarray(rgb, np.uint8).reshape(-1, 3).astype(np.uint32)
+    return ((c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]).view(np.float32)
+
+
+def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`pack_rgb`: N float32 -> N x 3 uint8 RGB."""
+    bits = np.ascontiguousarray(packed, np.float32).view(np.uint32)
+    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], 1).astype(np.uint8)
+
+
+def depth_to_pointcloud2(
+    depth: np.ndarray,
+    rgb: np.ndarray | None,
+    camera_info,
+    stride: int = 4,
+    max_range: float = 0.0,
+    header: Header | None = None,
+) -> PointCloud2:
+    """The depth image back-projected into an unorganized cloud (x, y, z and, with ``rgb``,
+    PCL's packed ``rgb``), in the depth's optical frame and units.
+
+    ``camera_info``: the CameraInfo published beside the depth (:func:`~msg_adapters.
+    camera_info.projection_of`: P, else K). Pixels (u, v) with u, v multiples of ``stride``,
+    row by row; z = depth, x = (u - cx) z / fx, y = (v - cy) z / fy. Left out: non-finite or
+    non-positive depth and, with ``max_range`` > 0, points farther than ``max_range`` from the
+    camera centre. ``rgb``: H x W x 3 uint8 RGB of the same size as ``depth`` (the input image).
+    ``header`` default: the CameraInfo's. ``is_dense`` is true only when every point is finite.
+    """
+    from msg_adapters.camera_info import projection_of
+
+    d = np.asarray(depth)
+    if d.ndim != 2 or not d.size:
+        raise PointCloudError(f"depth must be a non-empty H x W array, got shape {d.shape}")
+    if int(stride) < 1:
+        raise PointCloudError(f"stride must be >= 1, got {stride}")
+    if rgb is not None and np.shape(rgb) != (*d.shape, 3):
+        raise PointCloudError(f"rgb must be {d.shape[0]} x {d.shape[1]} x 3 like the depth, got "
+                              f"shape {np.shape(rgb)}")
+    fx, fy, cx, cy = projection_of(camera_info)
+    s = int(stride)
+    z = d[::s, ::s].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(z) & (z > 0)
+    rows, cols = np.nonzero(valid)
+    z = z[rows, cols]
+    xyz = np.empty((z.size, 3), np.float64)
+    xyz[:, 0] = (cols * s - cx) * z / fx
+    xyz[:, 1] = (rows * s - cy) * z / fy
+    xyz[:, 2] = z
+    if max_range > 0:
+        near = np.einsum("ij,ij->i", xyz, xyz) <= float(max_range) ** 2
+        xyz, rows, cols = xyz[near], rows[near], cols[near]
+    fields = None
+    if rgb is not None:
+        fields = {"rgb": pack_rgb(np.asarray(rgb)[::s, ::s][rows, cols])}
+    return numpy_to_pointcloud2(xyz.astype(np.float32), camera_info.header if header is None
+                                else header, fields)
 
 
 def _dtype_of(msg: PointCloud2) -> np.dtype:

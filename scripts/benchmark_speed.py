@@ -124,8 +124,8 @@ from sfm_ttr_ros.tools.benchmark import (  # noqa: E402
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "sfm_ttr_speed_cache"
 STAGES = ("feature_extraction", "matching", "mapping", "sfm_other", "alignment", "refinement",
           "prediction", "conversion", "other")
-CONVERSIONS = ("input_image", "depth_image", "colored_image", "pointcloud", "diagnostics",
-               "serialize")
+CONVERSIONS = ("input_image", "depth_image", "colored_image", "camera_info", "cloud",
+               "pointcloud", "diagnostics", "serialize")
 NAIVE_STEPS = 200  # the paper's
 # The naive run refines as the paper does (every encoder stage, 200 steps) at the learning rate
 # that measured best for 200 steps with the default network (docs/decisions.md, "Refinement":
@@ -267,7 +267,7 @@ class RunConfig:
     model: ModelConfig
     feature_cache: bool = True
     overrides: list[str] = field(default_factory=list)
-    # what the node publishes besides ~/depth (its outputs parameter)
+    # what the node publishes besides ~/depth/image (its outputs parameter)
     publish: dict[str, bool] = field(default_factory=lambda: {
         "colored": True, "points": True, "diagnostics": True})
 
@@ -345,13 +345,16 @@ class Publisher:
     def __init__(self, publish: dict[str, bool] | None = None):
         from rclpy.serialization import serialize_message
 
-        from msg_adapters import image_to_rgb8, numpy_to_image
+        from msg_adapters import image_to_rgb8, intrinsics_to_camera_info, numpy_to_image
         from sfm_ttr_ros.ros import outputs
+        from sfm_ttr_ros.ros.camera import CameraSource
 
         publish = publish or {}
         self._ser = serialize_message
         self._outputs = outputs
         self._decode, self._encode = image_to_rgb8, numpy_to_image
+        self._camera_info, self._camera_source = intrinsics_to_camera_info, CameraSource
+        self._cameras: dict[Intrinsics, object] = {}
         self.publish_colored = publish.get("colored", True)
         self.publish_points = publish.get("points", True)
         self.publish_diagnostics = publish.get("diagnostics", True)
@@ -374,12 +377,20 @@ class Publisher:
         """The rgb8 Image message a camera driver would send for ``frame`` (not timed)."""
         return self._encode(frame.image, "rgb8", frame.header)
 
+    def camera(self, intr: Intrinsics):
+        """What the node's intrinsics resolver sets on a frame (``Frame.camera``): the intrinsics
+        with the CameraInfo a camera driver would send (not timed; republishing it beside each
+        depth image is)."""
+        if intr not in self._cameras:
+            self._cameras[intr] = self._camera_source(intr, self._camera_info(intr))
+        return self._cameras[intr]
+
     def receive(self, msg) -> np.ndarray:
         """The node's subscription callback: Image → RGB array."""
         return self._timed("input_image", self._decode, msg)
 
     def output(self, out: FrameOutput) -> None:
-        for msg in self._outputs.frame_messages(out, self.t).values():
+        for msg in self._outputs.frame_messages(out, out.frame.camera, timings=self.t).values():
             self._send(msg)
 
     def window(self, ws: WindowStats, diagnostics: StreamDiagnostics) -> None:
@@ -396,7 +407,8 @@ class Publisher:
         d = np.ones(shape, np.float32)
         f = Frame(index=0, image=np.zeros((*shape, 3), np.uint8), header=make_header(0.0))
         self.receive(self.make_input(f))
-        for msg in self._outputs.frame_messages(FrameOutput(f, d, False)).values():
+        camera = self.camera(Intrinsics(1.0, 1.0, 0.0, 0.0, shape[1], shape[0]))
+        for msg in self._outputs.frame_messages(FrameOutput(f, d, False), camera).values():
             self._send(msg)
         cloud = WindowStats(index=0, names=[f.name], new_frames=1, refined=True, cloud_frame=f,
                             cloud_xyz=np.zeros((1, 3), np.float32),
@@ -516,6 +528,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
             for f in chunk:
                 if f.header is None:
                     f.header = make_header(f.stamp)
+                f.camera = pub.camera(intr)
             msgs = [pub.make_input(f) for f in chunk]
             for f, msg in zip(chunk, msgs, strict=True):
                 if pub_shape is None:

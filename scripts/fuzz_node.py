@@ -9,7 +9,7 @@ a private ROS_DOMAIN_ID, sends ``--messages`` hostile and valid messages:
 * images the node must drop as ``bad_image``: unknown, empty, unicode and wrong-case encodings
   (``RGB8``, ``MONO8``), 32FC1, truncated and over-long data, a step below the row size, zero
   and huge declared sizes;
-* images it must take (every one comes back on ``~/depth_refined`` or is counted as dropped or
+* images it must take (every one comes back on ``~/depth_refined/image`` or is counted as dropped or
   live-only, ``frames_live_only``):
   every supported encoding, padded rows, big- and little-endian 16 bit, blank / noise / static
   frames, tiny (1x1) and extreme-aspect (1x600, 2000x2) images, frames smaller than the fallback
@@ -24,7 +24,7 @@ a private ROS_DOMAIN_ID, sends ``--messages`` hostile and valid messages:
 Then it waits for the drain and checks: the process is alive; exact accounting from the last
 /diagnostics (every image received, ``received = refined + unrefined + dropped``, nothing
 pending); ``dropped.bad_image`` = the bad images sent; every valid frame back on
-``~/depth_refined`` or counted dropped or live-only; ``rejected_camera_info`` = the bad
+``~/depth_refined/image`` or counted dropped or live-only; ``rejected_camera_info`` = the bad
 CameraInfos; no contained fault and no ``Traceback`` in the node's log; RSS bounded (final
 <= 2 x the RSS after the first phase + 200 MiB); every invalid parameter set refused with a
 reason. Exit 0 when every check passes, 1 otherwise; ``--json`` writes the figures.

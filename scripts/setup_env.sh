@@ -33,7 +33,8 @@ PIP=("$PY" -m pip --disable-pip-version-check)
 
 # Stamp: skip the pip work when nothing that drives the install changed since the last success.
 STAMP="$VENV/.sfm_ttr_ros_setup_stamp"
-INPUTS_HASH="$(cat setup.py setup.cfg package.xml requirements.txt scripts/setup_env.sh \
+INPUTS_HASH="$(cat setup.py setup.cfg package.xml requirements.txt sfm_ttr_ros/requirements.py \
+    scripts/setup_env.sh \
     | sha256sum | cut -d' ' -f1)"
 if [[ -f "$STAMP" && "$(cat "$STAMP")" == "$INPUTS_HASH" ]] \
         && (cd / && "$PY" -c "import torch, pycolmap, sfm_ttr_ros" >/dev/null 2>&1); then

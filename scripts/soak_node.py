@@ -4,20 +4,21 @@
 ``params/kitti.yaml``, as an outside rclpy client through DDS.
 
 Sampled: the node process's RSS (every ``--rss-period`` s, /proc); per frame, the latency from
-publishing the image to receiving its ``~/depth`` (live; taken by a listener process of its own,
-as a controller would be, unless ``--one-client``) and its ``~/depth_refined`` (window) message;
-with the RSS, the node's own live latency from /diagnostics (arrival in the node to published)
-and the machine's CPU steal, which tell a late depth made in the node from one late in DDS.
+publishing the image to receiving its ``~/depth/image`` (live; taken by a listener process of its
+own, as a controller would be, unless ``--one-client``) and its ``~/depth_refined/image`` (window)
+message; with the RSS, the node's own live latency from /diagnostics (arrival in the node to
+published) and the machine's CPU steal, which tell a late depth made in the node from one late in
+DDS.
 Checks at the end (the issue's criteria; for runs shorter than 30 minutes the
 "first / last 5 minutes" are the first / last sixth of the run):
 
 * every frame accounted: /diagnostics ``frames_received`` = frames sent, ``received = refined +
   unrefined + dropped`` and nothing pending after the drain, every frame published on
-  ``~/depth_refined`` or counted dropped or live-only (``frames_live_only``);
+  ``~/depth_refined/image`` or counted dropped or live-only (``frames_live_only``);
 * memory: the peak RSS after the first 5 minutes <= 1.10 x the peak in them (RSS is a
   sawtooth: the allocator gives a window's freed pages back, ros/allocator.py);
-* latency: the p95 of ``~/depth_refined`` latency over the last 5 minutes within 20 % of the
-  first 5 minutes' (and the same reported for the live ``~/depth``).
+* latency: the p95 of ``~/depth_refined/image`` latency over the last 5 minutes within 20 % of the
+  first 5 minutes' (and the same reported for the live ``~/depth/image``).
 
 Writes ``soak.json`` (samples, figures, checks) and ``soak.png`` (RSS and latency over time,
 drawn with OpenCV) into ``--out``. Exit 0 when every check passes.
@@ -90,8 +91,8 @@ def rss_maxima(rss: list[tuple[float, float]], bucket_s: float) -> list[float]:
 def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float, float]],
               refined: list[tuple[float, float]], title: str,
               node_p95: list[tuple[float, float]] = ()) -> None:
-    """Two panels (RSS MiB; latency s of ~/depth and ~/depth_refined at the client, and the
-    node's own live p95 from /diagnostics) over minutes, OpenCV."""
+    """Two panels (RSS MiB; latency s of ~/depth/image and ~/depth_refined/image at the client,
+    and the node's own live p95 from /diagnostics) over minutes, OpenCV."""
     import cv2
 
     w, h, m = 1200, 800, 70
@@ -130,17 +131,18 @@ def draw_plot(path: Path, rss: list[tuple[float, float]], live: list[tuple[float
 
 
 def ready_file(live_file: str | Path) -> Path:
-    """The file the listener creates once it has matched the node's ``~/depth``."""
+    """The file the listener creates once it has matched the node's ``~/depth/image``."""
     return Path(f"{live_file}.ready")
 
 
 def listen_live(out_path: str, best_effort: bool = False) -> int:
-    """A second client process that only takes ``~/depth`` (what a controller would run) and
+    """A second client process that only takes ``~/depth/image`` (what a controller would run) and
     writes ``[[stamp_ns, received monotonic s], ...]`` to ``out_path`` on SIGINT / SIGTERM.
 
     One process taking both outputs measures its own queue, not the node: a window releases
-    up to ``max_pending`` depth images on ``~/depth_refined`` at once (~190 MB at 1242x375), and
-    the live images arriving behind them in the same client wait until they are taken."""
+    up to ``max_pending`` depth images on ``~/depth_refined/image`` at once (~190 MB at
+    1242x375), and the live images arriving behind them in the same client wait until they are
+    taken."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node

@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from msg_adapters.image import image_to_depth, image_to_numpy
+from msg_adapters.odometry import odometry_to_position
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import EvalConfig
 from sfm_ttr_ros.data.kitti import read_depth_png, write_kitti_drive
@@ -29,6 +30,7 @@ from sfm_ttr_ros.ros.kitti_bag import (
     CAMERA_INFO_TOPIC,
     DEPTH_GT_TOPIC,
     IMAGE_TOPIC,
+    ODOM_TOPIC,
     kitti_timestamp_ns,
     kitti_to_bag,
 )
@@ -84,7 +86,8 @@ def test_converted_bag_roundtrip(drive, bags, storage):
     assert meta["version"] == 9 and meta["storage_identifier"] == storage
     topics = {t["topic_metadata"]["name"]: t for t in meta["topics_with_message_count"]}
     assert {t: v["message_count"] for t, v in topics.items()} == {
-        IMAGE_TOPIC: N_FRAMES, CAMERA_INFO_TOPIC: N_FRAMES, DEPTH_GT_TOPIC: N_FRAMES - 2 * GT_SKIP}
+        IMAGE_TOPIC: N_FRAMES, CAMERA_INFO_TOPIC: N_FRAMES, DEPTH_GT_TOPIC: N_FRAMES - 2 * GT_SKIP,
+        ODOM_TOPIC: N_FRAMES}
     for t in topics.values():
         assert t["topic_metadata"]["serialization_format"] == "cdr"
     # The type hashes are those of the installed Jazzy message packages (ros2 bag play checks).
@@ -99,13 +102,21 @@ def test_converted_bag_roundtrip(drive, bags, storage):
     stamps = _file_stamps_ns(raw, name)
     img_dir = _drive_dir(raw, name) / "image_02" / "data"
     gt_dir = gt_root / "val" / name / "proj_depth" / "groundtruth" / "image_02"
-    seen = {IMAGE_TOPIC: [], CAMERA_INFO_TOPIC: [], DEPTH_GT_TOPIC: []}
+    seen = {IMAGE_TOPIC: [], CAMERA_INFO_TOPIC: [], DEPTH_GT_TOPIC: [], ODOM_TOPIC: []}
     order = []
     for topic, msgtype, st, msg in read_bag(bag):
         order.append(topic)
         seen[topic].append(st)
-        assert msg.header.frame_id == "camera_color_left"
         i = stamps.index(st)
+        if topic == ODOM_TOPIC:  # the generated drive's camera pose (poses.txt), metres
+            assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "camera_color_left")
+            stamp_s, xyz = odometry_to_position(msg)
+            assert stamp_s == pytest.approx(st / 1e9, abs=1e-6)
+            assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == divmod(st, 10**9)
+            np.testing.assert_allclose(xyz, np.linalg.inv(drive[3].cam_from_world[i])[:3, 3],
+                                       atol=1e-9)
+            continue
+        assert msg.header.frame_id == "camera_color_left"
         if topic == IMAGE_TOPIC:
             assert msgtype == "sensor_msgs/msg/Image" and msg.encoding == "rgb8"
             png = cv2.cvtColor(cv2.imread(str(img_dir / f"{i:010d}.png")), cv2.COLOR_BGR2RGB)
@@ -124,7 +135,7 @@ def test_converted_bag_roundtrip(drive, bags, storage):
             np.testing.assert_array_equal(np.isnan(depth), want == 0)
             np.testing.assert_array_equal(depth[want > 0], want[want > 0])
     # every frame, in order, stamped exactly as timestamps.txt; camera_info comes first
-    assert seen[IMAGE_TOPIC] == stamps == seen[CAMERA_INFO_TOPIC]
+    assert seen[IMAGE_TOPIC] == stamps == seen[CAMERA_INFO_TOPIC] == seen[ODOM_TOPIC]
     assert seen[DEPTH_GT_TOPIC] == stamps[GT_SKIP:N_FRAMES - GT_SKIP]
     assert order[:2] == [CAMERA_INFO_TOPIC, IMAGE_TOPIC]
     assert set(bag_topics(bag)) == set(seen)
@@ -132,11 +143,41 @@ def test_converted_bag_roundtrip(drive, bags, storage):
     assert [t for t, *_ in read_bag(bag, [DEPTH_GT_TOPIC])] == [DEPTH_GT_TOPIC] * 4
 
 
+def test_odometry_comes_from_poses_txt_or_oxts_or_is_absent(drive, tmp_path, capsys):
+    from sfm_ttr_ros.tools.cli import main
+
+    raw, _, name, _ = drive
+    copy = tmp_path / "raw"
+    shutil.copytree(raw, copy)
+    drive_dir = _drive_dir(copy, name)
+    (drive_dir / "poses.txt").unlink()
+    # neither poses.txt nor oxts/: no /kitti/odom, and the command says so
+    assert main(["kitti-to-bag", "--kitti-raw", str(copy), "--drive", name, "--out",
+                 str(tmp_path / "none"), "--max-frames", "2", "-q"]) == 0
+    assert "no odometry (/kitti/odom not written)" in capsys.readouterr().out
+    assert ODOM_TOPIC not in bag_topics(tmp_path / "none")
+    # real KITTI's GPS/IMU: the IMU's pose (devkit conversion), child frame imu_link
+    er, lat0 = 6378137.0, 49.0
+    (drive_dir / "oxts" / "data").mkdir(parents=True)
+    for i in range(N_FRAMES):  # 1 m a frame to the east, heading east (yaw 0)
+        lon = 8.4 + np.degrees(1.0 * i / (er * np.cos(np.radians(lat0))))
+        (drive_dir / "oxts" / "data" / f"{i:010d}.txt").write_text(
+            " ".join(map(str, [lat0, lon, 110.0, 0.0, 0.0, 0.0] + [0.0] * 24)) + "\n")
+    (drive_dir / "oxts" / "timestamps.txt").write_text(
+        (drive_dir / "image_02" / "timestamps.txt").read_text())
+    res = kitti_to_bag(copy, name, tmp_path / "oxts", start=2, max_frames=3)
+    assert res.odometry == "oxts" and res.counts[ODOM_TOPIC] == 3
+    odom = [m for _, _, _, m in read_bag(tmp_path / "oxts", [ODOM_TOPIC])]
+    assert {(m.header.frame_id, m.child_frame_id) for m in odom} == {("odom", "imu_link")}
+    xyz = np.array([odometry_to_position(m)[1] for m in odom])
+    np.testing.assert_allclose(xyz, [[2, 0, 0], [3, 0, 0], [4, 0, 0]], atol=1e-6)
+
+
 def test_convert_without_gt_and_a_frame_range(drive, tmp_path):
     raw, _, name, _ = drive
     res = kitti_to_bag(raw, name, tmp_path / "b", storage="sqlite3", start=3, max_frames=2)
     assert res.frames == 2 and res.gt_frames == 0
-    assert res.counts == {IMAGE_TOPIC: 2, CAMERA_INFO_TOPIC: 2}
+    assert res.counts == {IMAGE_TOPIC: 2, CAMERA_INFO_TOPIC: 2, ODOM_TOPIC: 2}
     stamps = _file_stamps_ns(raw, name)
     assert [st for _, _, st, _ in read_bag(tmp_path / "b", [IMAGE_TOPIC])] == stamps[3:5]
 
@@ -243,8 +284,9 @@ def test_play_into_subscriber_with_clock_and_recording(drive, bags, ros_sub, tmp
         assert rec.wait_for({IMAGE_TOPIC: N_FRAMES}, timeout=10)
     played = time.monotonic() - t0
     assert res.published == {IMAGE_TOPIC: N_FRAMES, CAMERA_INFO_TOPIC: N_FRAMES,
-                              DEPTH_GT_TOPIC: N_FRAMES - 2 * GT_SKIP}
-    assert res.no_subscriber == [DEPTH_GT_TOPIC] and not res.unacked
+                              DEPTH_GT_TOPIC: N_FRAMES - 2 * GT_SKIP, ODOM_TOPIC: N_FRAMES}
+    assert sorted(res.no_subscriber) == sorted([DEPTH_GT_TOPIC, ODOM_TOPIC])
+    assert not res.unacked
     # recorded timing: (N-1) x 0.1 s of bag time at 4x
     span = (stamps[-1] - stamps[0]) / 1e9
     assert res.bag_seconds == pytest.approx(span, abs=1e-6)
@@ -378,7 +420,7 @@ def test_evaluate_bag_command(bags, tmp_path, capsys):
                               max_depth=80.0, out=str(out), quiet=True)
     assert evaluate_bag_command(args) == 0
     text = capsys.readouterr().out
-    assert "| /refiner/depth |" in text and "eigen crop on" in text
+    assert "| /refiner/depth/image |" in text and "eigen crop on" in text
     saved = json.loads(out.read_text())
     assert saved["frames"] == 4 and saved["abs_rel"] == pytest.approx(0.1, abs=1e-4)
     # no prediction stamp matches a GT stamp: exit code 1 and the counts, not an exception
@@ -450,7 +492,7 @@ def test_bad_input(drive, bags, tmp_path):
         list(read_bag(tmp_path / "nope"))
     with pytest.raises(InputError, match="/nope not in bag"):
         list(read_bag(bags["mcap"], ["/nope"]))
-    with pytest.raises(InputError, match="topic /refiner/depth not in bag"):
+    with pytest.raises(InputError, match="topic /refiner/depth/image not in bag"):
         evaluate_bag(bags["mcap"])
     with pytest.raises(InputError, match="CameraInfo, not"):
         evaluate_bag(bags["mcap"], pred_topic=CAMERA_INFO_TOPIC)
@@ -498,7 +540,7 @@ def test_compressed_bag_holds_jpeg_images_of_the_drive(drive, tmp_path):
     raw, _, name, seq = drive
     res = kitti_to_bag(raw, name, tmp_path / "c", storage="mcap", max_frames=4, compressed=True)
     topic = IMAGE_TOPIC + "/compressed"
-    assert res.counts == {topic: 4, CAMERA_INFO_TOPIC: 4}
+    assert res.counts == {topic: 4, CAMERA_INFO_TOPIC: 4, ODOM_TOPIC: 4}
     assert bag_topics(tmp_path / "c")[topic].msgtype == COMPRESSED_IMAGE_MSGTYPE
     msgs = [m for _, _, _, m in read_bag(tmp_path / "c", [topic])]
     assert [m.format for m in msgs] == ["rgb8; jpeg compressed bgr8"] * 4

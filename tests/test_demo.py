@@ -1,5 +1,5 @@
 """The demo end to end: a generated drive → rosbag2 → played into the `refiner` node (a real
-subprocess, as `ros2 run` starts it) → recorded ~/depth → evaluated against the GT topic.
+subprocess, as `ros2 run` starts it) → recorded ~/depth/image → evaluated against the GT topic.
 
 The refined depth must beat the unrefined one on abs rel and RMSE for that drive. Small frames
 and windows (8 frames every 4) keep it near a minute on 2 cores; everything
@@ -158,3 +158,52 @@ def test_the_demo_writes_an_image_folder_as_a_kitti_drive(tmp_path):
     with pytest.raises(InputError, match="--gt-depth"):
         _image_folder_drive(DemoOptions(images=str(images), intrinsics=str(tmp_path / "K.txt")),
                             tmp_path / "out2")
+
+
+def test_the_poses_beside_an_image_folder_reach_the_bag_as_odometry(tmp_path):
+    """hololens_000's layout: ``poses.txt`` beside ``images/`` (4x4 camera-to-world per image)
+    becomes the drive's ``poses.txt`` and ``/kitti/odom`` in the bag, frame by frame."""
+    import cv2
+    import numpy as np
+
+    from msg_adapters.odometry import odometry_to_position, quaternion_to_rotation
+    from sfm_ttr_ros.core.errors import InputError
+    from sfm_ttr_ros.ros.bag import read_bag
+    from sfm_ttr_ros.ros.kitti_bag import IMAGE_TOPIC, ODOM_TOPIC, kitti_to_bag
+    from sfm_ttr_ros.tools.demo import _image_folder_drive
+
+    images, gt_dir = tmp_path / "images", tmp_path / "depth"
+    images.mkdir()
+    gt_dir.mkdir()
+    poses = []
+    for i in range(4):
+        cv2.imwrite(str(images / f"{i:05d}.png"), np.full((24, 32, 3), 40 * i, np.uint8))
+        cv2.imwrite(str(gt_dir / f"{i:05d}.png"), np.full((24, 32), 2000, np.uint16))
+        a = 0.1 * i
+        T = np.eye(4)
+        T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+        T[:3, 3] = [0.08 * i, -0.01 * i, 0.5]
+        poses.append(T)
+    np.savetxt(tmp_path / "poses.txt", np.array(poses).reshape(4, 16))
+    (tmp_path / "K.txt").write_text("30 0 15.5\n0 30 11.5\n0 0 1\n")
+    opts = DemoOptions(images=str(images), intrinsics=str(tmp_path / "K.txt"),
+                       gt_depth=str(gt_dir), gt_scale=1000.0)
+    raw, gt, drive = _image_folder_drive(opts, tmp_path / "out")
+    res = kitti_to_bag(raw, drive, tmp_path / "bag", gt, start=1)
+    assert res.odometry == "poses.txt" and res.counts[ODOM_TOPIC] == 3
+    msgs = list(read_bag(tmp_path / "bag", [IMAGE_TOPIC, ODOM_TOPIC]))
+    images_ns = [st for topic, _, st, _ in msgs if topic == IMAGE_TOPIC]
+    odom = [m for topic, _, _, m in msgs if topic == ODOM_TOPIC]
+    assert [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in odom] == images_ns
+    assert [odometry_to_position(m)[0] for m in odom] == pytest.approx(
+        [st / 1e9 for st in images_ns], abs=1e-6)
+    for m, T in zip(odom, poses[1:], strict=True):
+        assert (m.header.frame_id, m.child_frame_id) == ("odom", "camera_color_left")
+        np.testing.assert_allclose(odometry_to_position(m)[1], T[:3, 3], atol=1e-12)
+        o = m.pose.pose.orientation
+        np.testing.assert_allclose(quaternion_to_rotation([o.x, o.y, o.z, o.w]), T[:3, :3],
+                                   atol=1e-9)
+    # a poses.txt that does not match the folder is refused, not guessed
+    np.savetxt(tmp_path / "poses.txt", np.array(poses[:3]).reshape(3, 16))
+    with pytest.raises(InputError, match="3 poses for the 4 images"):
+        _image_folder_drive(opts, tmp_path / "out3")

@@ -13,7 +13,7 @@ from sfm_ttr_ros.core.stream.windows import StreamProcessor, WindowStats
 INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
 FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_dropped",
               "frames_pending", "frames_held_no_intrinsics", "frames_live_only",
-              "frames_backlog_released"]
+              "frames_backlog_released", "frames_without_camera_info"]
 INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_monotonic_stamps",
                          "qos_incompatible", "windows_ok", "windows_failed",
                          "windows_skipped_overload", "windows_disabled",
@@ -84,6 +84,24 @@ def test_input_problems_and_unrefined_frames_make_a_warning_once(stream):
     assert diag.qos_incompatible == {"image": 1, "~/depth": 1}
     # the unrefined frames are reported once; the QoS problem stays
     assert diag.status().message == "incompatible QoS"
+
+
+def test_depth_without_camera_info_is_counted_per_output_and_warned_once(stream):
+    diag = StreamDiagnostics(stream, live=lambda: {
+        "received": 3, "published": 3, "skipped": {}, "pending": 0, "version": 0,
+        "weights_age_s": 0.0, "serving_updates": 0, "interim_step": 0, "serving_previews": 0,
+        "serving_reverts": 0, "serving_interim_refused": 0,
+        **{k: 0.0 for k in ("latency_p50_s", "latency_p95_s", "latency_max_s",
+                            "publish_max_s")}})
+    assert diag.values()["live.without_camera_info"] == 0
+    assert diag.camera_info_missing("live") == 1 and diag.camera_info_missing("live") == 2
+    diag.camera_info_missing("refined")
+    status = diag.status()
+    assert status.level == "warn"
+    assert status.message == "3 depth image(s) without CameraInfo (no intrinsics yet)"
+    assert status.values["live.without_camera_info"] == 2
+    assert status.values["frames_without_camera_info"] == 1
+    assert diag.status().level == "ok"  # reported once; the counters stay
 
 
 def test_the_last_window_is_reported_with_its_timings(stream):

@@ -236,3 +236,78 @@ def test_drive_name_parsing():
     assert parse_drive_name("2011_09_26_drive_0001_sync") == ("2011_09_26", 1)
     with pytest.raises(InputError):
         parse_drive_name("2011_09_26_drive_1_sync")
+
+
+def test_a_generated_drive_carries_its_camera_poses_and_height(seq, written, capsys):
+    from sfm_ttr_ros.data.poses import read_camera_height, read_poses
+
+    raw, _, name = written
+    drive_dir = raw / "2011_09_26" / name
+    poses = read_poses(drive_dir / "poses.txt")
+    assert poses.shape == (N_FRAMES, 4, 4)
+    for T, cam_from_world in zip(poses, seq.cam_from_world, strict=True):
+        np.testing.assert_allclose(T @ cam_from_world, np.eye(4), atol=1e-9)
+    # the camera drives ~speed metres a frame at camera_height above the road (y down)
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, seq.params.speed, rtol=0.01)
+    assert read_camera_height(drive_dir / "camera_height.txt") == pytest.approx(
+        seq.params.camera_height, abs=1e-6)
+    np.testing.assert_allclose(-poses[:, 1, 3], seq.params.camera_height, atol=0.011)
+    # the same through the CLI, which says where it wrote them
+    from sfm_ttr_ros.tools.cli import main
+
+    assert main(["generate", "--kitti-raw", str(raw / "cli"), "--frames", "2", "--width", "64",
+                 "--height", "32", "--seed", "3"]) == 0
+    out = capsys.readouterr().out
+    cli_dir = raw / "cli" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    height = read_camera_height(cli_dir / "camera_height.txt")
+    assert f"camera height above the road: {height:.3f} m" in out and "poses.txt" in out
+    assert read_poses(cli_dir / "poses.txt").shape == (2, 4, 4)
+
+
+def test_poses_and_oxts_files_are_checked(tmp_path):
+    from sfm_ttr_ros.data.poses import (
+        drive_oxts_poses,
+        oxts_poses,
+        read_camera_height,
+        read_poses,
+        write_camera_height,
+    )
+
+    bad = tmp_path / "poses.txt"
+    bad.write_text("1 2 3\n")
+    with pytest.raises(InputError, match="16 numbers"):
+        read_poses(bad)
+    bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0 0 0 1 1\n")
+    with pytest.raises(InputError, match="row 1 is not a rigid 4x4 pose"):
+        read_poses(bad)
+    with pytest.raises(InputError, match="> 0 m"):
+        write_camera_height(tmp_path / "h.txt", -1.0)
+    (tmp_path / "h.txt").write_text("tall\n")
+    with pytest.raises(InputError, match="camera height"):
+        read_camera_height(tmp_path / "h.txt")
+    # OXTS as the KITTI devkit converts it: 10 m east then 10 m north at 49 deg latitude
+    er, lat0 = 6378137.0, 49.0
+    dlon = np.degrees(10.0 / (er * np.cos(np.radians(lat0))))
+    packets = [[lat0, 8.4, 110.0, 0, 0, 0.3], [lat0, 8.4 + dlon, 110.0, 0, 0, 0.3],
+               [lat0 + np.degrees(10.0 / er), 8.4 + dlon, 111.0, 0, 0, 0.3]]
+    poses = oxts_poses([np.array(p) for p in packets])
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-9)
+    for T in poses:  # the same heading throughout: no rotation relative to the first
+        np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-9)
+    moves = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(moves, [10.0, np.hypot(10.0, 1.0)], rtol=1e-4)
+    # in the first IMU frame (x forward = the heading yaw 0.3 from east): east is -0.3 rad away
+    np.testing.assert_allclose(poses[1][:2, 3], 10.0 * np.array([np.cos(0.3), -np.sin(0.3)]),
+                               rtol=1e-4)
+    drive = tmp_path / "drive"
+    assert drive_oxts_poses(drive, ["0000000000"]) is None  # no oxts/: no odometry
+    (drive / "oxts" / "data").mkdir(parents=True)
+    for i, p in enumerate(packets):
+        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(" ".join(map(str, p + [0] * 24)))
+    with pytest.raises(InputError, match="0 timestamps for 3 OXTS packets"):
+        drive_oxts_poses(drive, [f"{i:010d}" for i in range(3)])
+    (drive / "oxts" / "timestamps.txt").write_text("2011-09-26 13:02:25.964389445\n" * 3)
+    np.testing.assert_allclose(drive_oxts_poses(drive, [f"{i:010d}" for i in range(3)]), poses)
+    with pytest.raises(InputError, match="no OXTS packet for frame 0000000009"):
+        drive_oxts_poses(drive, ["0000000009"])

@@ -20,10 +20,12 @@ from msg_adapters import (  # noqa: E402
     CameraInfoError,
     ImageConversionError,
     PointCloudError,
+    camera_info_for,
     camera_info_msg,
     camera_info_to_intrinsics,
     depth_to_colored_image,
     depth_to_image,
+    depth_to_pointcloud2,
     diagnostic_values,
     image_to_depth,
     image_to_numpy,
@@ -35,7 +37,10 @@ from msg_adapters import (  # noqa: E402
     numpy_to_pointcloud2,
     pointcloud2_to_numpy,
     pointcloud2_to_xyz,
+    projection_of,
+    scale_camera_info,
     typestore_classes,
+    unpack_rgb,
 )
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics  # noqa: E402
@@ -340,7 +345,76 @@ def test_camera_info_round_trip_binning_roi():
     assert roi.cx == pytest.approx(intr.cx - 100) and roi.cy == pytest.approx(intr.cy - 50)
 
 
+def test_camera_info_beside_an_image_is_the_received_one_or_scaled_to_its_size():
+    src = camera_info_msg(1242, 375, [[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]],
+                          [[700, 0, 600, -380], [0, 700, 170, 0], [0, 0, 1, 0]],
+                          D=[0.1, -0.2, 0.0, 0.0, 0.01], R=np.diag([1.0, -1.0, -1.0]),
+                          header=Header(frame_id="camera_info_frame"))
+    out = camera_info_for(src, 1242, 375, Header(frame_id="cam", stamp=Time(sec=3)))
+    assert out.header.frame_id == "cam" and out.header.stamp.sec == 3
+    for f in ("k", "p", "d", "r", "width", "height", "distortion_model", "binning_x"):
+        np.testing.assert_array_equal(getattr(out, f), getattr(src, f))
+    assert src.header.frame_id == "camera_info_frame"  # the received message is not modified
+    half = camera_info_for(src, 621, 187, Header(frame_id="cam"))
+    assert (half.width, half.height) == (621, 187) and half.header.frame_id == "cam"
+    P = np.reshape(half.p, (3, 4))
+    np.testing.assert_allclose(P[0], [350, 0, 300, -190])
+    np.testing.assert_allclose(P[1], [0, 700 * 187 / 375, 170 * 187 / 375, 0])
+    np.testing.assert_array_equal(half.d, src.d)
+    np.testing.assert_array_equal(half.r, src.r)
+    assert projection_of(half) == pytest.approx((350, 700 * 187 / 375, 300, 170 * 187 / 375))
+    # binning and ROI describe a smaller image: kept as they are for it, applied when scaling
+    src.binning_x = src.binning_y = 2
+    binned = camera_info_for(src, 621, 187, Header())
+    assert (binned.width, binned.height, binned.binning_x) == (1242, 375, 2)
+    src.binning_x = src.binning_y = 0
+    src.roi.x_offset, src.roi.y_offset, src.roi.width, src.roi.height = 100, 50, 640, 200
+    assert camera_info_for(src, 640, 200, Header()).roi.x_offset == 100
+    plain = scale_camera_info(src, 320, 100)
+    assert (plain.width, plain.height, plain.roi.width, plain.binning_x) == (320, 100, 0, 0)
+    np.testing.assert_allclose(np.reshape(plain.k, (3, 3))[:2],
+                               [[360.75, 0, 254.8], [0, 360.75, 61.45]])
+    assert camera_info_to_intrinsics(plain, use_projection=False) == pytest.approx(
+        camera_info_to_intrinsics(src, use_projection=False).scaled(320, 100))
+    with pytest.raises(CameraInfoError):
+        scale_camera_info(src, 0, 100)
+    # P all zero: the pinhole comes from K
+    src.p = [0.0] * 12
+    assert projection_of(src) == (721.5, 721.5, 609.6, 172.9)
+
+
 # ---------------------------------------------------------------------------- PointCloud2
+def test_depth_back_projected_as_depth_image_proc_every_stride_pixel_with_colours():
+    h, w = 7, 9
+    depth = np.full((h, w), 2.0, np.float32)
+    depth[0, 2] = np.nan  # invalid
+    depth[2, 0] = 0.0  # invalid
+    depth[2, 2] = 50.0  # out of range
+    rgb = RNG.integers(0, 256, size=(h, w, 3), dtype=np.uint8)
+    info = camera_info_msg(w, h, np.eye(3), [[4, 0, 4, 0], [0, 5, 3, 0], [0, 0, 1, 0]],
+                           header=Header(frame_id="cam"))
+    msg = depth_to_pointcloud2(depth, rgb, info, stride=2, max_range=10.0)
+    assert msg.header.frame_id == "cam" and msg.height == 1 and msg.is_dense is True
+    pts = pointcloud2_to_numpy(msg)
+    assert pts.dtype.names == ("x", "y", "z", "rgb")
+    want = [(v, u) for v in range(0, h, 2) for u in range(0, w, 2)
+            if (v, u) not in {(0, 2), (2, 0), (2, 2)}]
+    assert pts.shape == (len(want),)
+    v, u = np.array(want).T
+    np.testing.assert_allclose(pts["z"], 2.0)
+    np.testing.assert_allclose(pts["x"], (u - 4) * 2.0 / 4, rtol=1e-6)
+    np.testing.assert_allclose(pts["y"], (v - 3) * 2.0 / 5, rtol=1e-6)
+    np.testing.assert_array_equal(unpack_rgb(pts["rgb"]), rgb[v, u])
+    assert (rgb[v[0], u[0]] @ [65536, 256, 1]) == pts["rgb"][:1].view(np.uint32)[0]
+    # no range limit, stride 1, no colours; an all-invalid depth gives an empty cloud
+    assert depth_to_pointcloud2(depth, None, info, stride=1).width == h * w - 2
+    assert depth_to_pointcloud2(np.full((2, 2), np.nan), None, info).width == 0
+    with pytest.raises(PointCloudError, match="stride"):
+        depth_to_pointcloud2(depth, None, info, stride=0)
+    with pytest.raises(PointCloudError, match="rgb"):
+        depth_to_pointcloud2(depth, rgb[:3], info)
+
+
 def test_pointcloud_round_trip_with_extra_field():
     xyz = RNG.normal(size=(100, 3)) * 10
     err = RNG.uniform(0, 2, size=100)
@@ -518,3 +592,54 @@ def test_builders_give_rosbags_messages_equal_to_rclpy_ones():
         make_header(-1, "cam")
     with pytest.raises(CameraInfoError, match="P must have 12 values"):
         camera_info_msg(10, 10, K, K)
+
+
+# ------------------------------------------------------------------------------ Odometry
+def test_odometry_written_for_bags_reads_back_in_rclpy_with_its_pose():
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from msg_adapters import (
+        OdometryError,
+        odometry_msg,
+        odometry_to_position,
+        quaternion_to_rotation,
+        rotation_to_quaternion,
+    )
+    from sfm_ttr_ros.ros.bag import serialize, typestore
+
+    rng = np.random.default_rng(7)
+    for angle in (0.0, 0.4, np.pi - 1e-9, np.pi):  # near and at 180 degrees too
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+        q = rotation_to_quaternion(R)
+        assert q[3] >= 0 and np.linalg.norm(q) == pytest.approx(1.0)
+        np.testing.assert_allclose(quaternion_to_rotation(q), R, atol=1e-9)
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_rotation([0.1, -0.2, 0.3, 0.9])
+    T[:3, 3] = [1.5, -2.25, 40.0]
+    bag_msg = odometry_msg(1_317_042_145_964_389_086, "odom", "camera_color_left", T,
+                           typestore())
+    msg = deserialize_message(serialize(bag_msg, "nav_msgs/msg/Odometry"), Odometry)
+    assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "camera_color_left")
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_317_042_145, 964_389_086)
+    stamp, xyz = odometry_to_position(msg)
+    assert stamp == pytest.approx(1_317_042_145.964389086) and xyz.dtype == np.float64
+    np.testing.assert_array_equal(xyz, [1.5, -2.25, 40.0])
+    o = msg.pose.pose.orientation
+    np.testing.assert_allclose(quaternion_to_rotation([o.x, o.y, o.z, o.w]), T[:3, :3],
+                               atol=1e-12)
+    assert not np.any(msg.pose.covariance) and msg.twist.twist.linear.x == 0.0
+    # rclpy's own message, built by the same function, reads the same
+    live = odometry_msg(5, "odom", "cam", T)
+    assert odometry_to_position(deserialize_message(serialize_message(live), Odometry))[1] \
+        .tolist() == [1.5, -2.25, 40.0]
+    with pytest.raises(OdometryError, match="rotation"):
+        odometry_msg(0, "odom", "cam", np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(OdometryError, match="4x4"):
+        odometry_msg(0, "odom", "cam", np.eye(3))
+    msg.pose.pose.position.x = float("nan")
+    with pytest.raises(OdometryError, match="not finite"):
+        odometry_to_position(msg)

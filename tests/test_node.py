@@ -38,10 +38,12 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2  # n
 from std_msgs.msg import Header  # noqa: E402
 
 from msg_adapters import (  # noqa: E402
+    camera_info_msg,
     diagnostic_values,
     intrinsics_to_camera_info,
     numpy_to_image,
     pointcloud2_to_numpy,
+    unpack_rgb,
 )
 from sfm_ttr_ros.ros import names  # noqa: E402
 from sfm_ttr_ros.ros import params as node_params  # noqa: E402
@@ -103,10 +105,18 @@ class Graph:
         self.colored: list[Image] = []
         self.points: list[PointCloud2] = []
         self.diags: list[DiagnosticArray] = []
-        for msg_type, topic, sink in ((Image, names.DEPTH_REFINED_TOPIC_RESOLVED, self.depths),
-                                      (Image, names.DEPTH_TOPIC_RESOLVED, self.live),
-                                      (Image, names.DEPTH_COLORED_TOPIC_RESOLVED, self.colored),
-                                      (PointCloud2, names.POINTS_TOPIC_RESOLVED, self.points)):
+        # what an outside client pairs with the images: their CameraInfos, the dense cloud
+        self.live_infos: list[CameraInfo] = []
+        self.refined_infos: list[CameraInfo] = []
+        self.clouds: list[PointCloud2] = []
+        for msg_type, topic, sink in (
+                (Image, names.DEPTH_REFINED_TOPIC_RESOLVED, self.depths),
+                (Image, names.DEPTH_TOPIC_RESOLVED, self.live),
+                (Image, names.DEPTH_COLORED_TOPIC_RESOLVED, self.colored),
+                (PointCloud2, names.POINTS_TOPIC_RESOLVED, self.points),
+                (CameraInfo, names.DEPTH_INFO_TOPIC_RESOLVED, self.live_infos),
+                (CameraInfo, names.DEPTH_REFINED_INFO_TOPIC_RESOLVED, self.refined_infos),
+                (PointCloud2, names.CLOUD_TOPIC_RESOLVED, self.clouds)):
             self.node.create_subscription(msg_type, topic, sink.append, reliable)
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC,
                                       self.diags.append, 10)
@@ -211,6 +221,99 @@ def test_every_frame_comes_back_with_its_header(graph_factory, sequence):
     assert int(d["last_window.registered_frames"]) >= 2
     assert 0 < float(d["last_window.inlier_ratio"]) <= 1
     assert float(d["last_window.scale"]) > 0 and "last_window.time.sfm_s" in d
+
+
+def _key(msg) -> tuple[int, int]:
+    return msg.header.stamp.sec, msg.header.stamp.nanosec
+
+
+def _t_key(seconds: float) -> tuple[int, int]:
+    stamp = stamp_of(seconds)
+    return stamp.sec, stamp.nanosec
+
+
+def _back_projected(depth_msg: Image, info: CameraInfo, rgb: np.ndarray, stride: int,
+                    max_range: float) -> tuple[np.ndarray, np.ndarray]:
+    """depth_image_proc's point_cloud_xyzrgb, pixel by pixel: P's fx, fy, cx, cy, every
+    ``stride``-th pixel, invalid and far points left out; (xyz, rgb)."""
+    P = np.reshape(info.p, (3, 4))
+    fx, fy, cx, cy = P[0, 0], P[1, 1], P[0, 2], P[1, 2]
+    depth = np.frombuffer(depth_msg.data, np.float32).reshape(depth_msg.height, depth_msg.width)
+    xyz, colours = [], []
+    for v in range(0, depth.shape[0], stride):
+        for u in range(0, depth.shape[1], stride):
+            z = float(depth[v, u])
+            if not (np.isfinite(z) and z > 0):
+                continue
+            x, y = (u - cx) * z / fx, (v - cy) * z / fy
+            if max_range > 0 and x * x + y * y + z * z > max_range ** 2:
+                continue
+            xyz.append((x, y, z))
+            colours.append(rgb[v, u])
+    return np.array(xyz).reshape(-1, 3), np.array(colours, np.uint8).reshape(-1, 3)
+
+
+@pytest.mark.slow
+def test_an_outside_client_pairs_every_depth_with_its_camera_info_and_the_cloud(graph_factory,
+                                                                               sequence):
+    stride, max_range = 3, 30.0
+    g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0,
+                      outputs="depth,depth_colored,depth_refined,cloud,diagnostics",
+                      **{"cloud.stride": stride, "cloud.max_range": max_range})
+    pubs = [g.refiner._publishers_by_topic[t] for t in (
+        names.DEPTH_INFO_TOPIC, names.DEPTH_REFINED_INFO_TOPIC, names.CLOUD_TOPIC)]
+    wait_for(lambda: all(p.get_subscription_count() >= 1 for p in pubs), 20, "discovery")
+    # what a calibrated camera driver sends: rectified images (P = [K | 0], zero distortion)
+    K = sequence.intrinsics.K
+    infos = {}
+    for t in sequence.stamps[:6]:
+        infos[_t_key(t)] = camera_info_msg(
+            WIDTH, HEIGHT, K, np.hstack([K, np.zeros((3, 1))]), D=np.zeros(5),
+            header=Header(stamp=stamp_of(t), frame_id=FRAME_ID))
+    # the first image before any CameraInfo: its live depth goes out alone, counted
+    g.send_image(sequence.images[0], sequence.stamps[0])
+    wait_for(lambda: len(g.live) == 1, 30, "the first live depth")
+    d = wait_for(lambda: (lambda v: v if v.get("live.without_camera_info") == "1" else None)(
+        g.last_diag()), 10, "live.without_camera_info on /diagnostics")
+    assert d["frames_without_camera_info"] == "0"
+    for i in range(6):
+        g.pub_info.publish(infos[_t_key(sequence.stamps[i])])
+        if i:
+            rgb = sequence.images[i]
+            bgr = np.ascontiguousarray(rgb[:, :, ::-1])
+            g.send_image(bgr if i % 2 else rgb, sequence.stamps[i], "bgr8" if i % 2 else "rgb8")
+        time.sleep(0.05)
+    wait_for(lambda: len(g.depths) == 6 and len(g.refined_infos) == 6, 120, "refined depths")
+    wait_for(lambda: len(g.live) == 6 and len(g.live_infos) == 5 and len(g.clouds) == 5, 30,
+             "live depths, their CameraInfos and clouds")
+    rgb_by_stamp = {_t_key(t): im
+                    for t, im in zip(sequence.stamps[:6], sequence.images[:6], strict=True)}
+    first = _key(g.live[0])
+    for images, pairs in ((g.live, g.live_infos), (g.depths, g.refined_infos)):
+        by_stamp = {_key(m): m for m in pairs}
+        assert len(by_stamp) == len(pairs)
+        for img in images:
+            if images is g.live and _key(img) == first:
+                assert first not in by_stamp  # published before any CameraInfo
+                continue
+            info = by_stamp[_key(img)]
+            assert info.header.frame_id == img.header.frame_id == FRAME_ID
+            assert (info.width, info.height) == (img.width, img.height)
+            sent = infos[_key(img)]
+            for field in ("k", "p", "d", "r"):
+                np.testing.assert_array_equal(getattr(info, field), getattr(sent, field))
+    clouds = {_key(c): c for c in g.clouds}
+    for img in g.live[1:]:
+        cloud = clouds[_key(img)]
+        assert cloud.header == img.header and cloud.is_dense
+        pts = pointcloud2_to_numpy(cloud)
+        xyz, colours = _back_projected(img, infos[_key(img)], rgb_by_stamp[_key(img)], stride,
+                                       max_range)
+        assert 0 < len(pts) == len(xyz) < (WIDTH // stride + 1) * (HEIGHT // stride + 1)
+        np.testing.assert_allclose(np.stack([pts["x"], pts["y"], pts["z"]], 1), xyz,
+                                   rtol=1e-5, atol=1e-5)
+        np.testing.assert_array_equal(unpack_rgb(pts["rgb"]), colours)
+    assert g.refiner.diagnostics.without_camera_info == {"live": 1}
 
 
 @pytest.mark.slow
@@ -347,6 +450,11 @@ def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence)
     wait_for(lambda: g.refiner.stream._intr is not None, 10, "frame with fallback intrinsics")
     assert g.refiner.stream._intr.fx == intr.fx
     assert g.refiner.stream._intr.cx == (WIDTH - 1) / 2
+    # beside the live depth: a CameraInfo built from the fallback (P = [K | 0], D empty)
+    info = wait_for(lambda: g.live_infos and g.live_infos[0], 10, "the fallback's CameraInfo")
+    assert info.header == g.live[0].header and len(info.d) == 0
+    np.testing.assert_allclose(np.reshape(info.p, (3, 4)), [
+        [intr.fx, 0, (WIDTH - 1) / 2, 0], [0, intr.fy, (HEIGHT - 1) / 2, 0], [0, 0, 1, 0]])
     # P, not K, when camera_info_use_projection is true
     msg = intrinsics_to_camera_info(intr)
     msg.k = [0.0] * 9
@@ -499,6 +607,20 @@ def test_start_up_failures_exit_1_with_one_line_before_spinning(case, tmp_path):
     assert "Traceback" not in text and "refiner ready" not in text, text[-2000:]
     lines = [ln for ln in text.splitlines() if "cannot start" in ln]
     assert len(lines) == 1, text[-2000:]
+
+
+def test_a_pycolmap_too_old_for_sfm_stops_the_start_with_one_line(tmp_path):
+    # 4.0.x / 4.1.x lack pycolmap.CancellationToken: every window would fail, silently
+    (tmp_path / "fake").mkdir()
+    (tmp_path / "fake" / "pycolmap.py").write_text('__version__ = "4.1.1"\n')
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "fake"), str(REPO)])}
+    out = subprocess.run([sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    text = out.stdout + out.stderr
+    assert out.returncode == 1, text[-2000:]
+    lines = [ln for ln in text.splitlines() if "cannot start" in ln]
+    assert len(lines) == 1 and "pycolmap 4.1.1 is too old" in lines[0], text[-2000:]
+    assert "Traceback" not in text and "refiner ready" not in text
 
 
 @pytest.mark.slow

@@ -10,11 +10,12 @@ pytest.importorskip("sensor_msgs")
 
 from std_msgs.msg import Header  # noqa: E402
 
-from msg_adapters import image_to_numpy, pointcloud2_to_numpy  # noqa: E402
-from sfm_ttr_ros.core.frames import Frame  # noqa: E402
+from msg_adapters import camera_info_msg, image_to_numpy, pointcloud2_to_numpy  # noqa: E402
+from sfm_ttr_ros.core.frames import Frame, Intrinsics  # noqa: E402
 from sfm_ttr_ros.core.stream.live import LiveOutput  # noqa: E402
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats  # noqa: E402
 from sfm_ttr_ros.ros import names, outputs  # noqa: E402
+from sfm_ttr_ros.ros.camera import CameraSource  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -31,21 +32,60 @@ def test_live_and_refined_frames_keep_the_image_header():
     frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
     live = LiveOutput(frame, depth, version=3, weights_age_s=1.0, arrival=0.0, served=0.01)
     timings: dict[str, float] = {}
-    msgs = outputs.live_messages(live, colored=True, timings=timings)
+    # no intrinsics known yet: the images go out alone (the node counts it), no cloud
+    msgs = outputs.live_messages(live, ("depth", "depth_colored", "cloud"), timings=timings)
     assert list(msgs) == [names.DEPTH_TOPIC, names.DEPTH_COLORED_TOPIC]
     d, c = msgs[names.DEPTH_TOPIC], msgs[names.DEPTH_COLORED_TOPIC]
     assert (d.encoding, c.encoding) == ("32FC1", "bgr8")
     assert d.header == c.header == frame.header
     got = image_to_numpy(d)
     assert np.isnan(got[0, 0]) and np.all(got.ravel()[1:] == 2.0)
-    assert set(timings) == {"depth_image", "colored_image"}
-    assert list(outputs.live_messages(live, colored=False)) == [names.DEPTH_TOPIC]
-    # the windowed output: ~/depth_refined only, same header and encoding
+    assert set(timings) == {"depth_image", "colored_image", "camera_info"}
+    assert list(outputs.live_messages(live, ("depth",))) == [names.DEPTH_TOPIC]
+    # the windowed output: ~/depth_refined/image only, same header and encoding
     refined = outputs.frame_messages(FrameOutput(frame, depth, refined=True))
     assert list(refined) == [names.DEPTH_REFINED_TOPIC]
     r = refined[names.DEPTH_REFINED_TOPIC]
     assert r.header == frame.header and r.encoding == "32FC1"
     np.testing.assert_array_equal(image_to_numpy(r), got)
+
+
+def test_every_depth_image_has_a_camera_info_with_its_header_and_size():
+    depth = np.full((4, 6), 2.0, np.float32)
+    frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
+    live = LiveOutput(frame, depth, version=0, weights_age_s=0.0, arrival=0.0, served=0.0)
+    # received for a 12x8 image (e.g. before a downscale), with distortion and a stereo Tx
+    received = camera_info_msg(12, 8, [[10, 0, 5.5], [0, 11, 3.5], [0, 0, 1]],
+                               [[9, 0, 5, -1.2], [0, 9.5, 3, 0], [0, 0, 1, 0]],
+                               D=[0.1, -0.02, 0, 0, 0], header=header(1, "elsewhere"))
+    camera = CameraSource(Intrinsics(10, 11, 5.5, 3.5, 12, 8), received)
+    msgs = outputs.live_messages(live, ("depth", "depth_colored", "cloud"), camera)
+    assert list(msgs) == [names.DEPTH_TOPIC, names.DEPTH_INFO_TOPIC, names.DEPTH_COLORED_TOPIC,
+                          names.DEPTH_COLORED_INFO_TOPIC, names.CLOUD_TOPIC]
+    info = msgs[names.DEPTH_INFO_TOPIC]
+    assert msgs[names.DEPTH_COLORED_INFO_TOPIC] == info
+    assert info.header == frame.header and (info.width, info.height) == (6, 4)
+    np.testing.assert_allclose(np.reshape(info.p, (3, 4)),
+                               [[4.5, 0, 2.5, -0.6], [0, 4.75, 1.5, 0], [0, 0, 1, 0]])
+    np.testing.assert_allclose(np.reshape(info.k, (3, 3))[:2], [[5, 0, 2.75], [0, 5.5, 1.75]])
+    assert list(info.d) == [0.1, -0.02, 0, 0, 0] and info.distortion_model == "plumb_bob"
+    assert msgs[names.CLOUD_TOPIC].header == frame.header
+    # the same size: the received CameraInfo as it is, the header only replaced
+    same = CameraSource(Intrinsics(10, 11, 5.5, 3.5, 6, 4), camera_info_msg(
+        6, 4, [[10, 0, 2.5], [0, 11, 1.5], [0, 0, 1]], [[9, 0, 2, 0], [0, 9, 1, 0], [0, 0, 1, 0]],
+        D=[0.3], header=header(1, "elsewhere"), distortion_model="rational_polynomial"))
+    info = outputs.frame_messages(FrameOutput(frame, depth, refined=True), same)[
+        names.DEPTH_REFINED_INFO_TOPIC]
+    assert info.header == frame.header and info.distortion_model == "rational_polynomial"
+    for field in ("k", "p", "d", "r"):
+        np.testing.assert_array_equal(getattr(info, field), getattr(same.message, field))
+    # the fallback intrinsics: K, P = [K | 0], D empty, at the image's size
+    fallback = CameraSource(Intrinsics(7, 7, 2.5, 1.5, 6, 4), None, fallback=True)
+    info = outputs.frame_messages(FrameOutput(frame, depth, refined=False), fallback)[
+        names.DEPTH_REFINED_INFO_TOPIC]
+    np.testing.assert_array_equal(np.reshape(info.p, (3, 4)),
+                                  [[7, 0, 2.5, 0], [0, 7, 1.5, 0], [0, 0, 1, 0]])
+    assert len(info.d) == 0 and (info.width, info.height) == (6, 4)
 
 
 def test_a_window_gives_its_cloud_in_the_newest_registered_frame():

@@ -20,6 +20,8 @@ EXEC_DEPENDS = {
     "sensor_msgs",
     "std_msgs",
     "diagnostic_msgs",
+    "nav_msgs",
+    "geometry_msgs",
     "rcl_interfaces",
     "builtin_interfaces",
     "python3-numpy",

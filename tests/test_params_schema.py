@@ -137,6 +137,8 @@ def test_check_value_is_strict_like_rclpy():
     ({"fallback_intrinsics": "500 0 1 1"}, "fx and fy must be > 0"),
     ({"fallback_intrinsics": "500 500"}, "four numbers"),
     ({"outputs": "depth,cloudz"}, "unknown output"),
+    ({"cloud.stride": 0}, "cloud.stride"),
+    ({"cloud.max_range": -0.5}, "cloud.max_range"),
     ({"encoder_path": "e.pth"}, "both encoder_path and decoder_path"),
     ({"model_type": "resnet"}, "model_type must be"),
     ({"camera_info_use_projection": "sometimes"}, "camera_info_use_projection"),
@@ -282,7 +284,10 @@ def test_node_settings_validate_themselves():
                        ({"qos_depth": 0}, "qos_depth"), ({"outputs": "depth;points"}, "outputs"),
                        ({"qos_reliability": "sometimes"}, "qos_reliability"),
                        ({"diagnostics_period_s": 0.0}, "diagnostics_period_s"),
-                       ({"torch_num_threads": -1}, "torch_num_threads")):
+                       ({"torch_num_threads": -1}, "torch_num_threads"),
+                       ({"cloud_stride": 0}, "cloud.stride"),
+                       ({"cloud_max_range": -1.0}, "cloud.max_range"),
+                       ({"cloud_max_range": float("nan")}, "cloud.max_range")):
         with pytest.raises(InputError, match=match):
             NodeSettings(**bad)
     # every node setting is a parameter

@@ -22,6 +22,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -322,6 +323,31 @@ def test_bad_sequence_is_reported_with_its_reason(on_cluster):
 # ---------------------------------------------------------------------------------------------
 # The file, the Eigen frames, bags, pooling
 # ---------------------------------------------------------------------------------------------
+
+
+def test_a_ray_address_where_nothing_listens_is_one_error_line(tmp_path):
+    with socket.socket() as sock:  # a port nothing listens on once this socket is closed
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    split = tmp_path / "split.txt"
+    split.write_text(f"kitti {drive(1)} raw=raw gt=gt\n")
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-m", "sfm_ttr_ros.tools.cli", "benchmark", "--split", str(split),
+         "--out", str(tmp_path / "out"), "--ray-address", f"127.0.0.1:{port}"],
+        capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr.splitlines() == [
+        f"sfm-ttr: error: --ray-address 127.0.0.1:{port}: no Ray cluster answers there "
+        f"(Connection refused); start its head (ray start --head --port {port}) or check the "
+        "address"]
+    assert time.monotonic() - t0 < 60 and not (tmp_path / "out").exists()
+    bad = subprocess.run(
+        [sys.executable, "-m", "sfm_ttr_ros.tools.cli", "benchmark", "--split", str(split),
+         "--out", str(tmp_path / "out"), "--ray-address", "headnode"],
+        capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert bad.returncode == 2 and "expected HOST:PORT" in bad.stderr
+    assert "Traceback" not in bad.stderr
 
 
 def test_split_file_kinds_and_eigen_lines(tmp_path):

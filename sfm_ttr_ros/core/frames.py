@@ -106,6 +106,9 @@ class Frame:
     # set by the intrinsics resolver (ros/camera.py) when the frame got the fallback fx, fy:
     # the stream lets the first received intrinsics replace them while it holds the frame
     fallback_intrinsics: bool = field(default=False, repr=False, compare=False)
+    # opaque, set by the same resolver: where the frame's intrinsics came from (the node
+    # publishes the CameraInfo beside its depth from it); passed through like ``header``
+    camera: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.name:

@@ -7,6 +7,10 @@ Raw drive (camera 02 = left colour)::
     <raw_root>/<date>/<date>_drive_XXXX_sync/image_02/timestamps.txt
     <raw_root>/<date>/<date>_drive_XXXX_sync/image_02/segments.txt   (generated drives with
         segment labels only, not KITTI's: one line ``index label`` per frame)
+    <raw_root>/<date>/<date>_drive_XXXX_sync/poses.txt, camera_height.txt   (generated drives
+        and image folders with poses, not KITTI's: :mod:`sfm_ttr_ros.data.poses`)
+    <raw_root>/<date>/<date>_drive_XXXX_sync/oxts/data/NNNNNNNNNN.txt, oxts/timestamps.txt
+        (real KITTI: GPS/IMU, read by :func:`sfm_ttr_ros.data.poses.drive_oxts_poses`)
 
 Improved depth ground truth (KITTI depth benchmark; uint16 PNG, metres x 256, 0 = none; the
 first and last 5 frames of every drive have none)::
@@ -29,6 +33,12 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, load_rgb
+from sfm_ttr_ros.data.poses import (
+    CAMERA_HEIGHT_FILE,
+    POSES_FILE,
+    write_camera_height,
+    write_poses,
+)
 
 KITTI_DEPTH_SCALE = 256.0
 CAMERAS = ("00", "01", "02", "03")
@@ -407,6 +417,11 @@ def write_kitti_drive(
     """Write ``seq`` (a :class:`~sfm_ttr_ros.data.synthetic.SyntheticSequence`, or anything with
     ``images``, ``depths``, ``stamps``, ``intrinsics``) as a KITTI raw drive; return its name.
 
+    Its camera poses, when it has them (``cam_from_world``, a generated drive's, or
+    ``cam_to_world``, e.g. an image folder's ``poses.txt``), go to ``<drive>/poses.txt`` (4x4
+    camera-to-world per frame, :mod:`sfm_ttr_ros.data.poses`), and its camera height above the
+    road (``params.camera_height`` of a generated drive) to ``<drive>/camera_height.txt``.
+
     Images go to ``image_02/data`` as RGB PNGs, stamps to ``image_02/timestamps.txt``, the
     intrinsics to ``<raw_root>/<date>/calib_cam_to_cam.txt`` (an existing calibration for that
     date must have the same camera-02 intrinsics). With ``gt_root``, depth ground truth goes to
@@ -442,7 +457,29 @@ def write_kitti_drive(
     if gt_dir is not None:
         _write_drive_gt(gt_dir, seq.depths, range(gt_skip_ends, len(seq.images) - gt_skip_ends),
                         gt_density, gt_seed)
+    _write_drive_motion(drive_dir, seq)
     return name
+
+
+def _write_drive_motion(drive_dir: Path, seq) -> None:
+    """``poses.txt`` and ``camera_height.txt`` of the drive when ``seq`` knows them (stale ones
+    of an overwritten drive removed otherwise)."""
+    poses = getattr(seq, "cam_to_world", None)
+    if poses is None and getattr(seq, "cam_from_world", None) is not None:
+        poses = [np.linalg.inv(T) for T in seq.cam_from_world]
+    if poses is not None and len(poses) != len(seq.images):
+        raise InputError(f"{len(poses)} camera poses for {len(seq.images)} images")
+    path = drive_dir / POSES_FILE
+    if poses is not None:
+        write_poses(path, poses)
+    else:
+        path.unlink(missing_ok=True)
+    height = getattr(getattr(seq, "params", None), "camera_height", None)
+    path = drive_dir / CAMERA_HEIGHT_FILE
+    if height is not None:
+        write_camera_height(path, float(height))
+    else:
+        path.unlink(missing_ok=True)
 
 
 def _checked_drive(seq, gt_root, date: str, gt_skip_ends: int, gt_density: float) -> list:

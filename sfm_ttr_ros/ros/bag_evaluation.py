@@ -23,7 +23,7 @@ from sfm_ttr_ros.ros.bag import (
 )
 from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 
-DEFAULT_PRED_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner node's ~/depth: /refiner/depth
+DEFAULT_PRED_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
 
 
 def _stamp_index(path: Path, topic: str) -> tuple[dict[int, int], int]:

@@ -10,6 +10,11 @@ For each frame, the first that applies:
 4. none: the frame is HELD, at most ``max_held`` of them (beyond that the oldest is dropped,
    reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known.
 
+Each decision is also a :class:`CameraSource` (the intrinsics, the message they were read from,
+whether they are the fallback's): set on the frame (``Frame.camera``) when it is released, and
+looked up for any stamp by :meth:`IntrinsicsResolver.camera_for`, so that the node publishes
+beside each depth image the CameraInfo of the camera that took it.
+
 Intrinsics for another image size than the frame's are returned as they are: the stream
 publishes such a frame unrefined (``intrinsics_mismatch``). A fallback principal point that lies
 outside the frame (``cx``, ``cy`` set for a larger image, e.g. KITTI's on a 416x128 frame, or a
@@ -61,6 +66,16 @@ class FallbackIntrinsics:
         return Intrinsics(float(self.fx), float(self.fy), cx, cy, w, h)
 
 
+@dataclass(frozen=True)
+class CameraSource:
+    """Where a frame's intrinsics came from: ``message`` is what was received with them (the
+    CameraInfo, opaque here) or None for the fallback's (``fallback`` True)."""
+
+    intrinsics: Intrinsics
+    message: object | None = None
+    fallback: bool = False
+
+
 @dataclass
 class Resolved:
     """What a call hands over: frames now ready with their intrinsics (oldest first) and held
@@ -85,15 +100,16 @@ class IntrinsicsResolver:
         self._fallback = fallback
         self.max_held = int(max_held)
         self._keep = int(keep_by_stamp)
-        self._by_stamp: collections.OrderedDict[int, Intrinsics] = collections.OrderedDict()
-        self._latest: Intrinsics | None = None
+        self._by_stamp: collections.OrderedDict[int, CameraSource] = collections.OrderedDict()
+        self._latest: CameraSource | None = None
         self._held: collections.deque[tuple[Frame, int | None]] = collections.deque()
         self._lock = threading.Lock()
 
     @property
     def latest(self) -> Intrinsics | None:
         """The intrinsics received last (None before any)."""
-        return self._latest
+        latest = self._latest
+        return None if latest is None else latest.intrinsics
 
     @property
     def held(self) -> int:
@@ -103,28 +119,35 @@ class IntrinsicsResolver:
     def intrinsics_for(self, size: tuple[int, int], stamp_ns: int | None) -> Intrinsics | None:
         """The intrinsics of a ``size`` = (width, height) frame stamped ``stamp_ns`` (rules 1-3),
         or None (the frame would be held)."""
-        return self._resolve(size, stamp_ns)[0]
+        source = self.camera_for(size, stamp_ns)
+        return None if source is None else source.intrinsics
 
-    def _resolve(self, size: tuple[int, int],
-                 stamp_ns: int | None) -> tuple[Intrinsics | None, bool]:
-        """(intrinsics or None, whether they are the fallback's: rule 3)."""
+    def camera_for(self, size: tuple[int, int], stamp_ns: int | None) -> CameraSource | None:
+        """Rules 1-3 for a ``size`` = (width, height) image stamped ``stamp_ns``, with the
+        message the intrinsics came from; None when nothing is known yet (thread-safe)."""
+        with self._lock:
+            return self._resolve(size, stamp_ns)
+
+    def _resolve(self, size: tuple[int, int], stamp_ns: int | None) -> CameraSource | None:
         if stamp_ns is not None:
-            intr = self._by_stamp.get(int(stamp_ns))
-            if intr is not None:
-                return intr, False
+            source = self._by_stamp.get(int(stamp_ns))
+            if source is not None:
+                return source
         if self._latest is not None:
-            return self._latest, False
+            return self._latest
         try:
             intr = self._fallback().for_size(*size)
         except InputError:  # a fallback that cannot describe any image: as if unset (held)
-            return None, False
-        return intr, intr is not None
+            return None
+        return None if intr is None else CameraSource(intr, None, fallback=True)
 
-    def add_intrinsics(self, intr: Intrinsics, stamp_ns: int) -> Resolved:
-        """Intrinsics received (a CameraInfo) for ``stamp_ns``: remembered, held frames released."""
+    def add_intrinsics(self, intr: Intrinsics, stamp_ns: int, message: object = None) -> Resolved:
+        """Intrinsics received for ``stamp_ns`` (read from ``message``, a CameraInfo):
+        remembered, held frames released."""
+        source = CameraSource(intr, message)
         with self._lock:
-            self._latest = intr
-            self._by_stamp[int(stamp_ns)] = intr
+            self._latest = source
+            self._by_stamp[int(stamp_ns)] = source
             self._by_stamp.move_to_end(int(stamp_ns))
             while len(self._by_stamp) > self._keep:
                 self._by_stamp.popitem(last=False)
@@ -148,9 +171,10 @@ class IntrinsicsResolver:
         ready = []
         while self._held:
             frame, stamp_ns = self._held[0]
-            intr, frame.fallback_intrinsics = self._resolve(frame.size, stamp_ns)
-            if intr is None:
+            source = self._resolve(frame.size, stamp_ns)
+            if source is None:
                 break
+            frame.fallback_intrinsics, frame.camera = source.fallback, source
             self._held.popleft()
-            ready.append((frame, intr))
+            ready.append((frame, source.intrinsics))
         return ready

@@ -15,16 +15,25 @@ KITTI topics (kitti2bag's names, camera 02 = left colour camera):
   ``32FC1`` metres, NaN = no measurement, with the image's stamp, only for the frames that have
   a ground-truth PNG (frames without one are still written as image + camera_info).
 
-All three share frame_id ``camera_color_left``. In the bag, each message's log time is its
-header stamp, and per frame camera_info is written first, then the image, then the GT. Bag
-format and storages: :mod:`sfm_ttr_ros.ros.bag`.
+* ``/kitti/odom``: nav_msgs/Odometry with the image's stamp, frame_id ``odom``, when the drive
+  has poses (:func:`drive_odometry`): from ``<drive>/poses.txt`` (a generated drive, an image
+  folder with poses) the camera's pose, child_frame_id = the camera's frame; from real KITTI's
+  ``oxts/`` the IMU's pose as the KITTI devkit converts GPS/IMU (Mercator with the first frame's
+  latitude scale, relative to the first frame: :mod:`sfm_ttr_ros.data.poses`), child_frame_id
+  ``imu_link`` (kitti2bag's IMU frame): its positions give the distance travelled, its
+  orientation is the IMU's, not the camera's. Metres. A drive with neither has no odometry
+  (:attr:`ConvertResult.odometry` is empty and ``kitti-to-bag`` says so).
+
+The image topics share frame_id ``camera_color_left``. In the bag, each message's log time is
+its header stamp, and per frame camera_info is written first, then the image, then the GT, then
+the odometry. Bag format and storages: :mod:`sfm_ttr_ros.ros.bag`.
 """
 
 from __future__ import annotations
 
 import calendar
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
@@ -33,8 +42,10 @@ import numpy as np
 from msg_adapters.camera_info import camera_info_msg
 from msg_adapters.classes import make_header
 from msg_adapters.compressed import rgb8_to_compressed
+from msg_adapters.odometry import ODOMETRY_MSGTYPE, odometry_msg
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.kitti import KittiDrive, kitti_intrinsics, parse_kitti_timestamp
+from sfm_ttr_ros.data.poses import POSES_FILE, drive_oxts_poses, read_poses
 from sfm_ttr_ros.ros.bag import (
     CAMERA_INFO_MSGTYPE,
     IMAGE_MSGTYPE,
@@ -44,6 +55,7 @@ from sfm_ttr_ros.ros.bag import (
     make_image_msg,
     message_classes,
     storage_plugin,
+    typestore,
 )
 
 # kitti2bag's frame ids / topic namespaces per KITTI camera.
@@ -54,6 +66,9 @@ CAMERA_INFO_TOPIC = "/kitti/camera_color_left/camera_info"
 DEPTH_GT_TOPIC = "/kitti/camera_color_left/depth_gt"
 COMPRESSED_IMAGE_MSGTYPE = "sensor_msgs/msg/CompressedImage"
 COMPRESSED_SUFFIX = "/compressed"  # image_transport's (sfm_ttr_ros.ros.names.compressed_topic)
+ODOM_TOPIC = "/kitti/odom"
+ODOM_FRAME = "odom"
+IMU_FRAME = "imu_link"  # kitti2bag's frame of the OXTS IMU
 
 
 def kitti_timestamp_ns(text: str) -> int:
@@ -99,6 +114,36 @@ class ConvertResult:
     start_ns: int
     end_ns: int
     seconds: float
+    odometry: str = ""  # where /kitti/odom came from: "poses.txt", "oxts", or "" (none)
+
+
+@dataclass(frozen=True)
+class DriveOdometry:
+    """The poses written on :data:`ODOM_TOPIC`: ``source`` ("poses.txt", "oxts" or "" = none),
+    the child frame they are the pose of, and each frame's 4x4 pose by frame name."""
+
+    source: str = ""
+    child_frame_id: str = ""
+    poses: dict = field(default_factory=dict)
+
+    def pose(self, name: str) -> np.ndarray | None:
+        return None if not self.source else self.poses[name]
+
+
+def drive_odometry(kd: KittiDrive, camera_frame: str) -> DriveOdometry:
+    """The drive's poses: ``poses.txt`` (camera 02's, one row per frame) for the camera
+    ``camera_frame``, else real KITTI's OXTS (the IMU's), else none."""
+    path = kd.drive_dir / POSES_FILE
+    if path.is_file() and kd.camera == "02":
+        poses = read_poses(path)
+        if len(poses) != len(kd):
+            raise InputError(f"{path} has {len(poses)} poses for the drive's {len(kd)} frames")
+        return DriveOdometry("poses.txt", camera_frame, dict(zip(kd.frame_names, poses,
+                                                                  strict=True)))
+    poses = drive_oxts_poses(kd.drive_dir, kd.frame_names)
+    if poses is not None:
+        return DriveOdometry("oxts", IMU_FRAME, dict(zip(kd.frame_names, poses, strict=True)))
+    return DriveOdometry()
 
 
 def _drive_stamps_ns(drive) -> list[int]:
@@ -140,6 +185,7 @@ def kitti_to_bag(
     kd, stop = _open_drive(raw_root, drive, gt_root, storage, camera, start, max_frames)
     stamps = _drive_stamps_ns(kd)
     topics = _DriveTopics.of(camera, compressed)
+    odometry = drive_odometry(kd, topics.frame_id)
     t0 = time.perf_counter()
     gt_frames = 0
     bar = ProgressBar(stop - start, f"kitti-to-bag {drive}", enabled=progress)
@@ -149,8 +195,14 @@ def kitti_to_bag(
         rec.add_topic(topics.info, CAMERA_INFO_MSGTYPE)
         if kd.gt_dir is not None:
             rec.add_topic(topics.gt, IMAGE_MSGTYPE)
+        if odometry.source:
+            rec.add_topic(ODOM_TOPIC, ODOMETRY_MSGTYPE)
         for k, i in enumerate(range(start, stop)):
             gt_frames += _write_frame(rec, kd, i, stamps[i], topics)
+            pose = odometry.pose(kd.frame_names[i])
+            if pose is not None:
+                rec.write(ODOM_TOPIC, odometry_msg(stamps[i], ODOM_FRAME,
+                                                   odometry.child_frame_id, pose, typestore()))
             bar.update(k + 1, f"GT {gt_frames}")
     except BaseException:
         rec.abort()
@@ -162,7 +214,8 @@ def kitti_to_bag(
     return ConvertResult(
         path=Path(out), storage=rec.storage, drive=drive, frames=stop - start,
         gt_frames=gt_frames, counts=dict(rec.counts), width=intr.width, height=intr.height,
-        start_ns=stamps[start], end_ns=stamps[stop - 1], seconds=time.perf_counter() - t0)
+        start_ns=stamps[start], end_ns=stamps[stop - 1], seconds=time.perf_counter() - t0,
+        odometry=odometry.source)
 
 
 def _open_drive(raw_root: str | Path, drive: str, gt_root: str | Path | None, storage: str,
@@ -235,6 +288,7 @@ def _write_frame(rec: BagRecorder, kd: KittiDrive, i: int, stamp: int,
 
 __all__ = [
     "CAMERA_INFO_TOPIC", "COMPRESSED_IMAGE_MSGTYPE", "DEPTH_GT_TOPIC", "IMAGE_TOPIC",
-    "KITTI_CAMERA_NAMES", "KITTI_NAMESPACE",
-    "ConvertResult", "camera_info_from_calib", "kitti_timestamp_ns", "kitti_to_bag",
+    "KITTI_CAMERA_NAMES", "KITTI_NAMESPACE", "ODOM_TOPIC",
+    "ConvertResult", "DriveOdometry", "camera_info_from_calib", "drive_odometry",
+    "kitti_timestamp_ns", "kitti_to_bag",
 ]

@@ -2,8 +2,14 @@
 
 Pure constants (no rclpy): the node, the launch file's test, the demo, the bag tools and the
 benchmarks read them from here. Input topics are relative (remap them with ``-r image:=...``);
-the outputs are private (``~/``) and resolve under the node's name: ``/refiner/depth`` with the
-default name in the root namespace.
+the outputs are private (``~/``) and resolve under the node's name: ``/refiner/depth/image``
+with the default name in the root namespace.
+
+Each depth image follows image_transport's camera-publisher convention: ``<base>/image`` with a
+sensor_msgs/CameraInfo on ``<base>/camera_info`` beside it, with the same header (stamp and
+frame_id), so that depth_image_proc's CameraSubscriber (exact-stamp pairing) and RViz's
+DepthCloud take them as they are. The live and the windowed depth each have their own
+``camera_info``: the windowed copy of a frame arrives seconds after the live one.
 """
 
 from __future__ import annotations
@@ -22,11 +28,21 @@ def compressed_topic(image_topic: str) -> str:
     """The CompressedImage topic of an image topic (image_transport's naming)."""
     return image_topic.rstrip("/") + COMPRESSED_SUFFIX
 
-# publications
-DEPTH_TOPIC = "~/depth"  # live: every frame, the newest served weights
-DEPTH_COLORED_TOPIC = "~/depth_colored"  # live, colourised
-DEPTH_REFINED_TOPIC = "~/depth_refined"  # each frame again once its window is done
-POINTS_TOPIC = "~/points"
+
+# publications: image_transport's camera publisher, <base>/image + <base>/camera_info
+IMAGE_SUFFIX = "/image"
+CAMERA_INFO_SUFFIX = "/camera_info"
+DEPTH_BASE = "~/depth"  # live: every frame, the newest served weights
+DEPTH_TOPIC = DEPTH_BASE + IMAGE_SUFFIX
+DEPTH_INFO_TOPIC = DEPTH_BASE + CAMERA_INFO_SUFFIX
+DEPTH_COLORED_BASE = "~/depth_colored"  # live, colourised
+DEPTH_COLORED_TOPIC = DEPTH_COLORED_BASE + IMAGE_SUFFIX
+DEPTH_COLORED_INFO_TOPIC = DEPTH_COLORED_BASE + CAMERA_INFO_SUFFIX
+DEPTH_REFINED_BASE = "~/depth_refined"  # each frame again once its window is done
+DEPTH_REFINED_TOPIC = DEPTH_REFINED_BASE + IMAGE_SUFFIX
+DEPTH_REFINED_INFO_TOPIC = DEPTH_REFINED_BASE + CAMERA_INFO_SUFFIX
+CLOUD_TOPIC = "~/cloud"  # the live depth back-projected (outputs: cloud)
+POINTS_TOPIC = "~/points"  # the windows' sparse SfM clouds
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
@@ -44,7 +60,11 @@ def resolve(topic: str, node_name: str = NODE_NAME, namespace: str = "/") -> str
 
 
 NODE_FQN = resolve("~")  # "/refiner": the diagnostics' hardware_id
-DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth"
+DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth/image"
+DEPTH_INFO_TOPIC_RESOLVED = resolve(DEPTH_INFO_TOPIC)  # "/refiner/depth/camera_info"
 DEPTH_COLORED_TOPIC_RESOLVED = resolve(DEPTH_COLORED_TOPIC)
-DEPTH_REFINED_TOPIC_RESOLVED = resolve(DEPTH_REFINED_TOPIC)  # "/refiner/depth_refined"
+DEPTH_COLORED_INFO_TOPIC_RESOLVED = resolve(DEPTH_COLORED_INFO_TOPIC)
+DEPTH_REFINED_TOPIC_RESOLVED = resolve(DEPTH_REFINED_TOPIC)  # "/refiner/depth_refined/image"
+DEPTH_REFINED_INFO_TOPIC_RESOLVED = resolve(DEPTH_REFINED_INFO_TOPIC)
+CLOUD_TOPIC_RESOLVED = resolve(CLOUD_TOPIC)  # "/refiner/cloud"
 POINTS_TOPIC_RESOLVED = resolve(POINTS_TOPIC)

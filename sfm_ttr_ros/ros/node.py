@@ -8,16 +8,25 @@ outputs, so the executor never blocks on heavy work.
 
 Topics (names remappable): subscribes ``image`` (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8,
 bgra8, mono16, ...; with ``image_transport: compressed`` sensor_msgs/CompressedImage JPEG / PNG
-on ``<image>/compressed`` instead) and ``camera_info``; publishes ``~/depth`` (32FC1, NaN =
-invalid, the input image's header: EVERY frame at once, predicted by the serving copy of the
-network with the newest refined weights), ``~/depth_colored`` (bgr8, the same),
-``~/depth_refined`` (32FC1: every frame again once its window is done, refined or unrefined with
-a reason; a frame no window refined that ``~/depth`` already carried is not predicted and sent
-again unless ``republish_unrefined``: counted in ``frames_live_only``), ``~/points``
-(PointCloud2 x, y, z, reprojection_error in the optical frame of the window's newest registered
-image, with that image's header; units = the depth's units) and
-``/diagnostics``. Threads: the live server (core/stream/live.py) predicts and publishes ``~/depth``;
-the worker (core/stream/refiner.py, at a lower OS priority) runs the windows.
+on ``<image>/compressed`` instead) and ``camera_info``; publishes, each depth image with a
+CameraInfo of the same header beside it (image_transport's camera publisher: ``<base>/image``
++ ``<base>/camera_info``), ``~/depth/image`` (32FC1, NaN = invalid, the input image's header:
+EVERY frame at once, predicted by the serving copy of the network with the newest refined
+weights), ``~/depth_colored/image`` (bgr8, the same), ``~/cloud`` (on request: the live depth
+back-projected, PointCloud2 x, y, z, rgb), ``~/depth_refined/image`` (32FC1: every frame again
+once its window is done, refined or unrefined with a reason; a frame no window refined that the
+live output already carried is not predicted and sent again unless ``republish_unrefined``:
+counted in ``frames_live_only``), ``~/points`` (PointCloud2 x, y, z, reprojection_error in the
+optical frame of the window's newest registered image, with that image's header; units = the
+depth's units) and ``/diagnostics``. Threads: the live server (core/stream/live.py) predicts
+and publishes the live outputs; the worker (core/stream/refiner.py, at a lower OS priority)
+runs the windows.
+
+CameraInfo beside a depth image: the one received for its frame (exact stamp, else the latest),
+republished with the image's header; for a frame on the fallback intrinsics one built from them.
+The live output looks it up when it publishes (it needs no intrinsics to predict): before any
+CameraInfo or fallback its depth goes out without one, counted (``live.without_camera_info``)
+and logged, and ``~/cloud`` is not published for it.
 
 Topic and node names: :mod:`sfm_ttr_ros.ros.names`; the messages: :mod:`sfm_ttr_ros.ros.outputs`.
 
@@ -36,7 +45,8 @@ still accounted for (``dropped.bad_image`` when its message could not be read). 
 change whose check raises is refused with the reason.
 
 Exit codes: 0 after a normal shutdown; 1 when the node cannot START (bad parameters, a missing
-or corrupt model / weights file: one ``cannot start: ...`` line, before spinning); 2 for a
+or corrupt model / weights file, a pycolmap or torch older than the floors of
+:mod:`sfm_ttr_ros.requirements`: one ``cannot start: ...`` line, before spinning); 2 for a
 fault of the run itself that escaped the containment (``run-time fault: ...``; none is known).
 
 Shutdown (SIGINT / SIGTERM / external shutdown): the worker is cancelled (``SfmTTR.cancel``:
@@ -82,15 +92,23 @@ from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.models.registry import build_model
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
+from sfm_ttr_ros.core.params.node import LIVE_OUTPUTS
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S, Throttle
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
+from sfm_ttr_ros.requirements import check_sfm_dependencies
 from sfm_ttr_ros.ros import allocator, dds, names, outputs
 from sfm_ttr_ros.ros import params as node_params
-from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
+from sfm_ttr_ros.ros.camera import (
+    NO_INTRINSICS,
+    CameraSource,
+    FallbackIntrinsics,
+    IntrinsicsResolver,
+    Resolved,
+)
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
 EXIT_START_UP = 1  # the node could not start (parameters, model, weights)
@@ -142,6 +160,7 @@ class RefinerNode(Node):
             raise
 
     def _setup(self, model: DepthModel | None) -> None:
+        check_sfm_dependencies()  # a pycolmap too old for SfM: "cannot start", not bad windows
         node_params.declare(self)
         values = node_params.current_values(self)
         reason = node_params.validate(values)
@@ -188,23 +207,7 @@ class RefinerNode(Node):
             image_input = (CompressedImage, names.compressed_topic(
                 self.resolve_topic_name(names.IMAGE_TOPIC)), self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input[1])
-        out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(nv["qos_depth"]),
-                             reliability=ReliabilityPolicy.RELIABLE)
-
-        def pub(msg_type, topic, depth_qos=out_qos):
-            return self.create_publisher(
-                msg_type, topic, depth_qos, event_callbacks=PublisherEventCallbacks(
-                    incompatible_qos=partial(self._on_incompatible_qos, topic)))
-
-        self.pub_depth = pub(Image, names.DEPTH_TOPIC)
-        self.pub_colored = pub(Image, names.DEPTH_COLORED_TOPIC)
-        self.pub_refined = pub(Image, names.DEPTH_REFINED_TOPIC)
-        self.pub_points = pub(PointCloud2, names.POINTS_TOPIC)
-        self.pub_diag = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, 10)
-        self._publishers_by_topic = {names.DEPTH_TOPIC: self.pub_depth,
-                                     names.DEPTH_COLORED_TOPIC: self.pub_colored,
-                                     names.DEPTH_REFINED_TOPIC: self.pub_refined,
-                                     names.POINTS_TOPIC: self.pub_points}
+        self._create_publishers(int(nv["qos_depth"]))
         self.create_timer(float(nv["diagnostics_period_s"]), self._on_timer)
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
@@ -220,6 +223,31 @@ class RefinerNode(Node):
             f"{values['refinement.steps']} steps, weight_policy "
             f"{values['weight_policy']}, input {self.image_topic} ({nv['image_transport']}), "
             f"QoS {nv['qos_reliability']} depth {nv['qos_depth']}")
+
+    def _create_publishers(self, qos_depth: int) -> None:
+        """Every output's publisher (KEEP_LAST ``qos_depth``, reliable; /diagnostics depth 10),
+        each image's CameraInfo beside it; ``_publishers_by_topic`` maps the outputs' topics."""
+        out_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
+                             reliability=ReliabilityPolicy.RELIABLE)
+
+        def pub(msg_type, topic, depth_qos=out_qos):
+            return self.create_publisher(
+                msg_type, topic, depth_qos, event_callbacks=PublisherEventCallbacks(
+                    incompatible_qos=partial(self._on_incompatible_qos, topic)))
+
+        self.pub_depth = pub(Image, names.DEPTH_TOPIC)
+        self.pub_colored = pub(Image, names.DEPTH_COLORED_TOPIC)
+        self.pub_refined = pub(Image, names.DEPTH_REFINED_TOPIC)
+        self.pub_points = pub(PointCloud2, names.POINTS_TOPIC)
+        self.pub_cloud = pub(PointCloud2, names.CLOUD_TOPIC)
+        self.pub_diag = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, 10)
+        self._publishers_by_topic = {
+            names.DEPTH_TOPIC: self.pub_depth, names.DEPTH_COLORED_TOPIC: self.pub_colored,
+            names.DEPTH_REFINED_TOPIC: self.pub_refined, names.POINTS_TOPIC: self.pub_points,
+            names.CLOUD_TOPIC: self.pub_cloud,
+            **{topic: pub(CameraInfo, topic) for topic in (
+                names.DEPTH_INFO_TOPIC, names.DEPTH_COLORED_INFO_TOPIC,
+                names.DEPTH_REFINED_INFO_TOPIC)}}
 
     # -- parameters ------------------------------------------------------------------------------
     def _values(self) -> dict:
@@ -318,7 +346,7 @@ class RefinerNode(Node):
             detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
             self.stream.reject(Dropped.BAD_IMAGE, f"image rejected: {detail}")
             return
-        if self._publishes("depth"):
+        if not self.settings.published.isdisjoint(LIVE_OUTPUTS):
             self.online.submit_live(frame)  # live depth needs no intrinsics
         self._hand_over(self.intrinsics.add_frame(frame, stamp_ns))
         if self.intrinsics.held:
@@ -338,7 +366,7 @@ class RefinerNode(Node):
             detail = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
             self.warn_every("camera_info", f"CameraInfo rejected: {detail}")
             return
-        self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_ns))
+        self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_ns, msg))
 
     def _hand_over(self, resolved: Resolved) -> None:
         """Queue the frames that have intrinsics; count the held frames pushed out."""
@@ -372,19 +400,50 @@ class RefinerNode(Node):
 
     # -- outputs (live thread, worker thread) --------------------------------------------------
     def _publish_live(self, out: LiveOutput) -> None:
-        """The live server's sink: ~/depth (+ ~/depth_colored). An exception here is counted by
-        the live server (``live.skipped.publish_error``) and logged, throttled."""
+        """The live server's sink: ~/depth, ~/depth_colored, ~/cloud (those asked for), with the
+        CameraInfo of the frame's camera as known NOW (it may arrive after the image). An
+        exception here is counted by the live server (``live.skipped.publish_error``) and
+        logged, throttled."""
         if self._stop.is_set():
             return
-        self._publish(outputs.live_messages(out, colored=self._publishes("depth_colored")))
+        s = self.settings
+        camera = self.intrinsics.camera_for(out.frame.size, _stamp_ns(out.frame))
+        if camera is None:
+            self._camera_info_missing("live", out.frame)
+        self._publish(outputs.live_messages(out, s.published, camera,
+                                            cloud_stride=s.cloud_stride,
+                                            cloud_max_range=s.cloud_max_range))
 
     @contained("publish")
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
         if self._publishes("depth_refined") and not out.live_only:
-            self._publish(outputs.frame_messages(out))
+            camera = self._refined_camera(out.frame)
+            if camera is None:
+                self._camera_info_missing("refined", out.frame)
+            self._publish(outputs.frame_messages(out, camera))
         self.diagnostics.output_published(out.refined)
+
+    def _refined_camera(self, frame: Frame) -> CameraSource | None:
+        """The camera of a frame out of its window: the CameraInfo its intrinsics were read
+        from; for a frame that had the fallback's, a CameraInfo received since (the camera's own
+        description: the stream takes the first one in place of the fallback too), else the
+        fallback it had."""
+        given = frame.camera if isinstance(frame.camera, CameraSource) else None
+        if given is not None and not given.fallback:
+            return given
+        now = self.intrinsics.camera_for(frame.size, _stamp_ns(frame))
+        if now is not None and (given is None or not now.fallback):
+            return now
+        return given
+
+    def _camera_info_missing(self, output: str, frame: Frame) -> None:
+        n = self.diagnostics.camera_info_missing(output)
+        self.warn_every(f"no_camera_info:{output}", (
+            f"{output} depth of frame {frame.name} published without CameraInfo ({n} so far): "
+            f"no intrinsics yet - waiting for a CameraInfo on "
+            f"{self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set fallback_intrinsics"))
 
     @contained("publish")
     def _on_window(self, stats: WindowStats) -> None:
@@ -522,6 +581,12 @@ def main(args=None) -> int:
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+def _stamp_ns(frame: Frame) -> int | None:
+    """The frame's header stamp in nanoseconds (None without a header)."""
+    header = frame.header
+    return None if header is None else stamp_to_ns(header.stamp)
 
 
 #: The live part of the shutdown line, as :func:`_live_summary` writes it (read by the demo).

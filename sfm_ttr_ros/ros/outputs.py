@@ -1,35 +1,50 @@
 """The messages the ``refiner`` node publishes for one stream output (README "Topics").
 
-* per live frame (:func:`live_messages`): ``~/depth``, a 32FC1 depth (NaN = invalid) with the
-  input image's header unchanged, and, when asked, ``~/depth_colored`` (bgr8, by inverse depth);
-* per frame out of its window (:func:`frame_messages`): ``~/depth_refined`` (32FC1, same header);
+Each depth image goes out in image_transport's camera-publisher convention: ``<base>/image``
+and, beside it, ``<base>/camera_info`` with the SAME header (stamp and frame_id) and intrinsics
+for the image's size (:func:`camera_info_message`: the CameraInfo received for that frame,
+republished, or one built from the fallback intrinsics; none when no intrinsics are known yet,
+which the node counts).
+
+* per live frame (:func:`live_messages`): ``~/depth/image``, a 32FC1 depth (NaN = invalid) with
+  the input image's header unchanged, ``~/depth_colored/image`` (bgr8, by inverse depth) and
+  ``~/cloud`` (the depth back-projected with the CameraInfo beside it, x, y, z, rgb), each when
+  asked, with their CameraInfos;
+* per frame out of its window (:func:`frame_messages`): ``~/depth_refined/image`` (32FC1, same
+  header) and its ``camera_info``;
 * per window (:func:`window_messages`): ``~/points``, the window's sparse SfM cloud (x, y, z,
   reprojection_error) with the header of the image whose optical frame it is in, when the
   window has a cloud;
 * ``/diagnostics`` (:func:`diagnostics_message`): one status named
   :data:`~sfm_ttr_ros.ros.names.DIAG_NAME`.
 
-Every message is built by msg_adapters. The node publishes what these return; the speed
-benchmark (scripts/benchmark_speed.py) converts through the same functions. ``timings``, when
-given, adds the seconds spent building each message under ``depth_image``, ``colored_image``,
-``pointcloud`` and ``diagnostics``.
+Every message is built by msg_adapters. The node publishes what these return, in their order
+(each image before its CameraInfo, as image_transport's CameraPublisher); the speed benchmark
+(scripts/benchmark_speed.py) converts through the same functions. ``timings``, when given, adds
+the seconds spent building each message under ``depth_image``, ``colored_image``,
+``camera_info``, ``cloud``, ``pointcloud`` and ``diagnostics``.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, Collection, MutableMapping
 
 from msg_adapters import (
+    camera_info_for,
     depth_to_colored_image,
     depth_to_image,
+    depth_to_pointcloud2,
+    intrinsics_to_camera_info,
     make_diagnostic_array,
     numpy_to_pointcloud2,
 )
+from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS
 from sfm_ttr_ros.core.stream.diagnostics import Status
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.ros.camera import CameraSource
 
 Timings = MutableMapping[str, float]
 
@@ -44,23 +59,60 @@ def _timed(timings: Timings | None, key: str, build: Callable, *args):
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
 
-def live_messages(out: LiveOutput, colored: bool = True,
+def camera_info_message(camera: CameraSource | None, size: tuple[int, int], header):
+    """The CameraInfo beside a ``size`` = (width, height) image with ``header``: the CameraInfo
+    ``camera`` was read from, republished (header replaced; scaled when it describes another
+    image size), or for the fallback intrinsics one built from them (K, P = [K | 0], D empty);
+    None when ``camera`` is None (no intrinsics known)."""
+    if camera is None:
+        return None
+    if camera.message is not None:
+        return camera_info_for(camera.message, size[0], size[1], header)
+    return intrinsics_to_camera_info(camera.intrinsics, header, size=size)
+
+
+def live_messages(out: LiveOutput, published: Collection[str] = DEFAULT_OUTPUTS,
+                  camera: CameraSource | None = None, *, cloud_stride: int = 4,
+                  cloud_max_range: float = 0.0,
                   timings: Timings | None = None) -> dict[str, object]:
-    """{topic: message} for one live frame: ``~/depth`` and (``colored``) ``~/depth_colored``,
-    both with the input image's header."""
+    """{topic: message} for one live frame, for the outputs in ``published``: ``depth``,
+    ``depth_colored`` (each image with the input image's header, and its ``camera_info`` when
+    ``camera`` is known) and ``cloud`` (only with ``camera``: the depth back-projected every
+    ``cloud_stride`` pixels, points beyond ``cloud_max_range`` left out, with the input
+    image's colours)."""
     header = out.frame.header
-    msgs = {names.DEPTH_TOPIC: _timed(timings, "depth_image", depth_to_image, out.depth, header)}
-    if colored:
+    size = (int(out.depth.shape[1]), int(out.depth.shape[0]))
+    info = _timed(timings, "camera_info", camera_info_message, camera, size, header)
+    msgs: dict[str, object] = {}
+    if "depth" in published:
+        msgs[names.DEPTH_TOPIC] = _timed(timings, "depth_image", depth_to_image, out.depth,
+                                         header)
+        if info is not None:
+            msgs[names.DEPTH_INFO_TOPIC] = info
+    if "depth_colored" in published:
         msgs[names.DEPTH_COLORED_TOPIC] = _timed(timings, "colored_image",
                                                  depth_to_colored_image, out.depth, header)
+        if info is not None:
+            msgs[names.DEPTH_COLORED_INFO_TOPIC] = info
+    if "cloud" in published and info is not None:
+        msgs[names.CLOUD_TOPIC] = _timed(timings, "cloud", depth_to_pointcloud2, out.depth,
+                                         out.frame.image, info, cloud_stride, cloud_max_range,
+                                         header)
     return msgs
 
 
-def frame_messages(out: FrameOutput, timings: Timings | None = None) -> dict[str, object]:
-    """{topic: message} for one frame out of its window: ``~/depth_refined`` with the input
-    image's header."""
-    return {names.DEPTH_REFINED_TOPIC: _timed(timings, "depth_image", depth_to_image, out.depth,
-                                              out.frame.header)}
+def frame_messages(out: FrameOutput, camera: CameraSource | None = None,
+                   timings: Timings | None = None) -> dict[str, object]:
+    """{topic: message} for one frame out of its window: ``~/depth_refined/image`` with the
+    input image's header and, when ``camera`` is known, its ``camera_info``."""
+    header = out.frame.header
+    msgs = {names.DEPTH_REFINED_TOPIC: _timed(timings, "depth_image", depth_to_image, out.depth,
+                                              header)}
+    size = (int(out.depth.shape[1]), int(out.depth.shape[0]))
+    info = _timed(timings, "camera_info", camera_info_message, camera, size, header)
+    if info is not None:
+        msgs[names.DEPTH_REFINED_INFO_TOPIC] = info
+    return msgs
 
 
 def window_messages(stats: WindowStats, points: bool = True,

@@ -312,7 +312,7 @@ class TopicRecorder:
     """Record ROS 2 topics into a rosbag2 (raw CDR bytes, no decoding), e.g. the refiner's
     ``~/depth`` during a demo.
 
-    ``topics`` maps topic -> message type (``{"/refiner/depth": "sensor_msgs/msg/Image"}``).
+    ``topics`` maps topic -> message type (``{"/refiner/depth/image": "sensor_msgs/msg/Image"}``).
     Subscriptions are RELIABLE, VOLATILE, KEEP_LAST ``qos_depth`` (they do not match a
     best-effort publisher); the log time of each message is its reception time (as
     ``ros2 bag record``). The callbacks and the bag live in one spinning thread. Use as a

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.params import build
@@ -20,8 +21,10 @@ log = logging.getLogger("sfm_ttr_ros")
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Offline SfM-TTR over a whole sequence (the paper's setting) and write the results."""
+    from sfm_ttr_ros.requirements import check_sfm_dependencies
     from sfm_ttr_ros.tools.one_sequence import run_whole_sequence
 
+    check_sfm_dependencies()  # a pycolmap too old for SfM: one error now, not per window
     if getattr(args, "split", None):
         from sfm_ttr_ros.tools.split.command import run_split_command
 
@@ -76,6 +79,10 @@ def cmd_generate(args: argparse.Namespace) -> int:
     drive = write_kitti_drive(seq, args.kitti_raw, args.kitti_gt, drive_number=args.drive_number)
     print(f"wrote {drive}: {len(seq)} frames {args.width}x{args.height} "
           f"to {args.kitti_raw} (GT: {args.kitti_gt})")
+    drive_dir = Path(args.kitti_raw) / drive[:10] / drive
+    print(f"camera height above the road: {seq.params.camera_height:.3f} m "
+          f"({drive_dir / 'camera_height.txt'}); camera poses (camera-to-world, metres): "
+          f"{drive_dir / 'poses.txt'}")
     if seq.labels:
         print(f"segment labels in {drive}/image_02/{SEGMENTS_FILE}")
     return 0

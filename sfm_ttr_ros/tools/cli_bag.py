@@ -14,7 +14,7 @@ from pathlib import Path
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros.bag import STORAGES
 from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
-from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
+from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC, ODOM_TOPIC
 from sfm_ttr_ros.tools.report import write_json
 
 
@@ -29,6 +29,14 @@ def cmd_kitti_to_bag(args: argparse.Namespace) -> int:
           f"{res.gt_frames} with ground truth, {res.seconds:.1f} s")
     for topic, n in res.counts.items():
         print(f"  {topic}: {n}")
+    if res.odometry == "poses.txt":
+        print(f"odometry on {ODOM_TOPIC}: the camera's poses from the drive's poses.txt")
+    elif res.odometry == "oxts":
+        print(f"odometry on {ODOM_TOPIC}: the GPS/IMU's poses from oxts/ (the KITTI devkit's "
+              "conversion; the IMU's position and orientation, not the camera's)")
+    else:
+        print(f"no odometry ({ODOM_TOPIC} not written): the drive has neither poses.txt nor "
+              "oxts/data")
     print(f"play it with: sfm-ttr play {res.path}   (or: ros2 bag play {res.path})")
     return 0
 
@@ -62,7 +70,7 @@ def add_evaluate_bag_arguments(p: argparse.ArgumentParser) -> None:
     evaluate command's own."""
     g = p.add_argument_group("bag mode (a recorded bag of predicted depth, matched by stamp)")
     g.add_argument("--bag", help="rosbag2 holding the predicted depth (e.g. a recording of the "
-                                 "refiner's ~/depth)")
+                                 "refiner's ~/depth/image)")
     g.add_argument("--gt-bag", default=None,
                    help="rosbag2 holding the ground truth (default: the same bag)")
     g.add_argument("--pred-topic", default=DEFAULT_PRED_TOPIC,
@@ -124,7 +132,8 @@ def add_commands(subparsers) -> None:
     k = subparsers.add_parser(
         "kitti-to-bag", help="convert a KITTI raw drive (+ improved GT) into a rosbag2",
         description="Write /kitti/camera_color_left/{image_raw,camera_info,depth_gt} "
-                    "(kitti2bag names) from a KITTI raw drive into a rosbag2 that ros2 bag play "
+                    "(kitti2bag names) and, when the drive has poses.txt or oxts/, /kitti/odom "
+                    "(nav_msgs/Odometry) from a KITTI raw drive into a rosbag2 that ros2 bag play "
                     "and sfm-ttr play read.")
     k.add_argument("--kitti-raw", required=True, help="KITTI raw root (holds <date>/<drive>)")
     k.add_argument("--drive", required=True, help="<date>_drive_XXXX_sync")

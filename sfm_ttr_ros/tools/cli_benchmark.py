@@ -93,8 +93,10 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
     from sfm_ttr_ros.core.params import build
+    from sfm_ttr_ros.requirements import check_sfm_dependencies
     from sfm_ttr_ros.tools.benchmark import results_markdown
 
+    check_sfm_dependencies()  # a pycolmap too old for SfM: one error now, not per window
     if getattr(args, "split", None):
         from sfm_ttr_ros.tools.split.command import run_split_command
 

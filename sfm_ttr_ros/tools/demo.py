@@ -6,14 +6,16 @@ Steps (each printed as it runs):
 1. the drive: with no arguments a synthetic KITTI-format drive of the held-out domain "B"
    (:mod:`sfm_ttr_ros.data.synthetic`, written in the real KITTI raw + improved-GT layouts),
    a real one with ``--kitti-raw/--kitti-gt/--drive``, or any image folder with its K and GT
-   depth (``--images/--intrinsics/--gt-depth``, e.g. hololens_000), written in those layouts;
-2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`);
+   depth (``--images/--intrinsics/--gt-depth``, e.g. hololens_000), written in those layouts
+   (with the camera poses of a ``poses.txt`` beside the folder, or of the synthetic drive);
+2. ``kitti-to-bag`` (:func:`sfm_ttr_ros.ros.kitti_bag.kitti_to_bag`; the poses on
+   ``/kitti/odom``);
 3. the unrefined network's depth for every image of the bag (same model, same weights) → a
    ``no_ttr`` bag with the same stamps;
 4. ``refiner`` started as a separate process with ``params/kitti.yaml`` (+ ``--set`` overrides),
    remapped to the bag's topics; the bag played into it (:func:`sfm_ttr_ros.ros.player.play_bag`)
-   while ``/refiner/depth`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`) until every
-   image came back; then SIGINT;
+   while ``/refiner/depth/image`` is recorded (:class:`sfm_ttr_ros.ros.player.TopicRecorder`)
+   until every image came back; then SIGINT;
 5. both bags evaluated against the GT topic matched by stamp
    (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json`` /
@@ -44,7 +46,7 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros import names
 from sfm_ttr_ros.tools.process import interrupt
 
-DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live ~/depth: /refiner/depth
+DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
 LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
 NODE_START_TIMEOUT_S = 120.0  # from starting the refiner to its publishers being discovered
@@ -133,8 +135,9 @@ def _make_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
 
 def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     """An image folder, its K file and GT depth written as a KITTI drive (stamps at 10 Hz,
-    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them), read one frame
-    at a time (a long folder is never all in memory)."""
+    intrinsics as P_rect_02, GT as improved-GT PNGs where the folder has them, the camera poses
+    of a ``poses.txt`` beside the folder as the drive's, for /kitti/odom), read one frame at a
+    time (a long folder is never all in memory)."""
     from types import SimpleNamespace
 
     from sfm_ttr_ros.core.frames import load_rgb
@@ -148,9 +151,26 @@ def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     _say(f"1/5 writing {len(seq)} images of {opts.images} as a KITTI drive")
     drive_seq = SimpleNamespace(images=_Lazy(load_rgb, seq.image_paths),
                                 depths=_Lazy(seq.gt, seq.names), stamps=seq.stamps,
-                                intrinsics=seq.intrinsics)
+                                intrinsics=seq.intrinsics,
+                                cam_to_world=_folder_poses(opts.images, len(seq)))
     raw, gt = out / "kitti_raw", out / "kitti_gt"
     return str(raw), str(gt), write_kitti_drive(drive_seq, raw, gt, gt_skip_ends=0)
+
+
+def _folder_poses(images: str, frames: int):
+    """The camera poses of ``poses.txt`` beside the image folder (hololens_000's layout: one
+    4x4 camera-to-world row per image, in file order), or None when there is none."""
+    from sfm_ttr_ros.data.poses import POSES_FILE, read_poses
+
+    path = Path(images).resolve().parent / POSES_FILE
+    if not path.is_file():
+        _say(f"   no {POSES_FILE} beside {images}: the bag gets no odometry")
+        return None
+    poses = read_poses(path)
+    if len(poses) != frames:
+        raise InputError(f"{path} has {len(poses)} poses for the {frames} images of {images}")
+    _say(f"   camera poses from {path} (on /kitti/odom)")
+    return poses
 
 
 class _Lazy(Sequence):
@@ -222,8 +242,8 @@ def node_arguments(items: list[str]) -> list[str]:
 
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
-    """Start the node, play the bag into it, record ``/refiner/depth`` (live) and
-    ``/refiner/depth_refined`` (windows) until every frame is back on both."""
+    """Start the node, play the bag into it, record ``/refiner/depth/image`` (live) and
+    ``/refiner/depth_refined/image`` (windows) until every frame is back on both."""
     from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC
     from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
@@ -552,6 +572,9 @@ def _paired_by_stamp(base_rows: list[dict], live_rows: list[dict]) -> tuple[list
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from sfm_ttr_ros.requirements import check_sfm_dependencies
+
+    check_sfm_dependencies()  # before minutes of preparation for a node that could not refine
     opts = DemoOptions(out=Path(args.out), kitti_raw=args.kitti_raw, kitti_gt=args.kitti_gt,
                        drive=args.drive, images=args.images, intrinsics=args.intrinsics,
                        gt_depth=args.gt_depth, gt_scale=args.gt_scale, start=args.start,

@@ -14,8 +14,12 @@ IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, Compress
 # image/compressed (the image_transport convention)
 USE_PROJECTION_CHOICES = ("auto", "true", "false")
 #: The node's outputs (``outputs``): ~/depth (live), ~/depth_colored, ~/depth_refined
-#: (windowed), ~/points (the windows' sparse clouds) and /diagnostics.
-OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics")
+#: (windowed), ~/points (the windows' sparse clouds), /diagnostics and ~/cloud (the live depth
+#: back-projected; off by default: not in :data:`DEFAULT_OUTPUTS`).
+OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics", "cloud")
+DEFAULT_OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics")
+#: The outputs made from the live depth (any of them starts live serving).
+LIVE_OUTPUTS = ("depth", "depth_colored", "cloud")
 
 
 def parse_outputs(text: str) -> frozenset[str]:
@@ -71,14 +75,18 @@ class NodeSettings:
     ``camera_info_use_projection``: ``"auto"``, ``"true"``/True (P) or
     ``"false"``/False (K). ``image_transport``: ``"raw"`` (sensor_msgs/Image on ``image``) or
     ``"compressed"`` (sensor_msgs/CompressedImage on ``<image>/compressed``).
-    ``torch_num_threads`` 0 = torch's default."""
+    ``cloud_stride``: ~/cloud takes every this-many-th pixel of the live depth, in both
+    directions; ``cloud_max_range``: ~/cloud leaves out points farther than this from the camera
+    (depth units; 0 = no limit). ``torch_num_threads`` 0 = torch's default."""
 
     fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
     image_transport: str = "raw"
     qos_reliability: str = "reliable"
     qos_depth: int = 30
-    outputs: str = ",".join(OUTPUTS)
+    outputs: str = ",".join(DEFAULT_OUTPUTS)
+    cloud_stride: int = 4
+    cloud_max_range: float = 0.0
     diagnostics_period_s: float = 1.0
     torch_num_threads: int = 0
     load_weights_path: str = ""
@@ -94,6 +102,11 @@ class NodeSettings:
         if self.qos_reliability not in QOS_RELIABILITIES:
             raise InputError(f"qos_reliability must be one of {', '.join(QOS_RELIABILITIES)}; "
                              f"got {self.qos_reliability!r}")
+        if self.cloud_stride < 1:
+            raise InputError(f"cloud.stride must be >= 1, got {self.cloud_stride}")
+        if not (math.isfinite(self.cloud_max_range) and self.cloud_max_range >= 0):
+            raise InputError(f"cloud.max_range must be >= 0 (0 = no limit), got "
+                             f"{self.cloud_max_range}")
         if self.qos_depth < 1:
             raise InputError(f"qos_depth must be >= 1, got {self.qos_depth}")
         if not (math.isfinite(self.diagnostics_period_s) and self.diagnostics_period_s > 0):

@@ -303,8 +303,13 @@ PARAMS: tuple[Param, ...] = (
        **_START_UP),
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),
-    _p("outputs", "node.outputs", "The outputs published, comma-separated.",
+    _p("outputs", "node.outputs", "The outputs published, comma-separated (cloud, the live "
+       "depth back-projected on ~/cloud, is off unless listed).",
        constraints=f"any of {', '.join(OUTPUTS)}"),
+    _p("cloud.stride", "node.cloud_stride", "~/cloud: every this-many-th pixel of the live "
+       "depth, in both directions.", 1, 1000),
+    _p("cloud.max_range", "node.cloud_max_range", "~/cloud: points farther than this from the "
+       "camera are left out, in the depth's units; 0 = no limit.", 0.0, 1e9),
     _p("diagnostics_period_s", "node.diagnostics_period_s", "Period of the /diagnostics timer, "
        "seconds.", 0.05, 3600.0, **_START_UP),
 )

@@ -18,6 +18,11 @@ live.skipped + live.pending``, with the served weights' ``serving.version`` (the
 produced them, 0 = start-up), ``serving.interim_step`` (the refinement step of interim weights
 of a window still refining, ``serve_every_steps``; 0 = a finished window's) and
 ``serving.age_s``.
+
+A depth image published without a CameraInfo beside it (the node knew no intrinsics for it
+yet: no CameraInfo received and no fallback) is counted, per output:
+``live.without_camera_info`` and ``frames_without_camera_info`` (the windowed output); the
+status is WARN while it happens.
 """
 
 from __future__ import annotations
@@ -59,6 +64,9 @@ class StreamDiagnostics:
         self._unrefined_since_status = 0
         self.faults: collections.Counter[str] = collections.Counter()
         self._faults_since_status = 0
+        #: depth images published without a CameraInfo, per output ("live", "refined")
+        self.without_camera_info: collections.Counter[str] = collections.Counter()
+        self._without_camera_info_since_status = 0
         self._lock = threading.Lock()
 
     # -- counting ------------------------------------------------------------------------------
@@ -78,6 +86,14 @@ class StreamDiagnostics:
             self.faults[place] += 1
             self._faults_since_status += 1
             return self.faults[place]
+
+    def camera_info_missing(self, output: str) -> int:
+        """A depth image of ``output`` ("live" or "refined") went out without a CameraInfo;
+        returns how many so far on that output."""
+        with self._lock:
+            self.without_camera_info[output] += 1
+            self._without_camera_info_since_status += 1
+            return self.without_camera_info[output]
 
     def output_published(self, refined: bool) -> None:
         if not refined:
@@ -101,6 +117,8 @@ class StreamDiagnostics:
             # among those: queued frames whose image the backlog bound released
             # (core/stream/windows.py)
             "frames_backlog_released": c["backlog_released"],
+            # ~/depth_refined images published without a CameraInfo beside them
+            "frames_without_camera_info": self.without_camera_info["refined"],
         }
         v.update({f"unrefined.{k}": n for k, n in sorted(c["unrefined_by_reason"].items())})
         v.update({f"dropped.{k}": n for k, n in sorted(c["dropped_by_reason"].items())})
@@ -123,6 +141,7 @@ class StreamDiagnostics:
             v.update({"live.received": lv["received"], "live.published": lv["published"],
                       "live.skipped": sum(lv["skipped"].values()), "live.pending": lv["pending"]})
             v.update({f"live.skipped.{k}": n for k, n in sorted(lv["skipped"].items())})
+            v["live.without_camera_info"] = self.without_camera_info["live"]
             v.update({"serving.version": lv["version"], "serving.age_s": lv["weights_age_s"],
                       "serving.updates": lv["serving_updates"],
                       "serving.interim_step": lv["interim_step"],
@@ -190,8 +209,12 @@ class StreamDiagnostics:
                 problems.append("incompatible QoS")
             if self._faults_since_status:
                 problems.append(f"{self._faults_since_status} fault(s) contained")
+            if self._without_camera_info_since_status:
+                problems.append(f"{self._without_camera_info_since_status} depth image(s) "
+                                "without CameraInfo (no intrinsics yet)")
             self._unrefined_since_status = 0
             self._faults_since_status = 0
+            self._without_camera_info_since_status = 0
         if problems:
             return Status("warn", "; ".join(problems), v)
         return Status("ok", f"{v['frames_refined']} refined, {v['windows_ok']} window(s) ok", v)

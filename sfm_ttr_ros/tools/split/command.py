@@ -146,14 +146,16 @@ def _task_values(args: argparse.Namespace, kind: str) -> tuple[Any, dict[str, An
 
 def _engine_config(args: argparse.Namespace, values: dict[str, Any], threads: int):
     """Workers, threads, GPUs (1 per task with a cuda device unless --gpus-per-worker),
-    retries and the cluster address; the parameters are built (checked) on the way."""
+    retries and the cluster address (something must answer there); the parameters are built
+    (checked) on the way."""
     from sfm_ttr_ros.core.params import build
-    from sfm_ttr_ros.tools.split.engine import EngineConfig
+    from sfm_ttr_ros.tools.split.engine import EngineConfig, check_cluster_address
 
     settings = build(values)
     gpus = args.gpus_per_worker
     if gpus is None:
         gpus = 1.0 if str(settings.model.device).startswith("cuda") else 0.0
+    check_cluster_address(args.ray_address)  # seconds, not Ray's minutes of retries
     return EngineConfig(workers=args.workers, threads=threads, gpus=gpus,
                         retries=args.retries, address=args.ray_address)
 

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import logging
+import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -107,11 +108,39 @@ def import_ray():
     return ray
 
 
+#: How long :func:`check_cluster_address` waits for the cluster's port to answer, s.
+REACH_TIMEOUT_S = 5.0
+
+
+def check_cluster_address(address: str | None, timeout: float = REACH_TIMEOUT_S) -> None:
+    """:class:`InputError` unless something listens at ``--ray-address`` (``HOST:PORT`` or
+    ``ray://HOST:PORT``; ``auto`` is left to Ray). Checked before any work: ``ray.init`` towards
+    an address where nothing answers retries for minutes before it raises."""
+    if not address or address == "auto":
+        return
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"--ray-address {address!r}: expected HOST:PORT (the head node's GCS "
+                         "address, e.g. 10.0.0.1:6379), ray://HOST:PORT or auto")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as exc:
+        why = exc.strerror or type(exc).__name__
+        raise InputError(f"--ray-address {address}: no Ray cluster answers there ({why}); "
+                         f"start its head (ray start --head --port {port}) or check the "
+                         "address") from None
+
+
 def _start(ray, config: EngineConfig) -> str:
     common = {"include_dashboard": False, "log_to_driver": False,
               "logging_level": logging.WARNING, "configure_logging": True}
     if config.address:
-        ray.init(address=config.address, **common)
+        check_cluster_address(config.address)
+        try:
+            ray.init(address=config.address, **common)
+        except (ConnectionError, TimeoutError) as exc:  # something answers, not a Ray head
+            raise InputError(f"--ray-address {config.address}: cannot join a Ray cluster "
+                             f"there: {str(exc).splitlines()[0] if str(exc) else exc!r}") from None
         res = ray.cluster_resources()
         if res.get("CPU", 0) < config.threads:
             raise InputError(f"the cluster at {config.address} has {res.get('CPU', 0):g} CPUs: "
