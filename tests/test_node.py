@@ -771,3 +771,26 @@ def test_live_depth_serves_every_frame_at_once_and_takes_the_refined_weights(gra
     assert int(d["serving.updates"]) == 1 and float(d["serving.age_s"]) >= 0
     lat = [float(d[f"live.latency_{k}_s"]) for k in ("p50", "p95", "max")]
     assert 0 < lat[0] <= lat[1] <= lat[2] < 30 and 0 < float(d["live.publish_max_s"]) <= lat[2]
+
+
+def test_odometry_on_odom_feeds_the_metric_scale(graph_factory):
+    """nav_msgs/Odometry on ``odom`` reaches the metric scale's track (metric.source
+    odometry); a message out of order is rejected and counted, and /diagnostics says so."""
+    from nav_msgs.msg import Odometry
+
+    from msg_adapters.odometry import odometry_msg
+
+    g = graph_factory(**{"metric.source": "odometry"})
+    pub = g.node.create_publisher(Odometry, names.ODOMETRY_TOPIC, 10)
+    wait_for(lambda: pub.get_subscription_count() > 0, 10, "the odometry subscription")
+    for k, stamp_s in enumerate((1, 2, 3, 2)):
+        pose = np.eye(4)
+        pose[2, 3] = 0.5 * k
+        pub.publish(odometry_msg(stamp_s * 10**9, "odom", FRAME_ID, pose))
+    track = g.refiner.ttr.odometry
+    wait_for(lambda: track.received == 4, 10, "four odometry messages")
+    assert len(track) == 3 and track.rejected == 1
+    assert np.allclose(track.positions_at([1.5]), [[0.0, 0.0, 0.25]])
+    v = g.refiner.diagnostics_values()
+    assert (v["metric.source"], v["metric.state"]) == ("odometry", "waiting")
+    assert (v["metric.odometry_received"], v["metric.odometry_rejected"]) == (4, 1)

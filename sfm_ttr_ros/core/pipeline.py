@@ -416,7 +416,9 @@ class SfmTTR:
         state = "not_metric" if cfg.source == "none" else ("waiting" if k is None else "metric")
         return {"source": cfg.source, "state": state,
                 "metres_per_unit": float("nan") if k is None else k,
-                "spread": self.metric.spread(), "windows": len(self.metric.history)}
+                "spread": self.metric.spread(), "windows": len(self.metric.history),
+                "odometry_received": self.odometry.received,
+                "odometry_rejected": self.odometry.rejected}
 
     @property
     def metres_per_unit(self) -> float | None:

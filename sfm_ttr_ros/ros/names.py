@@ -21,6 +21,7 @@ DIAG_NAME = f"{PACKAGE}: {NODE_NAME}"  # the DiagnosticStatus name on /diagnosti
 # subscriptions (relative: remappable)
 IMAGE_TOPIC = "image"
 CAMERA_INFO_TOPIC = "camera_info"
+ODOMETRY_TOPIC = "odom"  # nav_msgs/Odometry: the distance travelled (metric.source odometry)
 COMPRESSED_SUFFIX = "/compressed"  # image_transport: <image>/compressed carries CompressedImage
 
 

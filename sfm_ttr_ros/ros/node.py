@@ -74,6 +74,7 @@ from pathlib import Path
 import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
@@ -86,6 +87,7 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
+from msg_adapters.odometry import odometry_to_position
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
@@ -212,7 +214,8 @@ class RefinerNode(Node):
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
         for msg_type, topic, callback in (image_input, (CameraInfo, names.CAMERA_INFO_TOPIC,
-                                                        self._on_camera_info)):
+                                                        self._on_camera_info),
+                                          (Odometry, names.ODOMETRY_TOPIC, self._on_odometry)):
             self.create_subscription(
                 msg_type, topic, callback, qos, qos_overriding_options=overrides,
                 event_callbacks=SubscriptionEventCallbacks(
@@ -367,6 +370,20 @@ class RefinerNode(Node):
             self.warn_every("camera_info", f"CameraInfo rejected: {detail}")
             return
         self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_ns, msg))
+
+    @contained("odometry_callback")
+    def _on_odometry(self, msg: Odometry) -> None:
+        """A position for the metric scale (``metric.source: odometry``); one that cannot be
+        read, is out of order or not finite is counted (``metric.odometry_rejected``)."""
+        try:
+            stamp, position = odometry_to_position(msg)
+        except Exception as exc:  # it is the message that is bad
+            self.ttr.odometry.rejected += 1
+            self.warn_every("odometry", f"Odometry rejected: {exc}")
+            return
+        if not self.ttr.odometry.add(stamp, position):
+            self.warn_every("odometry", "Odometry rejected: its stamp is not after the last "
+                            "one's, or its position is not finite")
 
     def _hand_over(self, resolved: Resolved) -> None:
         """Queue the frames that have intrinsics; count the held frames pushed out."""

@@ -20,8 +20,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sfm_ttr_ros.core.errors import InputError
-
 #: Positions kept (at 100 Hz: 50 s).
 TRACK_LENGTH = 5000
 
@@ -80,16 +78,3 @@ def path_length(points: np.ndarray) -> float:
     if p.shape[0] < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
-
-
-def read_poses_file(path) -> np.ndarray:
-    """A poses file (one row per frame: a 4x4 camera-to-world matrix, row-major, metres, as
-    hololens_000's ``poses.txt``) → N x 4 x 4."""
-    try:
-        rows = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read poses file {path}: {exc}") from exc
-    if rows.shape[1] != 16:
-        raise InputError(f"{path}: expected 16 numbers per row (a 4x4 matrix), got "
-                         f"{rows.shape[1]}")
-    return rows.reshape(-1, 4, 4)
