@@ -32,9 +32,11 @@ def describe_model(model) -> dict[str, Any]:
 
 def write_per_frame(path: Path, seq: ImageSequence, gt_indices: Sequence[int],
                     runs: Mapping[str, ModeRun]) -> None:
-    """``per_frame.csv``: abs rel, RMSE, refined and reason of every GT frame in every mode."""
+    """``per_frame.csv``: abs rel, RMSE, the scale ratio (median GT / median prediction),
+    refined and reason of every GT frame in every mode."""
     write_per_frame_csv(path, [(i, seq.names[i]) for i in gt_indices],
-                        {m: r.per_frame for m, r in runs.items()})
+                        {m: r.per_frame for m, r in runs.items()},
+                        ("abs_rel", "rmse", "ratio", "refined", "reason"))
 
 
 def band_table(results: Mapping[str, Any], modes: Sequence[str]) -> list[str]:

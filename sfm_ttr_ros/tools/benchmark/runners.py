@@ -97,6 +97,7 @@ class ModeRun:
             if r is not None:
                 self.bands.add(depth, gt)
             row.update({m: (r.metrics[m] if r is not None else None) for m in METRICS})
+            row["ratio"] = r.ratio if r is not None else None
         self.per_frame[index] = row
 
     def summary(self, num_frames: int) -> dict[str, Any]:
