@@ -54,6 +54,7 @@ def test_the_camera_height_is_found_in_sfm_units_under_any_scale():
                      odometry=None)
         assert w.ok and w.m == pytest.approx(units, rel=0.02)
         assert w.k == pytest.approx(units / 2.0, rel=0.02)  # metres per network unit
+        assert w.k_after == 1.0  # learn: the refined network predicts metres
 
 
 @pytest.mark.parametrize("kind, why", [
@@ -98,16 +99,34 @@ def test_odometry_gives_metres_per_sfm_unit_from_the_travelled_path():
     assert path_length(np.zeros((1, 3))) == 0.0
 
 
-def test_the_steady_factor_is_the_median_and_a_jump_is_refused():
+def test_a_network_that_learns_metres_is_served_as_metric_and_a_jump_is_refused():
+    """learn (the default): the refined weights predict metres (factor 1); each window's k
+    says how metric the network was before it, a window far from it is refused."""
     cfg = MetricConfig(source="camera_height", max_jump=1.5)
     scale = MetricScale()
     assert scale.factor(cfg) is None  # waiting for the first accepted estimate
+    first = WindowMetric("camera_height", k=0.6, k_after=1.0)  # start-up units: 0.6 m each
+    assert scale.refusal(cfg, first) == ""  # no reference yet
+    scale.accept(cfg, first)
+    assert scale.factor(cfg) == 1.0
+    for k in (1.02, 0.97):
+        w = WindowMetric("camera_height", k=k, k_after=1.0)
+        assert scale.refusal(cfg, w) == ""
+        scale.accept(cfg, w)
+    assert scale.spread() == pytest.approx(0.025, abs=1e-9)
+    assert "metric.max_jump" in scale.refusal(cfg, WindowMetric("camera_height", k=1.8,
+                                                                k_after=1.0))
+
+
+def test_scaled_outputs_take_the_median_of_the_accepted_windows():
+    cfg = MetricConfig(source="camera_height", max_jump=1.5, learn=False)
+    scale = MetricScale()
     for k in (0.5, 0.52, 0.49):
-        w = WindowMetric("camera_height", k=k)
+        w = WindowMetric("camera_height", k=k, k_after=k)
         assert scale.refusal(cfg, w) == ""
         scale.accept(cfg, w)
     assert scale.factor(cfg) == pytest.approx(0.5) and scale.spread() < 0.05
-    jump = WindowMetric("camera_height", k=0.9)
+    jump = WindowMetric("camera_height", k=0.9, k_after=0.9)
     assert "metric.max_jump 1.5" in scale.refusal(cfg, jump)
     assert scale.refusal(cfg, WindowMetric("camera_height")) == ""  # no estimate: no verdict
     assert scale.factor(MetricConfig(source="fixed", factor=2.5)) == 2.5

@@ -490,11 +490,11 @@ class SfmTTR:
         w.metric = res.metric = estimate(cfg.metric, res.sfm, w.registered, stamps,
                                          res.scale if w.scaled else float("nan"),
                                          self.odometry)
-        if cfg.metric.learn and w.metric.ok:
-            res.alignment = dataclasses.replace(res.alignment, scale=w.metric.m)
-            res.scale, w.metric.k = w.metric.m, 1.0
         if why := self.metric.refusal(cfg.metric, w.metric):
             return Stop(Unrefined.CHECK_SCALE_JUMP, f"check: {why}")
+        if cfg.metric.learn and w.metric.ok:  # Eq. (5)'s targets m·D_sfm: metres are learnt
+            res.alignment = dataclasses.replace(res.alignment, scale=w.metric.m)
+            res.scale = w.metric.m
         return None
 
     def _supervise(self, w: _Window) -> None:

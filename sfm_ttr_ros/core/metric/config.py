@@ -23,9 +23,9 @@ class MetricConfig:
     # a window's estimate further than this factor from the steady one is refused like a scale
     # jump (0 = never): its reconstruction or its ground plane is wrong
     max_jump: float = 1.5
-    # the supervision targets in metres (the network learns metres) instead of the network's
-    # own units: a study, off (docs/decisions.md)
-    learn: bool = False
+    # the supervision targets in metres (the network learns metres; measured best) instead of
+    # the outputs scaled by the windows' factor (docs/decisions.md)
+    learn: bool = True
     # camera_height: a ground plane's normal within this angle (degrees) of the cameras' down
     # axis, inliers within this share of the camera height, at least this many of them, and the
     # registered cameras' heights above it within this relative spread

@@ -1,14 +1,22 @@
-"""One steady metric factor from the windows' estimates.
+"""Metres for the outputs from the windows' estimates.
 
-Per window w with alignment scale ŝ_w (D_nn ≈ ŝ_w·D_sfm, Eq. (4)) and metres per SfM unit
-m_w (:mod:`.ground`, :mod:`.odometry`), the window's weights predict in units of
-k_w = m_w / ŝ_w metres (refinement pulls the network onto ŝ_w·D_sfm; with ``learn`` the
-targets are m_w·D_sfm and k_w → 1 as the network learns metres). Frame-to-frame scale that
-wanders breaks what consumes the depth (SLAM, odometry, costmaps), so the outputs are scaled by
-the median of the last ``history`` ACCEPTED windows' k_w, not by each window's own; a window
-whose k_w lies more than ``max_jump`` from that median is refused like a scale jump (its
-reconstruction or its ground plane is wrong). ``fixed`` uses the user's factor from the start;
-``none`` leaves the network's units (and says so).
+Per window w with alignment scale ŝ_w (D_nn ≈ ŝ_w·D_sfm, Eq. (4)) and metres per SfM unit m_w
+(:mod:`.ground`, :mod:`.odometry`), the network before the window predicts in units of
+k_w = m_w / ŝ_w metres. Two ways to make the outputs metric:
+
+* ``learn`` (the default): the supervision targets become m_w·D_sfm (Eq. (5) with m_w in place
+  of ŝ_w, and the photometric poses scaled alike): the network itself learns metres, the
+  refined weights predict metres (factor 1) and the live output follows with them. Each window
+  re-anchors the scale, so it cannot drift;
+* outputs scaled (``learn`` off): the network keeps its own units and the outputs are multiplied
+  by the median of the last ``history`` accepted windows' k_w. Measured worse: under the
+  ``continue`` policy the network's own scale drifts (nothing anchors it), and a median of past
+  windows lags the drift (docs/decisions.md).
+
+Frame-to-frame scale that wanders breaks what consumes the depth (SLAM, odometry, costmaps): a
+window whose k_w lies more than ``max_jump`` from the factor of the weights before it is refused
+like a scale jump (its reconstruction or its ground plane is wrong). ``fixed`` uses the user's
+factor from the start; ``none`` leaves the network's units (and says so).
 """
 
 from __future__ import annotations
@@ -28,13 +36,15 @@ from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 
 @dataclass
 class WindowMetric:
-    """One window's metric estimate: metres per SfM unit ``m`` and per network unit ``k``
-    (NaN when there is none, ``reason`` says why), and what the ground plane or the odometry
-    measured."""
+    """One window's metric estimate: metres per SfM unit ``m``, per network unit of the weights
+    before the window ``k`` (m / ŝ) and of the weights it leaves ``k_after`` (k, or 1 when the
+    network learns metres); NaN when there is none, ``reason`` says why; and what the ground
+    plane or the odometry measured."""
 
     source: str
     m: float = float("nan")
     k: float = float("nan")
+    k_after: float = float("nan")
     reason: str = ""
     ground_inliers: int = 0
     height_spread: float = float("nan")
@@ -63,6 +73,7 @@ def estimate(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
         w.m, w.travel_m, w.reason = _odometry_scale(cfg, sfm, registered, stamps, odometry)
     if math.isfinite(w.m) and alignment_scale > 0:
         w.k = w.m / alignment_scale
+        w.k_after = 1.0 if cfg.learn else w.k
     return w
 
 
@@ -86,7 +97,8 @@ class MetricScale:
     """The steady factor (metres per network unit) of a stream's accepted windows."""
 
     def __init__(self) -> None:
-        self.history: deque[float] = deque()
+        self.history: deque[float] = deque()  # k_after of the accepted windows
+        self.before: deque[float] = deque()  # their k over the factor before them
 
     def factor(self, cfg: MetricConfig) -> float | None:
         """Metres per network unit for the outputs now; None = not metric (``none``, or no
@@ -98,11 +110,12 @@ class MetricScale:
         return float(np.median(self.history))
 
     def spread(self) -> float:
-        """Relative standard deviation of the accepted windows' k (NaN with fewer than 2)."""
-        if len(self.history) < 2:
+        """How steady the scale is: the relative standard deviation of the accepted windows'
+        k over the factor of the weights before them (1 = metric already; NaN with fewer than
+        two)."""
+        if len(self.before) < 2:
             return float("nan")
-        h = np.asarray(self.history)
-        return float(h.std() / h.mean())
+        return float(np.std(self.before))
 
     def refusal(self, cfg: MetricConfig, window: WindowMetric) -> str:
         """Why ``window``'s estimate refuses it ("" = not refused): further than max_jump
@@ -119,6 +132,10 @@ class MetricScale:
 
     def accept(self, cfg: MetricConfig, window: WindowMetric) -> None:
         if window.ok:
-            self.history.append(window.k)
-            while len(self.history) > cfg.history:
-                self.history.popleft()
+            current = self.factor(cfg)
+            if current is not None:
+                self.before.append(window.k / current)
+            self.history.append(window.k_after)
+            for h in (self.history, self.before):
+                while len(h) > cfg.history:
+                    h.popleft()
