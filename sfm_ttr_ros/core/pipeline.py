@@ -370,7 +370,7 @@ class SfmTTR:
             return _unrefined(res, Stop(c.reason_key, f"rejected by check: {c.reason}"),
                               w.before)
         self.checks.accept(c, res.sfm, w.registered, res.scale, w.scaled)
-        self.metric.accept(cfg.metric, w.metric)
+        self.metric.accept(cfg.metric, w.metric, cfg.weight_policy)
         self._cloud(res, res.sfm, w.registered)
         return res
 
@@ -490,7 +490,7 @@ class SfmTTR:
         w.metric = res.metric = estimate(cfg.metric, res.sfm, w.registered, stamps,
                                          res.scale if w.scaled else float("nan"),
                                          self.odometry)
-        if why := self.metric.refusal(cfg.metric, w.metric):
+        if why := self.metric.refusal(cfg.metric, w.metric, cfg.weight_policy):
             return Stop(Unrefined.CHECK_SCALE_JUMP, f"check: {why}")
         if cfg.metric.learn and w.metric.ok:  # Eq. (5)'s targets m·D_sfm: metres are learnt
             res.alignment = dataclasses.replace(res.alignment, scale=w.metric.m)

@@ -94,48 +94,58 @@ def _odometry_scale(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str]
 
 
 class MetricScale:
-    """The steady factor (metres per network unit) of a stream's accepted windows."""
+    """The metres of a stream's outputs: from its accepted windows' estimates."""
 
     def __init__(self) -> None:
         self.history: deque[float] = deque()  # k_after of the accepted windows
-        self.before: deque[float] = deque()  # their k over the factor before them
+        self.start_up: deque[float] = deque()  # their k under reset (the start-up weights')
+        self.ratios: deque[float] = deque()  # each accepted window's k over its reference
 
     def factor(self, cfg: MetricConfig) -> float | None:
-        """Metres per network unit for the outputs now; None = not metric (``none``, or no
-        accepted estimate yet)."""
+        """Metres per network unit of the outputs now; None = not metric (``none``, or no
+        accepted estimate yet). The network that learns metres: 1; scaled outputs: the median
+        of the accepted windows' k."""
         if cfg.source == "fixed":
             return float(cfg.factor)
         if cfg.source == "none" or not self.history:
             return None
         return float(np.median(self.history))
 
-    def spread(self) -> float:
-        """How steady the scale is: the relative standard deviation of the accepted windows'
-        k over the factor of the weights before them (1 = metric already; NaN with fewer than
-        two)."""
-        if len(self.before) < 2:
-            return float("nan")
-        return float(np.std(self.before))
+    def reference(self, cfg: MetricConfig, weight_policy: str) -> float | None:
+        """What a window's k should be: the metres per unit of the weights it starts from
+        (``continue``: the outputs' factor; ``reset``: the start-up weights', as the windows
+        before measured them); None before any."""
+        if weight_policy == "reset":
+            return float(np.median(self.start_up)) if self.start_up else None
+        return self.factor(cfg)
 
-    def refusal(self, cfg: MetricConfig, window: WindowMetric) -> str:
-        """Why ``window``'s estimate refuses it ("" = not refused): further than max_jump
-        from the steady factor."""
-        current = self.factor(cfg)
-        if cfg.source in ("none", "fixed") or not window.ok or current is None \
-                or cfg.max_jump <= 0:
+    def spread(self) -> float:
+        """How steady the scale is: the standard deviation of the accepted windows' k over
+        their reference (0 = every window found the weights as metric as expected; NaN with
+        fewer than two)."""
+        return float(np.std(self.ratios)) if len(self.ratios) >= 2 else float("nan")
+
+    def refusal(self, cfg: MetricConfig, window: WindowMetric, weight_policy: str) -> str:
+        """Why ``window``'s estimate refuses it ("" = not refused): its k further than
+        ``max_jump`` from :meth:`reference`."""
+        ref = self.reference(cfg, weight_policy)
+        if cfg.source in ("none", "fixed") or not window.ok or ref is None or cfg.max_jump <= 0:
             return ""
-        ratio = max(window.k / current, current / window.k)
+        ratio = max(window.k / ref, ref / window.k)
         if ratio <= cfg.max_jump:
             return ""
-        return (f"metric scale {window.k:.4g} m per unit is {ratio:.2f}x the stream's "
-                f"{current:.4g} > metric.max_jump {cfg.max_jump:g}")
+        return (f"metric scale {window.k:.4g} m per unit is {ratio:.2f}x the {ref:.4g} of the "
+                f"weights before it > metric.max_jump {cfg.max_jump:g}")
 
-    def accept(self, cfg: MetricConfig, window: WindowMetric) -> None:
-        if window.ok:
-            current = self.factor(cfg)
-            if current is not None:
-                self.before.append(window.k / current)
-            self.history.append(window.k_after)
-            for h in (self.history, self.before):
-                while len(h) > cfg.history:
-                    h.popleft()
+    def accept(self, cfg: MetricConfig, window: WindowMetric, weight_policy: str) -> None:
+        if not window.ok:
+            return
+        ref = self.reference(cfg, weight_policy)
+        if ref is not None:
+            self.ratios.append(window.k / ref)
+        if weight_policy == "reset":
+            self.start_up.append(window.k)
+        self.history.append(window.k_after)
+        for h in (self.history, self.start_up, self.ratios):
+            while len(h) > cfg.history:
+                h.popleft()
