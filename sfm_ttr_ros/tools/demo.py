@@ -29,6 +29,7 @@ ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import random
 import shutil
@@ -349,6 +350,7 @@ def run_demo(opts: DemoOptions) -> dict:
     out = _prepare_out(opts)
     drive, bag, gt_frames = _drive_to_bag(opts, out)
     expected = _predict_unrefined(opts, bag, out)
+    opts = _with_camera_height(opts, out)
     node = _run_refiner(opts, bag, out, expected)
     _say("5/5 evaluating against the ground truth topic (matched by stamp)")
     cfg = EvalConfig(eigen_crop=opts.eigen_crop)
@@ -357,6 +359,8 @@ def run_demo(opts: DemoOptions) -> dict:
     results = {
         "drive": drive, "frames": expected, "gt_frames": gt_frames,
         **_compare_outputs(evals),
+        "metric": _metric_outputs(out, bag, EvalConfig(eigen_crop=opts.eigen_crop,
+                                                       median_scaling=False)),
         "refiner": node,
         "seconds_total": time.perf_counter() - t_start,
         "figure": str(fig_path) if fig_path else None,
@@ -364,6 +368,37 @@ def run_demo(opts: DemoOptions) -> dict:
     _write_reports(out, results, evals, _frame_indices(bag, opts.start))
     _print_summary(results, out)
     return results
+
+
+def _with_camera_height(opts: DemoOptions, out: Path) -> DemoOptions:
+    """``opts`` with the drive's camera height (its ``camera_height.txt``: a generated drive
+    knows it) as ``metric.camera_height``, unless ``--set`` gives one: the depth in metres."""
+    from sfm_ttr_ros.data.poses import read_camera_height
+
+    if any(o.split("=")[0].strip() == "metric.camera_height" for o in opts.overrides):
+        return opts
+    found = sorted(out.glob("kitti_raw/*/*/camera_height.txt"))
+    if not found:
+        return opts
+    height = read_camera_height(found[0])
+    _say(f"   the drive's camera height {height:.3f} m: metric.camera_height")
+    return dataclasses.replace(opts, overrides=[*opts.overrides,
+                                                f"metric.camera_height={height!r}"])
+
+
+def _metric_outputs(out: Path, bag: Path, cfg) -> dict[str, dict]:
+    """The refined outputs evaluated WITHOUT median scaling (metres): abs rel, RMSE and the
+    frames' scale ratio (median GT / median prediction) and its spread."""
+    from sfm_ttr_ros.ros.bag_evaluation import evaluate_bag
+    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
+
+    sources = _output_sources(out)
+    keep = ("abs_rel", "rmse", "ratio_median", "ratio_std", "frames")
+    out_metrics = {}
+    for key in ("sfm_ttr", "sfm_ttr_live"):
+        e = evaluate_bag(sources[key][0], bag, sources[key][1], DEPTH_GT_TOPIC, cfg)
+        out_metrics[key] = {k: e.get(k) for k in keep}
+    return out_metrics
 
 
 def _drive_to_bag(opts: DemoOptions, out: Path) -> tuple[str, Path, int]:
@@ -543,6 +578,11 @@ def _print_summary(results: dict, out: Path) -> None:
           f"({_live_line(node, expected)})")
     print(f"SfM-TTR live by third of the drive (abs rel / RMSE; the first on the start-up "
           f"weights until the first window's reach it): {thirds_line}")
+    m = results["metric"]["sfm_ttr"]
+    if m.get("ratio_median") is not None:
+        print(f"in metres (no median scaling): windowed abs rel {m['abs_rel']:.4f}, RMSE "
+              f"{m['rmse']:.3f} m, GT / depth {m['ratio_median']:.3f} (spread "
+              f"{m['ratio_std']:.1%})")
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if results["figure"]:
