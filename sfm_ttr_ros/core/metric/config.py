@@ -22,7 +22,7 @@ class MetricConfig:
     history: int = 10
     # a window's estimate further than this factor from the steady one is refused like a scale
     # jump (0 = never): its reconstruction or its ground plane is wrong
-    max_jump: float = 1.5
+    max_jump: float = 2.0
     # the supervision targets in metres (the network learns metres; measured best) instead of
     # the outputs scaled by the windows' factor (docs/decisions.md)
     learn: bool = True
