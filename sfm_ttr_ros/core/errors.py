@@ -10,3 +10,9 @@ the method cannot refine is not an error: its outcome says why
 
 class InputError(ValueError):
     """Bad input given to the library (clear message, raised before any heavy work)."""
+
+
+def check_choice(name: str, value: object, allowed: tuple) -> None:
+    """InputError unless ``value`` is one of ``allowed`` (a config's ``__post_init__``)."""
+    if value not in allowed:
+        raise InputError(f"{name} must be one of {', '.join(map(str, allowed))}; got {value!r}")

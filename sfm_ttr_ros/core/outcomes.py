@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 
-class Unrefined(StrEnum):
+class _Outcome(StrEnum):
+    """A counted key with a sentence for people (``description``)."""
+
+    @property
+    def description(self) -> str:
+        return _DESCRIPTIONS[self]
+
+
+class Unrefined(_Outcome):
     """Why a frame went out on the windowed output without refinement."""
 
     # -- the window's own outcome (core/pipeline.py)
@@ -41,16 +49,12 @@ class Unrefined(StrEnum):
     END_OF_STREAM = "end_of_stream"
 
     @property
-    def description(self) -> str:
-        return _UNREFINED[self]
-
-    @property
     def is_check(self) -> bool:
         """A window check refused the window (its frames keep the weights before it)."""
         return self in CHECKS
 
 
-class Dropped(StrEnum):
+class Dropped(_Outcome):
     """Why a received frame was never published on the windowed output."""
 
     OVERFLOW = "overflow"
@@ -59,22 +63,14 @@ class Dropped(StrEnum):
     NO_INTRINSICS = "no_intrinsics"
     PREDICTION_ERROR = "prediction_error"
 
-    @property
-    def description(self) -> str:
-        return _DROPPED[self]
 
-
-class LiveSkipped(StrEnum):
+class LiveSkipped(_Outcome):
     """Why a frame got no live depth."""
 
     OVERFLOW = "overflow"
     PREDICTION_ERROR = "prediction_error"
     PUBLISH_ERROR = "publish_error"
     STOPPED = "stopped"
-
-    @property
-    def description(self) -> str:
-        return _LIVE_SKIPPED[self]
 
 
 @dataclass(frozen=True)
@@ -124,3 +120,4 @@ _LIVE_SKIPPED = {
     LiveSkipped.PUBLISH_ERROR: "publishing the live depth failed",
     LiveSkipped.STOPPED: "server stopped before the frame was served",
 }
+_DESCRIPTIONS: dict[_Outcome, str] = {**_UNREFINED, **_DROPPED, **_LIVE_SKIPPED}

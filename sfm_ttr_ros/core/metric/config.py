@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.errors import InputError, check_choice
 
 #: Where the metric scale comes from: none (the network's units, said in the diagnostics),
 #: camera_height (a ground plane under the camera), odometry (travelled distance), fixed (a
@@ -42,9 +42,7 @@ class MetricConfig:
     min_travel: float = 0.2
 
     def __post_init__(self) -> None:
-        if self.source not in METRIC_SOURCES:
-            raise InputError(f"metric.source must be one of {', '.join(METRIC_SOURCES)}; got "
-                             f"{self.source!r}")
+        check_choice("metric.source", self.source, METRIC_SOURCES)
         for name in ("camera_height", "factor", "inlier_tolerance", "min_travel"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v > 0):

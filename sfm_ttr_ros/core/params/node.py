@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.errors import InputError, check_choice
 
 QOS_RELIABILITIES = ("reliable", "best_effort")
 IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, CompressedImage on
@@ -96,12 +96,8 @@ class NodeSettings:
         parse_fallback_intrinsics(self.fallback_intrinsics)
         parse_outputs(self.outputs)
         parse_use_projection(self.camera_info_use_projection)
-        if self.image_transport not in IMAGE_TRANSPORTS:
-            raise InputError(f"image_transport must be one of {', '.join(IMAGE_TRANSPORTS)}; "
-                             f"got {self.image_transport!r}")
-        if self.qos_reliability not in QOS_RELIABILITIES:
-            raise InputError(f"qos_reliability must be one of {', '.join(QOS_RELIABILITIES)}; "
-                             f"got {self.qos_reliability!r}")
+        check_choice("image_transport", self.image_transport, IMAGE_TRANSPORTS)
+        check_choice("qos_reliability", self.qos_reliability, QOS_RELIABILITIES)
         if self.cloud_stride < 1:
             raise InputError(f"cloud.stride must be >= 1, got {self.cloud_stride}")
         if not (math.isfinite(self.cloud_max_range) and self.cloud_max_range >= 0):

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.alignment.affine import is_affine_output
-from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.errors import InputError, check_choice
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.photometric import (
     ALPHA,
@@ -82,8 +82,7 @@ class RefinementConfig:
                                      ("sfm_residual", self.sfm_residual, SFM_RESIDUALS),
                                      ("step_mode", self.step_mode, STEP_MODES),
                                      ("trainable", self.trainable, TRAINABLE_MODES)):
-            if value not in allowed:
-                raise InputError(f"{name} must be one of {allowed}, got {value!r}")
+            check_choice(name, value, allowed)
         if not (np.isfinite(self.photometric_weight) and self.photometric_weight >= 0):
             raise InputError(f"photometric_weight must be a finite number >= 0, got "
                              f"{self.photometric_weight}")

@@ -79,7 +79,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.errors import InputError, check_choice
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import CHECKS, Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
@@ -150,9 +150,7 @@ class StreamSettings:
         if not 1 <= self.window_stride <= self.window_size:
             raise InputError(f"window_stride must be in [1, window_size={self.window_size}], "
                              f"got {self.window_stride}")
-        if self.keyframe_policy not in KEYFRAME_POLICIES:
-            raise InputError(f"keyframe_policy must be one of {', '.join(KEYFRAME_POLICIES)}; "
-                             f"got {self.keyframe_policy!r}")
+        check_choice("keyframe_policy", self.keyframe_policy, KEYFRAME_POLICIES)
         if self.max_pending < 1:
             raise InputError(f"max_pending must be >= 1, got {self.max_pending}")
         for name in ("min_keyframe_interval_s", "max_keyframe_interval_s",
