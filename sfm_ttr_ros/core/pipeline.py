@@ -518,11 +518,6 @@ class SfmTTR:
 
         serve = self.checks.arm_interim(cfg.check, w.before, w.images, res.sfm, w.registered,
                                         self._predict_as_is, w.scaled)
-        # while the network learns metres for the first time its interim weights are between
-        # units: the live output switches to metres at once, when the window is accepted
-        learning = cfg.metric.learn and cfg.metric.source in ("camera_height", "odometry")
-        serve = serve and not (learning and w.metric is not None and w.metric.ok
-                               and self.metric.factor(cfg.metric) is None)
         t0 = time.perf_counter()
         try:
             refinement = refine_encoder(
