@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
 from sfm_ttr_ros.core.stream.windows import StreamProcessor, WindowStats
 
@@ -74,9 +75,12 @@ def test_input_problems_and_unrefined_frames_make_a_warning_once(stream):
     diag.camera_info_rejected()
     diag.qos_event("image")
     diag.qos_event("~/depth")
-    diag.output_published(refined=False)
+    diag.output_published(refined=False, reason_key=Unrefined.SFM_FAILED)
     diag.output_published(refined=False)
     diag.output_published(refined=True)
+    # frames the keyframe rule passed on by design are no problem
+    diag.output_published(refined=False, reason_key=Unrefined.NOT_KEYFRAME)
+    diag.output_published(refined=False, reason_key=Unrefined.STALE)
     status = diag.status()
     assert status.level == "warn"
     assert status.message == "2 frame(s) passed through unrefined; incompatible QoS"

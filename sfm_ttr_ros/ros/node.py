@@ -440,7 +440,7 @@ class RefinerNode(Node):
             if camera is None:
                 self._camera_info_missing("refined", out.frame)
             self._publish(outputs.frame_messages(out, camera))
-        self.diagnostics.output_published(out.refined)
+        self.diagnostics.output_published(out.refined, out.reason_key)
 
     def _refined_camera(self, frame: Frame) -> CameraSource | None:
         """The camera of a frame out of its window: the CameraInfo its intrinsics were read

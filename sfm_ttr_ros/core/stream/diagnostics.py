@@ -32,9 +32,14 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from sfm_ttr_ros.core.outcomes import Dropped
+from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
 from sfm_ttr_ros.core.stream.windows import StreamProcessor
+
+#: Unrefined frames the keyframe rule passed on by design (thinned, or skipped behind): counted
+#: under their reason, no WARN (a 10-Hz camera under keyframe_policy auto makes them all the
+#: time; a camera the windows cannot follow has its own WARN, keyframes.reason "widest").
+SELECTED_OUT = frozenset({Unrefined.NOT_KEYFRAME, Unrefined.STALE})
 
 
 @dataclass(frozen=True)
@@ -95,8 +100,10 @@ class StreamDiagnostics:
             self._without_camera_info_since_status += 1
             return self.without_camera_info[output]
 
-    def output_published(self, refined: bool) -> None:
-        if not refined:
+    def output_published(self, refined: bool, reason_key: Unrefined | None = None) -> None:
+        """A frame left the windowed output; unrefined ones make the next status a WARN,
+        except those the keyframe rule passed on by design (SELECTED_OUT)."""
+        if not refined and reason_key not in SELECTED_OUT:
             with self._lock:
                 self._unrefined_since_status += 1
 
