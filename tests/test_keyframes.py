@@ -23,11 +23,18 @@ def frame(stamp: float) -> Frame:
     return Frame(index=0, image=IMAGE, stamp=stamp)
 
 
-def judge(sel: KeyframeSelector, stamps, policy="auto", newest=None, **kw):
+def verdict(sel: KeyframeSelector, f: Frame, policy="auto", newest=None, **kw) -> str:
+    """What the stream asks of the rule per frame: "stale", "keyframe" or "other"."""
     args = dict(floor_s=0.0, widest_s=1.0, min_motion=0.0, window_size=15, stride=15)
     args.update(kw)
-    return [sel.judge(frame(s), policy, args["floor_s"], args["widest_s"], args["min_motion"],
-                      args["window_size"], args["stride"], newest).keyframe for s in stamps]
+    if sel.is_stale(f, policy, args["floor_s"], args["widest_s"], args["window_size"],
+                    args["stride"], newest):
+        return "stale"
+    return "keyframe" if sel.is_keyframe(f, args["min_motion"]) else "other"
+
+
+def judge(sel: KeyframeSelector, stamps, policy="auto", newest=None, **kw):
+    return [verdict(sel, frame(s), policy, newest, **kw) == "keyframe" for s in stamps]
 
 
 def test_auto_keyframes_every_frame_until_a_window_has_run_then_at_its_pace():
@@ -63,25 +70,33 @@ def test_a_frame_behind_a_window_of_newer_frames_is_stale():
     sel = KeyframeSelector()
     judge(sel, [0.0, 0.1, 0.2])  # the stream's cadence: 10 Hz
     # newest policy: frames 1.5 s (15 frames) older than the newest queued one are stale
-    v = sel.judge(frame(0.3), "newest", 0.0, 1.0, 0.0, 15, 15, newest_stamp=2.0)
-    assert not v.keyframe and v.stale and sel.stale == 1
-    v = sel.judge(frame(0.6), "newest", 0.0, 1.0, 0.0, 15, 15, newest_stamp=2.0)
-    assert v.keyframe and not v.stale
+    assert verdict(sel, frame(0.3), "newest", newest=2.0) == "stale" and sel.stale == 1
+    assert verdict(sel, frame(0.6), "newest", newest=2.0) == "keyframe"
     # auto after a slow window: its windows span 15 x 0.48 s = 7.2 s, older frames are stale
     sel.window_done(6.0)
-    assert sel.judge(frame(0.7), "auto", 0.0, 1.0, 0.0, 15, 15, newest_stamp=8.0).stale
-    assert not sel.judge(frame(1.0), "auto", 0.0, 1.0, 0.0, 15, 15, newest_stamp=8.0).stale
+    assert verdict(sel, frame(0.7), "auto", newest=8.0) == "stale"
+    assert verdict(sel, frame(1.0), "auto", newest=8.0) != "stale"
     # all: never stale (overload is its rule)
-    assert not sel.judge(frame(0.9), "all", 0.0, 1.0, 0.0, 15, 15, newest_stamp=99.0).stale
+    assert verdict(sel, frame(0.9), "all", newest=99.0) != "stale"
+
+
+def test_the_motion_floor_needs_that_much_change_from_the_last_keyframe():
+    sel = KeyframeSelector()
+    still = Frame(index=0, image=IMAGE, stamp=0.0)
+    assert verdict(sel, still, min_motion=5.0) == "keyframe"
+    same = Frame(index=1, image=IMAGE.copy(), stamp=0.1)
+    assert verdict(sel, same, min_motion=5.0) == "other"
+    moved = Frame(index=2, image=255 - IMAGE, stamp=0.2)
+    assert verdict(sel, moved, min_motion=5.0) == "keyframe"
 
 
 def test_a_stream_behind_drops_its_partial_window_and_counts_every_frame():
     """A worker whose windows take long, frames arriving meanwhile: stale frames and the
     keyframes collected before them pass unrefined as ``stale``, the windows are built from
-    the newest frames, and every frame is accounted for."""
+    the newest frames (none skipped for overload), and every frame is accounted for."""
     ttr = ScriptedTTR(delay=0.4)
     s = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4,
-                                            keyframe_policy="newest", overload_pending=0,
+                                            keyframe_policy="newest", overload_pending=2,
                                             max_pending=500))
     frames = [Frame(index=i, image=IMAGE, stamp=0.1 * i) for i in range(60)]
     outs, stop = [], threading.Event()
@@ -101,5 +116,7 @@ def test_a_stream_behind_drops_its_partial_window_and_counts_every_frame():
     worker.join()
     c = check_accounting(s, outs, 60)
     assert c["unrefined_by_reason"].get("stale", 0) > 10
+    # the queue outgrew overload_pending, but under newest/auto no window is skipped for it
+    assert "overload" not in c["unrefined_by_reason"] and c["windows_skipped"] == 0
     newest_first = [int(w[0]) for w in ttr.windows]
     assert all(b - a > 4 for a, b in zip(newest_first, newest_first[1:], strict=False))

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -53,14 +52,6 @@ def thumbnail(image: np.ndarray) -> np.ndarray:
     th = max(1, round(h * tw / w))
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     return cv2.resize(grey, (tw, th), interpolation=cv2.INTER_AREA).astype(np.float32)
-
-
-@dataclass
-class Verdict:
-    """Whether a frame is a keyframe; when not, whether it is stale (skipped behind)."""
-
-    keyframe: bool
-    stale: bool = False
 
 
 class KeyframeSelector:
@@ -104,11 +95,12 @@ class KeyframeSelector:
         self.interval_s = interval
         return interval
 
-    def judge(self, frame: Frame, policy: str, floor_s: float, widest_s: float,
-              min_motion: float, window_size: int, stride: int,
-              newest_stamp: float | None) -> Verdict:
-        """Whether ``frame`` (the next one the worker takes) is a keyframe; ``newest_stamp``:
-        the stamp of the newest frame queued after it (None: none)."""
+    def is_stale(self, frame: Frame, policy: str, floor_s: float, widest_s: float,
+                 window_size: int, stride: int, newest_stamp: float | None) -> bool:
+        """Whether ``frame`` (the next one the worker takes) is stale (module docstring);
+        ``newest_stamp``: the stamp of the newest frame queued after it (None: none). Called
+        for every frame taken, before :meth:`is_keyframe`: it also keeps the stream's cadence
+        and Δ up to date."""
         self._stamps.append(frame.stamp)
         interval = self.update_interval(policy, floor_s, widest_s, stride)
         if policy != "all" and newest_stamp is not None:
@@ -116,13 +108,21 @@ class KeyframeSelector:
             if span > 0 and newest_stamp - frame.stamp >= span:
                 self.stale += 1
                 self.reset()
-                return Verdict(False, stale=True)
-        thumb = thumbnail(frame.image)
-        if self._stamp is not None:
-            if interval > 0 and frame.stamp - self._stamp < interval - 1e-9:
-                return Verdict(False)
-            if (min_motion > 0 and self._thumb is not None and self._thumb.shape == thumb.shape
-                    and float(np.mean(np.abs(thumb - self._thumb))) < min_motion):
-                return Verdict(False)
+                return True
+        return False
+
+    def is_keyframe(self, frame: Frame, min_motion: float) -> bool:
+        """Whether a frame that is not stale is a keyframe: Δ (:meth:`update_interval`, set
+        by :meth:`is_stale`) after the last keyframe and, with ``min_motion`` > 0, that much
+        grey-level change from it."""
+        interval = self.interval_s
+        if self._stamp is not None and interval > 0 and \
+                frame.stamp - self._stamp < interval - 1e-9:
+            return False
+        thumb = thumbnail(frame.image) if min_motion > 0 else None
+        if (self._stamp is not None and thumb is not None and self._thumb is not None
+                and self._thumb.shape == thumb.shape
+                and float(np.mean(np.abs(thumb - self._thumb))) < min_motion):
+            return False
         self._stamp, self._thumb = frame.stamp, thumb
-        return Verdict(True)
+        return True

@@ -24,9 +24,11 @@ Model of the stream
   and are NOT published again.
 * Back-pressure: ``max_pending`` bounds the input queue; when it is full the OLDEST queued frame
   is dropped (counted under ``dropped["overflow"]`` and logged, throttled): the newest images
-  matter most for a live robot. When a window is due while more than ``overload_pending``
-  frames wait in the queue (0 = never), refinement is skipped for that window: its new frames are
-  published unrefined (``overload``) so the queue drains, and refinement resumes later.
+  matter most for a live robot. With ``keyframe_policy`` all, when a window is due while more
+  than ``overload_pending`` frames wait in the queue (0 = never), refinement is skipped for that
+  window: its new frames are published unrefined (``overload``) so the queue drains, and
+  refinement resumes later. Under auto and newest the keyframe rule skips stale frames instead
+  (:mod:`.keyframes`, checked before anything else about a frame), so no window is skipped.
 * Unrefined frames are predicted again with the latest weights for the windowed output -
   except, unless ``republish_unrefined``, those the live output already served
   (``Frame.served_live``): they come out with ``depth`` None (``FrameOutput.live_only``, counted
@@ -519,6 +521,14 @@ class StreamProcessor:
             self.keyframes.reset()
         self._last_stamp = frame.stamp
 
+        if self.keyframes.is_stale(frame, s.keyframe_policy, s.min_keyframe_interval_s,
+                                   s.max_keyframe_interval_s, s.window_size, s.window_stride,
+                                   self._newest_stamp()):
+            why = ("stale: the frames queued after it span the next window "
+                   f"(keyframe_policy {s.keyframe_policy})")
+            outs += self._flush_unrefined(Unrefined.STALE, why)
+            outs += self._unrefined([frame], Unrefined.STALE, why)
+            return outs
         if frame.image is RELEASED_IMAGE:  # the backlog bound took its image: no window
             reason = ("overload: image released by the backlog bound (overload_pending + "
                       "window_size images kept); served live")
@@ -542,16 +552,7 @@ class StreamProcessor:
                 outs += self._intrinsics_changed(intr, size_changed)
         self._intr, self._intr_fallback = intr, frame.fallback_intrinsics
 
-        verdict = self.keyframes.judge(frame, s.keyframe_policy, s.min_keyframe_interval_s,
-                                       s.max_keyframe_interval_s, s.min_keyframe_motion,
-                                       s.window_size, s.window_stride, self._newest_stamp())
-        if verdict.stale:
-            why = ("stale: the frames queued after it span the next window "
-                   f"(keyframe_policy {s.keyframe_policy})")
-            outs += self._flush_unrefined(Unrefined.STALE, why)
-            outs += self._unrefined([frame], Unrefined.STALE, why)
-            return outs
-        if not verdict.keyframe:
+        if not self.keyframes.is_keyframe(frame, s.min_keyframe_motion):
             outs += self._unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
             return outs
         self._buffer.append(_Entry(frame))
@@ -622,7 +623,12 @@ class StreamProcessor:
             self._warn("prefetch", f"SfM ahead of the next window not begun: {exc}")
 
     def _overloaded(self) -> int:
+        """Frames queued beyond ``overload_pending`` when a window is due (0: not overloaded).
+        Only with ``keyframe_policy`` all: under auto and newest the stale frames are skipped
+        instead, and a due window covers the latest seconds already."""
         limit = self.settings.overload_pending
+        if self.settings.keyframe_policy != "all":
+            return 0
         q = self.queued()
         return q if limit > 0 and q > limit else 0
 

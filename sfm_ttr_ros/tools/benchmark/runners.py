@@ -221,7 +221,12 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 
     def take(outs: list[FrameOutput]) -> None:
         for o in outs:
-            run.add(o.frame.index, o.depth, o.refined, o.reason_key)
+            depth = o.depth
+            if depth is None:  # served live only (virtual time): evaluated with the weights now
+                depth = ttr.predict([seq.frame(o.frame.index).image])[0]
+                if o.metres_per_unit is not None:
+                    depth = depth * np.float32(o.metres_per_unit)
+            run.add(o.frame.index, depth, o.refined, o.reason_key)
 
     feed_odometry(ttr, seq, indices, rate)
     stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
@@ -262,7 +267,9 @@ def _push_in_virtual_time(stream: StreamProcessor, seq: ImageSequence, indices: 
     """Frame k arrives at k / rate s (its stamp rewritten to that time); the worker takes one
     queued frame at a time and its processing time (measured) advances the clock, so the frames
     due meanwhile are queued before its next step: the queue, the stale frames and the
-    keyframe intervals of a camera at ``rate`` on this machine, without the live server."""
+    keyframe intervals of a camera at ``rate`` on this machine. The live server is not run, but
+    every frame counts as served live, as in the node: a frame no window refines costs the
+    worker no prediction (``take`` evaluates it outside the clock, with the weights then)."""
     clock, k, n = 0.0, 0, len(indices)
     while k < n or stream.queued():
         if not stream.queued():
@@ -270,11 +277,13 @@ def _push_in_virtual_time(stream: StreamProcessor, seq: ImageSequence, indices: 
         while k < n and k / rate <= clock:
             frame = seq.frame(indices[k])
             frame.stamp = feed_stamp(seq, indices, k, rate)
+            frame.served_live = True
             stream.submit(frame, seq.intrinsics)
             k += 1
         t0 = time.perf_counter()
-        take(stream.step(timeout=0.0))
+        outs = stream.step(timeout=0.0)
         dt = time.perf_counter() - t0
+        take(outs)
         run.seconds += dt
         clock += dt
 
