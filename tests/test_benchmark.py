@@ -629,3 +629,41 @@ def test_a_window_cut_short_by_the_end_of_the_feed_is_on_the_time_line():
     assert row["first_served"] == pytest.approx(14.0 - 12.9)
     assert row["since_feed_start"] == pytest.approx(4.0)
     assert timeline_summary([row])["first_weights_s"] == pytest.approx(4.0)
+
+
+def test_node_online_in_virtual_time_queues_what_a_camera_sends_meanwhile():
+    """``--node-rate``: frame k arrives at k / rate; each of the worker's steps advances the clock
+    by its measured time, so the frames due meanwhile are queued before its next step, and
+    every frame counts as served live (the node serves each one) at its feed stamp."""
+    import time
+    from types import SimpleNamespace
+
+    from sfm_ttr_ros.core.frames import Frame
+    from sfm_ttr_ros.tools.benchmark.runners import _push_in_virtual_time
+
+    class SlowStream:  # takes one queued frame per step, in 20 ms
+        def __init__(self):
+            self.q, self.taken, self.longest = [], [], 0
+
+        def submit(self, frame, intr):
+            self.q.append(frame)
+
+        def queued(self):
+            return len(self.q)
+
+        def step(self, timeout=None):
+            self.longest = max(self.longest, len(self.q))
+            time.sleep(0.02)
+            self.taken.append(self.q.pop(0))
+            return []
+
+    seq = SimpleNamespace(stamps=[5.0 + i for i in range(20)], intrinsics=None,
+                          frame=lambda i: Frame(index=i, image=np.zeros((2, 2, 3), np.uint8),
+                                                stamp=-1.0))
+    stream, run = SlowStream(), SimpleNamespace(seconds=0.0)
+    _push_in_virtual_time(stream, seq, list(range(20)), 200.0, lambda outs: None, run)
+    assert [f.index for f in stream.taken] == list(range(20))
+    assert all(f.served_live for f in stream.taken)
+    assert [f.stamp for f in stream.taken] == pytest.approx([5.0 + k / 200 for k in range(20)])
+    # 20 ms a step against a frame every 5 ms: three or four frames wait at each step
+    assert stream.longest >= 3 and run.seconds >= 0.02 * 20

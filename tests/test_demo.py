@@ -205,5 +205,5 @@ def test_the_poses_beside_an_image_folder_reach_the_bag_as_odometry(tmp_path):
                                    atol=1e-9)
     # a poses.txt that does not match the folder is refused, not guessed
     np.savetxt(tmp_path / "poses.txt", np.array(poses[:3]).reshape(3, 16))
-    with pytest.raises(InputError, match="3 poses for the 4 images"):
+    with pytest.raises(InputError, match="3 poses for 4 frames"):
         _image_folder_drive(opts, tmp_path / "out3")

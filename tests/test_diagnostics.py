@@ -45,7 +45,7 @@ def test_an_idle_stream_is_ok_with_every_counter_at_zero(stream):
     assert list(status.values) == FRAME_KEYS + INPUT_AND_WINDOW_KEYS + KEYFRAME_KEYS
     assert {status.values[k] for k in FRAME_KEYS + INPUT_AND_WINDOW_KEYS} == {0}
     # the keyframe rule, before any frame: every frame a keyframe, nothing behind
-    assert [status.values[k] for k in KEYFRAME_KEYS] == ["auto", 0.0, 0.0, "every_frame", 0,
+    assert [status.values[k] for k in KEYFRAME_KEYS] == ["newest", 0.0, 0.0, "every_frame", 0,
                                                          0.0]
 
 

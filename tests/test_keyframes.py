@@ -1,6 +1,6 @@
-"""Keyframes at the rate the windows can afford (sfm_ttr_ros.core.stream.keyframes): the auto
-interval from the windows' pace, its floor and widest cap, stale frames skipped behind, the
-newest-frames policy, and a slow camera left alone."""
+"""Which frames the windows take (sfm_ttr_ros.core.stream.keyframes): stale frames skipped
+behind the newest, the floor and the motion floor, a slow camera left alone, the windows' pace
+reported."""
 
 from __future__ import annotations
 
@@ -8,11 +8,10 @@ import threading
 import time
 
 import numpy as np
-import pytest
 from test_stream import ScriptedTTR, check_accounting
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.stream.keyframes import HEADROOM, KeyframeSelector
+from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector
 from sfm_ttr_ros.core.stream.windows import StreamProcessor, StreamSettings
 
 RNG = np.random.default_rng(0)
@@ -23,47 +22,44 @@ def frame(stamp: float) -> Frame:
     return Frame(index=0, image=IMAGE, stamp=stamp)
 
 
-def verdict(sel: KeyframeSelector, f: Frame, policy="auto", newest=None, **kw) -> str:
+def verdict(sel: KeyframeSelector, f: Frame, policy="newest", newest=None, floor_s=0.0,
+            min_motion=0.0, window_size=15) -> str:
     """What the stream asks of the rule per frame: "stale", "keyframe" or "other"."""
-    args = dict(floor_s=0.0, widest_s=1.0, min_motion=0.0, window_size=15, stride=15)
-    args.update(kw)
-    if sel.is_stale(f, policy, args["floor_s"], args["widest_s"], args["window_size"],
-                    args["stride"], newest):
+    if sel.is_stale(f, policy, floor_s, window_size, newest):
         return "stale"
-    return "keyframe" if sel.is_keyframe(f, args["min_motion"]) else "other"
+    return "keyframe" if sel.is_keyframe(f, min_motion) else "other"
 
 
-def judge(sel: KeyframeSelector, stamps, policy="auto", newest=None, **kw):
+def judge(sel: KeyframeSelector, stamps, policy="newest", newest=None, **kw):
     return [verdict(sel, frame(s), policy, newest, **kw) == "keyframe" for s in stamps]
 
 
-def test_auto_keyframes_every_frame_until_a_window_has_run_then_at_its_pace():
+def test_every_frame_is_a_keyframe_unless_a_floor_says_otherwise():
     sel = KeyframeSelector()
-    assert all(judge(sel, [0.1 * i for i in range(15)]))  # the first window: consecutive
-    assert sel.reason == "every_frame"
-    sel.window_done(6.0)  # 15 new keyframes took 6 s: keyframes 1.2 x 6 / 15 = 0.48 s apart
-    kept = judge(sel, [1.5 + 0.1 * i for i in range(30)])
-    assert sel.interval_s == pytest.approx(HEADROOM * 6.0 / 15) and sel.reason == "window_time"
+    assert all(judge(sel, [0.1 * i for i in range(15)]))
+    assert sel.reason == "every_frame" and sel.interval_s == 0.0
+    kept = judge(sel, [1.5 + 0.1 * i for i in range(30)], floor_s=0.45)
+    assert sel.reason == "min_interval" and sel.interval_s == 0.45
     assert sum(kept) == 6  # 3 s of 10 Hz frames, one every 0.5 s
 
 
-def test_the_widest_interval_caps_auto_and_a_floor_is_kept():
+def test_the_windows_pace_is_reported():
     sel = KeyframeSelector()
-    sel.window_done(60.0)  # the windows would need keyframes 4.8 s apart
-    judge(sel, [0.0], widest_s=1.0)
-    assert sel.interval_s == 1.0 and sel.reason == "widest" and sel.needed_s > 4
-    judge(sel, [0.1], widest_s=1.0, floor_s=2.0)  # the user's floor wins over the widest
-    assert sel.interval_s == 2.0
-    sel = KeyframeSelector()
-    judge(sel, [0.0], floor_s=0.3)
-    assert sel.interval_s == 0.3 and sel.reason == "min_interval"
+    assert sel.needed_s(15) == 0.0  # no window yet
+    for t in (6.0, 9.0, 30.0):
+        sel.window_done(t)
+    sel.window_done(float("nan"))  # not a time: ignored
+    assert sel.needed_s(15) == 9.0 / 15  # the median window over the stride
 
 
 def test_a_camera_slower_than_the_windows_keeps_every_frame():
-    """At 1 Hz with windows taking 6 s per 15 frames (0.48 s per keyframe) nothing changes."""
+    """At 1 Hz with windows of 15 frames taking 6 s the worker is never a window behind."""
     sel = KeyframeSelector()
     sel.window_done(6.0)
-    assert all(judge(sel, [float(i) for i in range(20)]))
+    stamps = [float(i) for i in range(40)]
+    # the newest frame queued when each is taken: at most 6 frames behind
+    assert all(verdict(sel, frame(s), newest=s + 6.0) == "keyframe" for s in stamps)
+    assert sel.stale == 0
 
 
 def test_a_frame_behind_a_window_of_newer_frames_is_stale():
@@ -72,10 +68,9 @@ def test_a_frame_behind_a_window_of_newer_frames_is_stale():
     # newest policy: frames 1.5 s (15 frames) older than the newest queued one are stale
     assert verdict(sel, frame(0.3), "newest", newest=2.0) == "stale" and sel.stale == 1
     assert verdict(sel, frame(0.6), "newest", newest=2.0) == "keyframe"
-    # auto after a slow window: its windows span 15 x 0.48 s = 7.2 s, older frames are stale
-    sel.window_done(6.0)
-    assert verdict(sel, frame(0.7), "auto", newest=8.0) == "stale"
-    assert verdict(sel, frame(1.0), "auto", newest=8.0) != "stale"
+    # a floor widens the span: 15 x 0.5 s = 7.5 s
+    assert verdict(sel, frame(0.7), newest=8.3, floor_s=0.5) == "stale"
+    assert verdict(sel, frame(1.0), newest=8.3, floor_s=0.5) != "stale"
     # all: never stale (overload is its rule)
     assert verdict(sel, frame(0.9), "all", newest=99.0) != "stale"
 

@@ -523,9 +523,11 @@ def test_zero_steps_publishes_unrefined_as_disabled_without_running_sfm(sequence
 def test_the_next_windows_sfm_begins_while_a_window_runs():
     """While window 0 refines, the frames of window 1 (its 5 overlap frames + 5 new ones) are
     all queued: their SfM is asked for ahead, once (keyframe_policy all: every frame a
-    keyframe); with keyframe selection on (an interval, or the auto policy), never."""
-    for policy, interval, want in (("all", 0.0, [[f"{k:010d}" for k in range(5, 15)]]),
-                                   ("all", 0.05, []), ("auto", 0.0, [])):
+    keyframe); with a keyframe floor, or under newest (a full next window queued means the
+    worker is behind: those frames go stale), never."""
+    ahead = [[f"{k:010d}" for k in range(5, 15)]]
+    for policy, interval, want in (("all", 0.0, ahead), ("all", 0.05, []),
+                                   ("newest", 0.0, [])):
         ttr = ScriptedTTR(delay=0.3)
         s = StreamProcessor(ttr, StreamSettings(window_size=10, window_stride=5,
                                                 min_keyframe_interval_s=interval,

@@ -76,6 +76,11 @@ def add_benchmark_parser(sub) -> argparse.ArgumentParser:
                         "refinement.loss sfm (the paper's Eq. (5)) / photometric / hybrid")
     g.add_argument("--rate", type=float, default=10.0,
                    help="input rate of sfm_ttr_live in Hz (default 10, a KITTI camera)")
+    g.add_argument("--node-rate", type=float, default=0.0, metavar="HZ",
+                   help="feed node_online at this rate in virtual time: frames queue while "
+                        "the worker spends its measured time, and the keyframe rule skips the "
+                        "stale ones, as the node on this machine would (default 0: each frame "
+                        "waits for the one before, the windows' accuracy at any speed)")
     g.add_argument("--offline-max-frames", type=int, default=0,
                    help="offline mode in chunks of at most N frames, each from the original "
                         "weights (0 = the whole sequence in one window, as the paper)")

@@ -44,6 +44,7 @@ import numpy as np
 
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.data.poses import POSES_FILE
 from sfm_ttr_ros.ros import names
 from sfm_ttr_ros.tools.process import interrupt
 
@@ -153,25 +154,12 @@ def _image_folder_drive(opts: DemoOptions, out: Path) -> tuple[str, str, str]:
     drive_seq = SimpleNamespace(images=_Lazy(load_rgb, seq.image_paths),
                                 depths=_Lazy(seq.gt, seq.names), stamps=seq.stamps,
                                 intrinsics=seq.intrinsics,
-                                cam_to_world=_folder_poses(opts.images, len(seq)))
+                                cam_to_world=seq.poses)
+    _say(f"   camera poses from {POSES_FILE} beside {opts.images} (on /kitti/odom)"
+         if seq.poses is not None
+         else f"   no {POSES_FILE} beside {opts.images}: the bag gets no odometry")
     raw, gt = out / "kitti_raw", out / "kitti_gt"
     return str(raw), str(gt), write_kitti_drive(drive_seq, raw, gt, gt_skip_ends=0)
-
-
-def _folder_poses(images: str, frames: int):
-    """The camera poses of ``poses.txt`` beside the image folder (hololens_000's layout: one
-    4x4 camera-to-world row per image, in file order), or None when there is none."""
-    from sfm_ttr_ros.data.poses import POSES_FILE, read_poses
-
-    path = Path(images).resolve().parent / POSES_FILE
-    if not path.is_file():
-        _say(f"   no {POSES_FILE} beside {images}: the bag gets no odometry")
-        return None
-    poses = read_poses(path)
-    if len(poses) != frames:
-        raise InputError(f"{path} has {len(poses)} poses for the {frames} images of {images}")
-    _say(f"   camera poses from {path} (on /kitti/odom)")
-    return poses
 
 
 class _Lazy(Sequence):

@@ -79,6 +79,7 @@ def benchmark_sequence(seq, settings, args: argparse.Namespace, out, *, start: i
         start=start, max_frames=max_frames,
         offline_max_frames=args.offline_max_frames, figure_frames=args.figure_frames,
         save_depth=args.save_depth, model_description=description, rate=args.rate,
+        node_rate=args.node_rate,
         settings_info={"params_file": str(params_path),
                        "torch_threads": torch.get_num_threads()},
         command=command, **({"progress": None} if quiet else {}))

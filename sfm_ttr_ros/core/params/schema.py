@@ -130,14 +130,13 @@ PARAMS: tuple[Param, ...] = (
     _p("window_stride", "stream.window_stride", "New keyframes between consecutive windows "
        "(window_size - window_stride keyframes overlap).", 1, 1000,
        constraints="<= window_size"),
-    _p("keyframe_policy", "stream.keyframe_policy", "Which frames the windows take: auto = "
-       "keyframes at the rate the windows can afford (their measured time), frames behind the "
-       "next window skipped ('stale'); all = every frame (a faster camera overloads the queue); "
-       "newest = windows of the newest consecutive frames. Other frames are served live and "
-       "published unrefined ('not_keyframe').", choices=KEYFRAME_POLICIES),
+    _p("keyframe_policy", "stream.keyframe_policy", "Which frames the windows take: newest = "
+       "windows of the newest consecutive frames, frames the next window has left behind "
+       "skipped ('stale'); all = every frame (a camera faster than the windows overloads the "
+       "queue). Frames passed on are served live and published unrefined.",
+       choices=KEYFRAME_POLICIES),
     _p("min_keyframe_interval_s", "stream.min_keyframe_interval_s", "Minimum time between "
-       "keyframes (stamps), seconds: a floor under auto, the fixed interval with keyframe_policy "
-       "all.", 0.0, 3600.0),
+       "keyframes (stamps), seconds; other frames pass unrefined ('not_keyframe').", 0.0, 3600.0),
     _p("min_keyframe_motion", "stream.min_keyframe_motion", "Minimum mean absolute grey-level "
        "difference (0-255, on 64-px-wide thumbnails) of a keyframe to the last one; 0 = off.",
        0.0, 255.0),

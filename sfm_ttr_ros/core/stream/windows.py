@@ -27,7 +27,7 @@ Model of the stream
   matter most for a live robot. With ``keyframe_policy`` all, when a window is due while more
   than ``overload_pending`` frames wait in the queue (0 = never), refinement is skipped for that
   window: its new frames are published unrefined (``overload``) so the queue drains, and
-  refinement resumes later. Under auto and newest the keyframe rule skips stale frames instead
+  refinement resumes later. Under newest the keyframe rule skips stale frames instead
   (:mod:`.keyframes`, checked before anything else about a frame), so no window is skipped.
 * Unrefined frames are predicted again with the latest weights for the windowed output -
   except, unless ``republish_unrefined``, those the live output already served
@@ -108,11 +108,10 @@ class StreamSettings:
     # > 0: the stream's first window closes after this many keyframes instead of window_size,
     # so that the first refined weights reach the live output sooner (a short clip); 0 = off
     first_window_size: int = 0
-    # which frames are keyframes (core/stream/keyframes.py): auto = at the rate the windows
-    # can afford, all = every frame, newest = windows of the newest consecutive frames
-    keyframe_policy: str = "auto"
+    # which frames are keyframes (core/stream/keyframes.py): newest = windows of the newest
+    # consecutive frames (stale frames skipped), all = every frame
+    keyframe_policy: str = "newest"
     min_keyframe_interval_s: float = 0.0
-    max_keyframe_interval_s: float = 1.0  # auto: the widest spacing of keyframes
     min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
     max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
     overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
@@ -131,8 +130,9 @@ class StreamSettings:
     # again for the windowed output (FrameOutput.depth None; counted under its reason as before)
     republish_unrefined: bool = False
     # While a window runs and the next window's frames are all queued, reconstruct them in the
-    # background (core/sfm/prefetch.py): the next window starts with its SfM done. Only when every
-    # frame is a keyframe (min_keyframe_interval_s and min_keyframe_motion 0).
+    # background (core/sfm/prefetch.py): the next window starts with its SfM done. Only with
+    # keyframe_policy all and every frame a keyframe (under newest a queued next window is one
+    # the worker is behind on: its frames would be stale before their SfM is used).
     prefetch_sfm: bool = True
 
     @property
@@ -155,8 +155,7 @@ class StreamSettings:
         check_choice("keyframe_policy", self.keyframe_policy, KEYFRAME_POLICIES)
         if self.max_pending < 1:
             raise InputError(f"max_pending must be >= 1, got {self.max_pending}")
-        for name in ("min_keyframe_interval_s", "max_keyframe_interval_s",
-                     "min_keyframe_motion", "idle_flush_s"):
+        for name in ("min_keyframe_interval_s", "min_keyframe_motion", "idle_flush_s"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise InputError(f"{name} must be a finite number >= 0, got {v}")
@@ -522,8 +521,7 @@ class StreamProcessor:
         self._last_stamp = frame.stamp
 
         if self.keyframes.is_stale(frame, s.keyframe_policy, s.min_keyframe_interval_s,
-                                   s.max_keyframe_interval_s, s.window_size, s.window_stride,
-                                   self._newest_stamp()):
+                                   s.window_size, self._newest_stamp()):
             why = ("stale: the frames queued after it span the next window "
                    f"(keyframe_policy {s.keyframe_policy})")
             outs += self._flush_unrefined(Unrefined.STALE, why)
@@ -624,8 +622,8 @@ class StreamProcessor:
 
     def _overloaded(self) -> int:
         """Frames queued beyond ``overload_pending`` when a window is due (0: not overloaded).
-        Only with ``keyframe_policy`` all: under auto and newest the stale frames are skipped
-        instead, and a due window covers the latest seconds already."""
+        Only with ``keyframe_policy`` all: under newest the stale frames are skipped instead,
+        and a due window covers the latest seconds already."""
         limit = self.settings.overload_pending
         if self.settings.keyframe_policy != "all":
             return 0
@@ -714,7 +712,7 @@ class StreamProcessor:
         """Mark the window's frames published and report it (``stats`` is already in
         :attr:`windows`: it goes there before the window's first output is published)."""
         stats.finished_at = time.monotonic()
-        if stats.reason_key != Unrefined.OVERLOAD:  # the worker's pace (auto keyframes)
+        if stats.reason_key != Unrefined.OVERLOAD:  # the windows' pace (diagnostics)
             self.keyframes.window_done(stats.finished_at - stats.started_at)
         for e in entries:
             e.published = True

@@ -58,7 +58,10 @@ class BenchmarkOptions:
     ``offline_max_frames`` > 0 splits the offline modes into chunks of that many frames.
     ``figure_frames``: GT frames drawn in ``figure.png``. ``save_depth`` also writes every depth
     as ``out_dir/depth/<mode>/<frame>.npy`` (network units, for ``sfm-ttr evaluate --pred``).
-    ``rate``: the input rate (Hz) of the real-time ``sfm_ttr_live`` mode. ``model_description``
+    ``rate``: the input rate (Hz) of the real-time ``sfm_ttr_live`` mode. ``node_rate`` > 0:
+    ``node_online`` fed at that rate in virtual time (the keyframe rule's stale frames
+    skipped as in the node on this machine); 0: each frame waits for the one before (the
+    windows' accuracy at any speed; under ``newest`` nothing is stale). ``model_description``
     / ``settings_info`` / ``command``: recorded in ``results.json`` (``command`` defaults to
     this process's command line). ``progress`` gets one line per step (None: quiet).
     """
@@ -69,6 +72,7 @@ class BenchmarkOptions:
     figure_frames: int = 2
     save_depth: bool = False
     rate: float = 10.0
+    node_rate: float = 0.0
     model_description: Mapping[str, Any] | None = None
     settings_info: Mapping[str, Any] | None = None
     command: str | None = None
@@ -186,9 +190,9 @@ def _run_mode(bench: _Benchmark, mode: str, model) -> ModeRun:
     elif mode.endswith("_online"):  # sfm_ttr / ph_ttr / hybrid: the mode's loss
         stream = bench.stream if mode == "node_online" else \
             dataclasses.replace(bench.stream, keyframe_policy="all")  # the paper's windows
-        realtime = mode == "node_online" and stream.keyframe_policy != "all"
+        virtual = mode == "node_online" and opts.node_rate > 0
         run_online(run, seq, indices, model, mode_config(mode, bench.ttr), stream, progress,
-                   opts.rate if realtime else None)
+                   opts.node_rate if virtual else None)
     elif mode == "sfm_ttr_live":
         run_live(run, seq, indices, model, bench.ttr, bench.stream, progress, opts.rate)
     else:

@@ -20,8 +20,9 @@ from sfm_ttr_ros.core.errors import InputError
 DEFAULT_RETRIES = 2
 DEFAULT_EIGEN_CONTEXT = 10
 #: What a task of each command takes from the command line besides the parameters.
-BENCHMARK_OPTIONS = ("modes", "rate", "offline_max_frames", "figure_frames", "save_depth",
-                     "eigen_crop", "median_scaling", "max_depth", "min_depth", "prediction")
+BENCHMARK_OPTIONS = ("modes", "rate", "node_rate", "offline_max_frames", "figure_frames",
+                     "save_depth", "eigen_crop", "median_scaling", "max_depth", "min_depth",
+                     "prediction")
 RUN_OPTIONS = ("eigen_crop",)
 #: Single-sequence options that --split replaces.
 SINGLE_SEQUENCE = ("drive", "images", "intrinsics", "gt_depth")
