@@ -206,6 +206,33 @@ def test_overflow_drops_the_oldest_pending_frame():
     assert c["dropped_by_reason"] == {"overflow": 3} and c["pending"] == 0
 
 
+@pytest.mark.parametrize("policy", ["newest", "all"])
+def test_a_full_queue_under_newest_loses_no_frame_the_live_output_served(policy):
+    """newest: served frames past max_pending give their image up and are counted stale when
+    the worker reaches them; all: the oldest are dropped for overflow as before."""
+    drops = []
+    stream = StreamProcessor(ScriptedTTR(), StreamSettings(
+        window_size=2, window_stride=1, max_pending=3, overload_pending=0,
+        keyframe_policy=policy), on_drop=lambda f, k, m: drops.append((f.name, k)))
+    fs = frames(12)
+    for f in fs:  # the live output serves each frame as it arrives; no worker runs meanwhile
+        f.served_live = True
+        stream.submit(f, INTR)
+    held = sum(f.image is not RELEASED_IMAGE for f, _ in stream._queue)
+    assert held == 3
+    outs = stream.process_available()
+    c = check_accounting(stream, outs, 12)
+    if policy == "all":
+        assert c["dropped_by_reason"] == {"overflow": 9} and len(drops) == 9
+        assert [o.frame.name for o in outs] == [f"{i:010d}" for i in (9, 10, 11)]
+        return
+    assert drops == [] and c["dropped"] == 0 and c["backlog_released"] == 9
+    # frames 0..9: the frames queued after each span a window (2 x 0.1 s); 10 and 11 refined
+    assert c["unrefined_by_reason"] == {"stale": 10} and c["refined"] == 2
+    assert all(o.live_only for o in outs if not o.refined)
+    assert sorted(o.frame.name for o in outs) == [f"{i:010d}" for i in range(12)]
+
+
 def test_overload_skips_refinement_until_the_queue_drains():
     ttr = ScriptedTTR()
     stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,

@@ -147,8 +147,10 @@ PARAMS: tuple[Param, ...] = (
        "~/depth already carried are predicted again and published on ~/depth_refined too; "
        "false = not again (counted in frames_live_only), so the worker spends its time on "
        "windows."),
-    _p("max_pending", "stream.max_pending", "Bound of the input queue (and of the frames held "
-       "for intrinsics); when full the OLDEST pending frame is dropped and counted.",
+    _p("max_pending", "stream.max_pending", "Bound of the input queue's frames that hold an "
+       "image (and of the frames held for intrinsics); when full the OLDEST pending frame is "
+       "dropped and counted, except under keyframe_policy newest a frame ~/depth served: it "
+       "gives its image up and is counted stale.",
        1, 1_000_000, **_START_UP),
     _p("idle_flush_s", "stream.idle_flush_s", "After this long without input (and at least 3 "
        "of the stream's median frame intervals), the frames of an incomplete window are "

@@ -7,7 +7,8 @@ the worker keeps up with every frame when stride·Δ ≥ T (2 CPU cores, KITTI-s
 
 * ``newest`` (the default): windows of consecutive frames taken from the NEWEST frames. A
   queued frame is **stale** when the frames queued after it already span the next window,
-  (newest stamp − its stamp) ≥ window_size·max(min_keyframe_interval_s, frame interval): it is
+  (newest stamp − its stamp) ≥ window_size·max(min_keyframe_interval_s, frame interval), or
+  when the queue, full, took its image (core/stream/windows.py, back-pressure): it is
   skipped, and the keyframes collected before it leave the window being filled, so that every
   window covers the latest seconds of the stream and the worker is never more than a window
   behind. A camera the windows keep up with loses no frame: at 1 Hz nothing changes;
@@ -84,20 +85,23 @@ class KeyframeSelector:
         return float(np.median(np.diff(s))) if len(s) >= 2 else 0.0
 
     def is_stale(self, frame: Frame, policy: str, floor_s: float, window_size: int,
-                 newest_stamp: float | None) -> bool:
+                 newest_stamp: float | None, released: bool = False) -> bool:
         """Whether ``frame`` (the next one the worker takes) is stale (module docstring);
-        ``newest_stamp``: the stamp of the newest frame queued after it (None: none). Called
-        for every frame taken, before :meth:`is_keyframe`: it also keeps the stream's cadence
-        and the floor up to date."""
+        ``newest_stamp``: the stamp of the newest frame queued after it (None: none);
+        ``released``: the queue took its image while the worker was behind (stale under
+        newest whatever the stamps). Called for every frame taken, before
+        :meth:`is_keyframe`: it also keeps the stream's cadence and the floor up to date."""
         self._stamps.append(frame.stamp)
         self.interval_s = max(floor_s, 0.0)
         self.reason = "min_interval" if floor_s > 0 else "every_frame"
-        if policy != "all" and newest_stamp is not None:
-            span = window_size * max(self.interval_s, self.frame_interval())
-            if span > 0 and newest_stamp - frame.stamp >= span:
-                self.stale += 1
-                self.reset()
-                return True
+        if policy == "all":
+            return False
+        span = window_size * max(self.interval_s, self.frame_interval())
+        behind = newest_stamp is not None and span > 0 and newest_stamp - frame.stamp >= span
+        if released or behind:
+            self.stale += 1
+            self.reset()
+            return True
         return False
 
     def is_keyframe(self, frame: Frame, min_motion: float) -> bool:

@@ -22,10 +22,15 @@ Model of the stream
   last ``window_size`` of them. Its new frames are published (refined, or unrefined with the
   window's reason); the last ``window_size - window_stride`` stay as overlap for the next window
   and are NOT published again.
-* Back-pressure: ``max_pending`` bounds the input queue; when it is full the OLDEST queued frame
-  is dropped (counted under ``dropped["overflow"]`` and logged, throttled): the newest images
-  matter most for a live robot. With ``keyframe_policy`` all, when a window is due while more
-  than ``overload_pending`` frames wait in the queue (0 = never), refinement is skipped for that
+* Back-pressure: ``max_pending`` bounds the queued frames that hold an image; when it is full
+  the OLDEST queued frame is dropped (counted under ``dropped["overflow"]`` and logged,
+  throttled): the newest images matter most for a live robot. Under ``keyframe_policy`` newest
+  a frame the live output served is not dropped: it gives its image up
+  (:data:`RELEASED_IMAGE`) and stays queued, image-less, until the worker counts it stale - no
+  frame is lost while the worker is a window behind (at most
+  :data:`IMAGELESS_QUEUE_FACTOR` x ``max_pending`` queued frames in all).
+* Overload: with ``keyframe_policy`` all, when a window is due while more than
+  ``overload_pending`` frames wait in the queue (0 = never), refinement is skipped for that
   window: its new frames are published unrefined (``overload``) so the queue drains, and
   refinement resumes later. Under newest the keyframe rule skips stale frames instead
   (:mod:`.keyframes`, checked before anything else about a frame), so no window is skipped.
@@ -93,6 +98,9 @@ from sfm_ttr_ros.core.stream.throttle import Throttle
 # IDLE_CADENCE_FRAMES arrivals (a 0.5 Hz camera with idle_flush_s 2 s: 6 s)
 IDLE_INTERVALS = 3.0
 IDLE_CADENCE_FRAMES = 10
+#: Under keyframe_policy newest the queue may hold this many times ``max_pending`` frames, most
+#: of them image-less (served live, waiting to be counted stale): a bound on memory all the same.
+IMAGELESS_QUEUE_FACTOR = 10
 #: The image of a frame whose pixels are no longer kept: a queued frame released by the backlog
 #: bound (see the module docstring), a window's cloud frame in the history (:class:`WindowStats`).
 RELEASED_IMAGE = np.zeros((0, 0, 3), np.uint8)
@@ -113,7 +121,8 @@ class StreamSettings:
     keyframe_policy: str = "newest"
     min_keyframe_interval_s: float = 0.0
     min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
-    max_pending: int = 100  # input queue bound; overflow drops the oldest queued frame
+    # input queue bound (frames holding an image); overflow drops the oldest queued frame
+    max_pending: int = 100
     overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
     idle_flush_s: float = 2.0  # > 0: flush an incomplete window after this long without input
     # Live serving (core/stream/refiner.py): bound of the live queue (oldest skipped when full) and
@@ -323,9 +332,7 @@ class StreamProcessor:
             self._received += 1
             frame.name = f"{self._seq:010d}"
             self._seq += 1
-            if len(self._queue) >= max(1, self.settings.max_pending):
-                dropped, _ = self._queue.popleft()
-                self._dropped[Dropped.OVERFLOW] += 1
+            dropped = self._make_room()
             self._queue.append((frame, intrinsics))
             self._release_backlog()
             self._last_input = time.monotonic()
@@ -337,6 +344,27 @@ class StreamProcessor:
                             f"input queue full (max_pending={self.settings.max_pending}): dropped "
                             f"the oldest pending frame (stamp {dropped.stamp:.6f}); "
                             f"{self._dropped['overflow']} dropped so far")
+
+    def _make_room(self) -> Frame | None:
+        """Room for one more frame in a full queue (module docstring, back-pressure); called
+        under ``self._cv``. Returns the frame dropped for overflow, if any."""
+        s = self.settings
+        bound = max(1, s.max_pending)
+        if s.keyframe_policy != "all" and len(self._queue) < IMAGELESS_QUEUE_FACTOR * bound:
+            held = [i for i, (f, _) in enumerate(self._queue) if f.image is not RELEASED_IMAGE]
+            if len(held) < bound:
+                return None
+            for i in held:  # oldest first: a frame the live output served gives its image up
+                f, intr = self._queue[i]
+                if f.served_live:
+                    self._queue[i] = (dataclasses.replace(f, image=RELEASED_IMAGE), intr)
+                    self._released += 1
+                    return None
+        elif len(self._queue) < bound:
+            return None
+        dropped, _ = self._queue.popleft()
+        self._dropped[Dropped.OVERFLOW] += 1
+        return dropped
 
     def _release_backlog(self) -> None:
         """The backlog bound (module docstring); called under ``self._cv``."""
@@ -521,7 +549,8 @@ class StreamProcessor:
         self._last_stamp = frame.stamp
 
         if self.keyframes.is_stale(frame, s.keyframe_policy, s.min_keyframe_interval_s,
-                                   s.window_size, self._newest_stamp()):
+                                   s.window_size, self._newest_stamp(),
+                                   released=frame.image is RELEASED_IMAGE):
             why = ("stale: the frames queued after it span the next window "
                    f"(keyframe_policy {s.keyframe_policy})")
             outs += self._flush_unrefined(Unrefined.STALE, why)
