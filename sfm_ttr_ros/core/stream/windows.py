@@ -293,6 +293,7 @@ class StreamProcessor:
 
         self._cv = threading.Condition()
         self._queue: deque[tuple[Frame, Intrinsics]] = deque()
+        self._queued_images = 0  # queued frames that still hold their image
         self._seq = 0
         self._received = 0
         self._refined = 0
@@ -334,6 +335,7 @@ class StreamProcessor:
             self._seq += 1
             dropped = self._make_room()
             self._queue.append((frame, intrinsics))
+            self._queued_images += frame.image is not RELEASED_IMAGE
             self._release_backlog()
             self._last_input = time.monotonic()
             self._arrivals.append(self._last_input)
@@ -351,34 +353,34 @@ class StreamProcessor:
         s = self.settings
         bound = max(1, s.max_pending)
         if s.keyframe_policy != "all" and len(self._queue) < IMAGELESS_QUEUE_FACTOR * bound:
-            held = [i for i, (f, _) in enumerate(self._queue) if f.image is not RELEASED_IMAGE]
-            if len(held) < bound:
+            if self._queued_images < bound or self._release_oldest_served(1):
                 return None
-            for i in held:  # oldest first: a frame the live output served gives its image up
-                f, intr = self._queue[i]
-                if f.served_live:
-                    self._queue[i] = (dataclasses.replace(f, image=RELEASED_IMAGE), intr)
-                    self._released += 1
-                    return None
         elif len(self._queue) < bound:
             return None
         dropped, _ = self._queue.popleft()
+        self._queued_images -= dropped.image is not RELEASED_IMAGE
         self._dropped[Dropped.OVERFLOW] += 1
         return dropped
 
     def _release_backlog(self) -> None:
         """The backlog bound (module docstring); called under ``self._cv``."""
         keep = self.settings.backlog_images
-        if not keep or len(self._queue) <= keep:  # the common case: nothing to count
-            return
-        held = sum(f.image is not RELEASED_IMAGE for f, _ in self._queue)
+        if keep and self._queued_images > keep:
+            self._release_oldest_served(self._queued_images - keep)
+
+    def _release_oldest_served(self, n: int) -> int:
+        """The oldest ``n`` queued frames the live output served give their image up
+        (:data:`RELEASED_IMAGE`); returns how many did. Called under ``self._cv``."""
+        done = 0
         for i, (f, intr) in enumerate(self._queue):
-            if held <= keep:
+            if done >= n:
                 break
             if f.image is not RELEASED_IMAGE and f.served_live:
                 self._queue[i] = (dataclasses.replace(f, image=RELEASED_IMAGE), intr)
-                self._released += 1
-                held -= 1
+                done += 1
+        self._released += done
+        self._queued_images -= done
+        return done
 
     def reject(self, reason_key: Dropped, message: str, frame: Frame | None = None) -> None:
         """Count a received frame that is not processed at all (bad image, no intrinsics...)."""
@@ -515,6 +517,7 @@ class StreamProcessor:
             if not self._queue or self._cancelled:
                 return None
             frame, intr = self._queue.popleft()
+            self._queued_images -= frame.image is not RELEASED_IMAGE
             self._taken.add(id(frame))
             return frame, intr
 
