@@ -53,7 +53,7 @@ from sfm_ttr_ros.core.refinement.supervision import (
     sample_at,
 )
 from sfm_ttr_ros.core.refinement.trainable import check_trainable
-from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES, RefinementPlan, WeightPolicy
+from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES, WeightPolicy
 from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
 from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, SfmReconstructor, SfmResult
 
@@ -348,8 +348,8 @@ class SfmTTR:
         if stop := self._measure_metric(w):  # metres per unit: ground plane or odometry
             return _unrefined(res, stop)
         self._supervise(w)  # Eq. (5) per frame and the window's loss before
-        plan = self.weights.begin(cfg.weight_policy, cfg.refinement)  # where it starts
-        res.refinement = self._refine(w, plan, should_stop)  # Adam on the encoder (Sec. 3.3)
+        start = self.weights.begin(cfg.weight_policy)  # the weights before the window
+        res.refinement = self._refine(w, should_stop)  # Adam on the encoder (Sec. 3.3)
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
             return _unrefined(res, Stop(Unrefined.CANCELLED, "refinement cancelled"))
         self._predict_after(w)  # the refined weights' depth of every frame
@@ -358,14 +358,14 @@ class SfmTTR:
         if why := self.checks.rollback_reason(cfg.max_loss_ratio, res.refinement.loss_history,
                                               res.loss_before, res.loss_after,
                                               self.model.encoder):
-            self.weights.refuse(plan)
+            self.weights.refuse(start)
             return _unrefined(res, Stop(Unrefined.ROLLED_BACK, f"rolled back: {why}"),
                               depths=w.before)
         c = self.checks.after_refining(cfg.check, res.check, w.before, res.depths, res.sfm,
                                        w.registered, w.scaled)
         res.timings["check"] = c.seconds
         if c.reason_key:
-            self.weights.refuse(plan)
+            self.weights.refuse(start)
             res.depths_candidate = res.depths
             return _unrefined(res, Stop(c.reason_key, f"rejected by check: {c.reason}"),
                               w.before)
@@ -506,11 +506,11 @@ class SfmTTR:
         res.loss_before = float(np.mean([frame_loss(w.before[s.name], s)
                                          for s in w.supervision]))
 
-    def _refine(self, w: _Window, plan: RefinementPlan,
-                should_stop: Callable[[], bool] | None) -> RefinementResult:
+    def _refine(self, w: _Window, should_stop: Callable[[], bool] | None) -> RefinementResult:
         """Test-time refinement (Sec. 3.3): Adam on the encoder over the supervision, as
-        ``plan`` says; between steps ``on_refine_step`` may serve the interim weights when the
-        window checks allow it (their time counts in "refine" and in the check's)."""
+        ``config.refinement`` says; between steps ``on_refine_step`` may serve the interim
+        weights when the window checks allow it (their time counts in "refine" and in the
+        check's)."""
         cfg, res = self.config, w.result
 
         def stop() -> bool:
@@ -521,7 +521,7 @@ class SfmTTR:
         t0 = time.perf_counter()
         try:
             refinement = refine_encoder(
-                self.model, w.supervision, plan.refinement, should_stop=stop,
+                self.model, w.supervision, cfg.refinement, should_stop=stop,
                 photometric=self._photometric_frames(w.names, w.images, res.sfm, res.scale,
                                                      w.intrinsics),
                 on_step=self.on_refine_step if serve else None)

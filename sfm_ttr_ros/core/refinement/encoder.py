@@ -140,15 +140,18 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     frames = [frame_terms(model, s, frozen, cfg, by_name.get(s.name)) for s in usable]
     result.step_mode, result.step_mode_reason = plan_step_mode(model, frames, cfg)
     runner = None
+    eager_losses: list[torch.Tensor] = []
     try:
         if result.step_mode == "eager":
-            step = _eager_step(model, frames, params, frozen, cfg, result)
+            step = _eager_step(model, frames, params, frozen, cfg, eager_losses)
         else:
             runner = StaticStepRunner(model, frames, params, cfg, frozen,
                                       capture=result.step_mode == "graph")
             step = runner.step
         _run_steps(step, len(frames), cfg.steps, rng, result, should_stop, on_step)
     finally:
+        if eager_losses:  # read back once: no host synchronisation inside the loop
+            result.loss_history = torch.stack(eager_losses).tolist()
         if runner is not None:
             result.loss_history = runner.losses(result.steps_done)
             if runner.reason:  # the capture failed: the same step ran eagerly
@@ -163,9 +166,9 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
 
 
 def _eager_step(model: DepthModel, frames: Sequence, params, frozen: int,
-                cfg: RefinementConfig, result: RefinementResult) -> Callable[[int], None]:
-    """The eager step (the reference): one frame's objective, backward, Adam; the loss read
-    back at every step."""
+                cfg: RefinementConfig, losses: list[torch.Tensor]) -> Callable[[int], None]:
+    """The eager step (the reference): one frame's objective, backward, Adam; each step's
+    loss kept on its device in ``losses``."""
     photometric_cfg = cfg.photometric_config()
     optimizer = torch.optim.Adam(params, lr=cfg.lr)
 
@@ -174,7 +177,7 @@ def _eager_step(model: DepthModel, frames: Sequence, params, frozen: int,
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        result.loss_history.append(float(loss.detach()))
+        losses.append(loss.detach())
 
     return step
 

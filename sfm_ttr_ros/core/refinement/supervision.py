@@ -35,7 +35,6 @@ class FrameSupervision:
     pixels: np.ndarray  # N x 2 (x, y)
     target: np.ndarray  # N
     weights: np.ndarray  # N
-    point_ids: np.ndarray | None = None  # N COLMAP 3D point ids (tracks), when known
 
     def __len__(self) -> int:
         return int(self.target.shape[0])
@@ -106,8 +105,7 @@ def build_supervision(sfm: SfmResult, registered: Sequence[str],
         else:
             w = np.ones(int(sel.sum()))
         sup.append(FrameSupervision(n, images[n], obs.pixels[sel],
-                                    supervision_targets(align, obs.depths[sel], k), w,
-                                    obs.point_ids[sel]))
+                                    supervision_targets(align, obs.depths[sel], k), w))
     return sup
 
 

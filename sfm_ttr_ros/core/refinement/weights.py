@@ -12,22 +12,11 @@ One :class:`WeightPolicy` per :class:`~sfm_ttr_ros.core.pipeline.SfmTTR`, after
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from sfm_ttr_ros.core.models.base import DepthModel
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import restore_encoder, snapshot_encoder
 
 WEIGHT_POLICIES = ("reset", "continue")
-
-
-@dataclass
-class RefinementPlan:
-    """How one window refines: the refinement's settings and ``start``, the weights before the
-    window (what :meth:`WeightPolicy.refuse` restores)."""
-
-    refinement: RefinementConfig
-    start: dict
 
 
 class WeightPolicy:
@@ -49,13 +38,12 @@ class WeightPolicy:
         if weight_policy == "reset":
             self.reset()
 
-    def begin(self, weight_policy: str, refinement: RefinementConfig) -> RefinementPlan:
-        """The window's refinement, taken just before its first step."""
-        # the weights before the window; under "reset" they are the start-up weights
-        start = self.original if weight_policy == "reset" else snapshot_encoder(self.model)
-        return RefinementPlan(refinement, start)
+    def begin(self, weight_policy: str) -> dict:
+        """The weights before the window (what :meth:`refuse` restores), taken just before its
+        first step; under ``reset`` the start-up weights."""
+        return self.original if weight_policy == "reset" else snapshot_encoder(self.model)
 
-    def refuse(self, plan: RefinementPlan) -> None:
+    def refuse(self, start: dict) -> None:
         """A refined window is not kept (rolled back, or refused by a check): the weights before
         it come back."""
-        restore_encoder(self.model, plan.start)
+        restore_encoder(self.model, start)
