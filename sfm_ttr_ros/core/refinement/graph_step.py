@@ -135,8 +135,7 @@ def plan_step_mode(model: DepthModel, frames: Sequence[FrameTerms],
 # -- the window's inputs, padded to one shape -----------------------------------------------
 
 def _as_device(a, device) -> torch.Tensor:
-    """A numpy (float64) or torch matrix as float32 on ``device``: the conversion the
-    photometric warp makes at every eager step, once."""
+    """A numpy (float64) or torch matrix as float32 on ``device``."""
     m = torch.as_tensor(np.asarray(a) if not torch.is_tensor(a) else a)
     return m.to(device=device, dtype=torch.float32)
 
@@ -159,13 +158,13 @@ def _photometric_inputs(ph: PhotometricFrame | None, like: PhotometricFrame, s_m
     image = ph.target if ph is not None else torch.zeros_like(like.target)
     device = image.device
     sources = list(ph.sources) if ph is not None else []
-    poses = [_as_device(T, device) for T in (ph.poses if ph is not None else [])]
+    poses = list(ph.poses_device) if ph is not None else []
     n_real = len(sources)
     sources += [torch.zeros_like(image)] * (s_max - n_real)
     poses += [_as_device(BEHIND_CAMERA, device)] * (s_max - n_real)
-    K = _as_device((ph or like).K, device)
-    out = {"image": image, "sources": torch.stack(sources), "poses": torch.stack(poses), "K": K,
-           "K_inv": torch.linalg.inv(K.expand(1, 3, 3)),
+    geometry = ph or like
+    out = {"image": image, "sources": torch.stack(sources), "poses": torch.stack(poses),
+           "K": geometry.K_device, "K_inv": geometry.K_inv.reshape(1, 3, 3),
            "has_photometric": torch.tensor(float(ph is not None), device=device)}
     if pcfg.automask:
         real = (ph.identity if ph is not None and ph.identity is not None else

@@ -100,8 +100,9 @@ def step_loss(model: DepthModel, terms: FrameTerms, frozen_stages: int, cfg: Ref
         return weighted_l1(sample_depth(depth, terms.grid, cfg.sampling), terms.target,
                            terms.weight)
     outputs = network_outputs(model, terms.x, frozen_stages, photometric_cfg.scales)
-    ph = photometric_objective(outputs, frame.target, frame.sources, frame.K, frame.poses,
-                               photometric_cfg, frame.identity, frame.ssim_target).total
+    ph = photometric_objective(outputs, frame.target, frame.sources, frame.K_device,
+                               frame.poses_device, photometric_cfg, frame.identity,
+                               frame.ssim_target, K_inv=frame.K_inv).total
     if cfg.loss == "photometric":
         return ph
     sfm = weighted_l1(sample_depth(outputs[0].depth, terms.grid, cfg.sampling), terms.target,

@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -156,6 +156,20 @@ class PhotometricFrame:
     K: np.ndarray
     identity: torch.Tensor | None
     ssim_target: SsimTarget | None = None  # the target's share of every step's SSIM
+    # K, K⁻¹ and the poses as float32 tensors on the target's device, made once: a step then
+    # neither copies them to the device nor inverts K (which syncs with the host on CUDA)
+    K_device: torch.Tensor = field(init=False, repr=False)
+    K_inv: torch.Tensor = field(init=False, repr=False)
+    poses_device: list[torch.Tensor] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        def on_device(a) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(a)).to(device=self.target.device,
+                                                     dtype=self.target.dtype)
+
+        self.K_device = on_device(self.K)
+        self.K_inv = torch.linalg.inv(self.K_device)
+        self.poses_device = [on_device(T) for T in self.poses]
 
 
 @dataclass
