@@ -171,27 +171,29 @@ class RefinerNode(Node):
         settings = node_params.build_settings(values)
         for warning in settings.warnings:
             self.get_logger().warning(warning)
-        self.settings = settings.node  # what the node reads itself, refreshed on every set
+        # every setting, rebuilt once per parameter change (not per frame or window); the
+        # stream and the window read theirs from it, the node its own (self.settings)
+        self._all = settings
+        self.settings = settings.node
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._parameters_set)
-        nv = node_params.node_values(values)
 
-        if nv["torch_num_threads"] > 0:
-            torch.set_num_threads(int(nv["torch_num_threads"]))
+        if self.settings.torch_num_threads > 0:
+            torch.set_num_threads(int(self.settings.torch_num_threads))
         if model is None:
-            model = build_model(node_params.build_model_config(values))
-        if nv["load_weights_path"]:
-            self._load_encoder(model, nv["load_weights_path"])
-        self.ttr = SfmTTR(model, node_params.build_ttr_config(values))
+            model = build_model(settings.model)
+        if self.settings.load_weights_path:
+            self._load_encoder(model, self.settings.load_weights_path)
+        self.ttr = SfmTTR(model, settings.ttr)
         self.online = StreamRefiner(
-            self.ttr, node_params.build_stream_settings(values),
-            config_provider=lambda: node_params.build_ttr_config(self._values()),
-            settings_provider=lambda: node_params.build_stream_settings(self._values()),
+            self.ttr, settings.stream,
+            config_provider=lambda: self._all.ttr,
+            settings_provider=lambda: self._all.stream,
             on_live=self._publish_live, on_refined=self._publish_output,
             on_window=self._on_window, on_fault=self.fault, logger=self.get_logger())
         self.stream = self.online.stream
         self.intrinsics = IntrinsicsResolver(self._fallback_intrinsics,
-                                             max_held=int(values["max_pending"]))
+                                             max_held=int(settings.stream.max_pending))
         self.diagnostics = StreamDiagnostics(self.stream, held=lambda: self.intrinsics.held,
                                              live=self.online.counters_live)
         self._diag_lock = threading.Lock()  # one status published at a time, in order
@@ -199,18 +201,19 @@ class RefinerNode(Node):
         self._stop = threading.Event()
         self._throttle = Throttle()  # of warn_every, per key
 
-        reliability = (ReliabilityPolicy.BEST_EFFORT if nv["qos_reliability"] == "best_effort"
+        node = self.settings
+        reliability = (ReliabilityPolicy.BEST_EFFORT if node.qos_reliability == "best_effort"
                        else ReliabilityPolicy.RELIABLE)
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(nv["qos_depth"]),
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(node.qos_depth),
                          reliability=reliability)
         overrides = QoSOverridingOptions.with_default_policies()
         image_input = (Image, names.IMAGE_TOPIC, self._on_image)
-        if nv["image_transport"] == "compressed":  # image_transport: <resolved image>/compressed
+        if node.image_transport == "compressed":  # image_transport: <resolved image>/compressed
             image_input = (CompressedImage, names.compressed_topic(
                 self.resolve_topic_name(names.IMAGE_TOPIC)), self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input[1])
-        self._create_publishers(int(nv["qos_depth"]))
-        self.create_timer(float(nv["diagnostics_period_s"]), self._on_timer)
+        self._create_publishers(int(node.qos_depth))
+        self.create_timer(float(node.diagnostics_period_s), self._on_timer)
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
         for msg_type, topic, callback in (image_input, (CameraInfo, names.CAMERA_INFO_TOPIC,
@@ -224,8 +227,8 @@ class RefinerNode(Node):
             f"refiner ready: model {type(model).__name__} (input {model.input_size}), window "
             f"{values['window_size']}/{values['window_stride']}, refinement "
             f"{values['refinement.steps']} steps, weight_policy "
-            f"{values['weight_policy']}, input {self.image_topic} ({nv['image_transport']}), "
-            f"QoS {nv['qos_reliability']} depth {nv['qos_depth']}")
+            f"{values['weight_policy']}, input {self.image_topic} ({node.image_transport}), "
+            f"QoS {node.qos_reliability} depth {node.qos_depth}")
 
     def _create_publishers(self, qos_depth: int) -> None:
         """Every output's publisher (KEEP_LAST ``qos_depth``, reliable; /diagnostics depth 10),
@@ -267,13 +270,13 @@ class RefinerNode(Node):
         return output in self.settings.published
 
     def _parameters_set(self, params) -> None:
-        """After a change: the node's own settings again (and the legacy names' warnings)."""
+        """After a change: every setting again (and the legacy names' warnings)."""
         try:
             settings = node_params.build_settings(self._values())
         except Exception as exc:  # validated before it was set: unexpected
             self.fault("parameters", exc)
             return
-        self.settings = settings.node
+        self._all, self.settings = settings, settings.node
         for warning in settings.warnings:
             self.warn_every(f"legacy:{warning}", warning)
 
@@ -361,8 +364,7 @@ class RefinerNode(Node):
     @contained("camera_info_callback")
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            use_p = node_params.parse_use_projection(self._param("camera_info_use_projection"))
-            intr = camera_info_to_intrinsics(msg, use_p)
+            intr = camera_info_to_intrinsics(msg, self.settings.use_projection)
             stamp_ns = stamp_to_ns(msg.header.stamp)
         except Exception as exc:  # it is the message that is bad
             self.diagnostics.camera_info_rejected()

@@ -26,16 +26,12 @@ from rcl_interfaces.msg import (
 )
 
 from sfm_ttr_ros.core import params as schema
-from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params import Param
 from sfm_ttr_ros.core.params.legacy import BY_NAME, LEGACY
-from sfm_ttr_ros.core.params.node import parse_use_projection
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.stream.windows import StreamSettings
 
-__all__ = ["DEFAULTS", "PARAMS", "SPECS", "build_model_config", "build_settings",
-           "build_stream_settings", "build_ttr_config", "current_values", "declare",
-           "descriptor", "node_values", "parse_use_projection", "ros_type", "validate"]
+__all__ = ["DEFAULTS", "PARAMS", "SPECS", "build_settings", "build_ttr_config",
+           "current_values", "declare", "descriptor", "ros_type", "validate"]
 
 PARAMS: tuple[Param, ...] = schema.PARAMS
 SPECS: dict[str, Param] = schema.SCHEMA
@@ -112,18 +108,3 @@ def build_settings(values: Mapping[str, Any]) -> schema.Settings:
 
 def build_ttr_config(values: Mapping[str, Any]) -> TTRConfig:
     return build_settings(values).ttr
-
-
-def build_stream_settings(values: Mapping[str, Any]) -> StreamSettings:
-    return build_settings(values).stream
-
-
-def build_model_config(values: Mapping[str, Any]) -> ModelConfig:
-    return build_settings(values).model
-
-
-def node_values(values: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``node.*`` settings (read by the node itself) as a dict by field name."""
-    from dataclasses import asdict
-
-    return asdict(build_settings(values).node)

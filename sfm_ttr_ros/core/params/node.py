@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 from sfm_ttr_ros.core.errors import InputError, check_choice
 
@@ -111,17 +112,18 @@ class NodeSettings:
         if self.torch_num_threads < 0:
             raise InputError(f"torch_num_threads must be >= 0, got {self.torch_num_threads}")
 
-    @property
+    # parsed once (read per frame); the settings are replaced, never changed, on a new value
+    @cached_property
     def fallback(self) -> tuple[float, float, float, float] | None:
         """(fx, fy, cx, cy) of ``fallback_intrinsics``, None when unset."""
         return parse_fallback_intrinsics(self.fallback_intrinsics)
 
-    @property
+    @cached_property
     def published(self) -> frozenset[str]:
         """The outputs published (:data:`OUTPUTS`)."""
         return parse_outputs(self.outputs)
 
-    @property
+    @cached_property
     def use_projection(self) -> bool | None:
         """:func:`parse_use_projection` of ``camera_info_use_projection``."""
         return parse_use_projection(self.camera_info_use_projection)
