@@ -36,6 +36,8 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics, load_rgb
 from sfm_ttr_ros.data.poses import (
     CAMERA_HEIGHT_FILE,
     POSES_FILE,
+    drive_oxts_poses,
+    read_frame_poses,
     write_camera_height,
     write_poses,
 )
@@ -384,6 +386,17 @@ class KittiDrive:
         """Ground-truth depth of frame ``i`` in metres (float32, 0 = none), or None."""
         p = self.gt_path(i)
         return None if p is None else read_depth_png(p, KITTI_DEPTH_SCALE)
+
+    def poses(self) -> tuple[str, np.ndarray | None]:
+        """(source, N x 4 x 4 poses per frame): ``"poses.txt"`` (a generated drive's or an
+        image folder's camera-to-world, camera 02's), else ``"oxts"`` (real KITTI's IMU, the
+        distance travelled), else ``("", None)``."""
+        if self.camera == "02":
+            poses = read_frame_poses(self.drive_dir / POSES_FILE, len(self))
+            if poses is not None:
+                return POSES_FILE, poses
+        poses = drive_oxts_poses(self.drive_dir, self.frame_names)
+        return ("oxts", poses) if poses is not None else ("", None)
 
     def frames(self, indices: Sequence[int] | None = None) -> list[Frame]:
         idx = range(len(self)) if indices is None else [self._check(i) for i in indices]

@@ -125,6 +125,19 @@ def _rz(a: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
+def read_frame_poses(path: str | Path, frames: int) -> np.ndarray | None:
+    """The camera poses of a ``poses.txt`` that holds one row per frame of a sequence of
+    ``frames`` frames; None when there is no such file, InputError when its rows are not one
+    per frame (it would belong to another sequence)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    poses = read_poses(path)
+    if len(poses) != frames:
+        raise InputError(f"{path}: {len(poses)} poses for {frames} frames")
+    return poses
+
+
 def drive_oxts_poses(drive_dir: str | Path, frame_names: Sequence[str]) -> np.ndarray | None:
     """The IMU poses of a real KITTI drive's frames from its ``oxts/`` (frame by name: the
     ``_sync`` drives have one packet per image, same file names), or None when the drive has no

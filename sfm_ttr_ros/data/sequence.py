@@ -10,7 +10,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, list_images, load_rgb
-from sfm_ttr_ros.data.poses import POSES_FILE, drive_oxts_poses, read_poses
+from sfm_ttr_ros.data.poses import POSES_FILE, read_frame_poses
 
 
 @dataclass
@@ -66,9 +66,7 @@ def open_kitti(raw_root: str | Path, drive: str, gt_root: str | Path | None = No
         p = kd.gt_path(i)
         if p is not None:
             gt[name] = Path(p)
-    poses = _poses(kd.drive_dir / POSES_FILE, len(paths))
-    if poses is None:  # a real drive: its GPS/IMU's positions (the distance travelled)
-        poses = drive_oxts_poses(kd.drive_dir, kd.frame_names)
+    _, poses = kd.poses()  # poses.txt, or a real drive's GPS/IMU (the distance travelled)
     return ImageSequence(drive, paths, kd.intrinsics, list(kd.stamps), gt, 256.0, poses)
 
 
@@ -90,16 +88,5 @@ def open_image_folder(images: str | Path, intrinsics: str | Path,
                 gt[p.stem] = q
     stamps = [i / fps for i in range(len(paths))]
     return ImageSequence(Path(images).resolve().parent.name or "images", paths, intr, stamps,
-                         gt, float(gt_scale), _poses(Path(images).parent / POSES_FILE,
-                                                     len(paths)))
-
-
-def _poses(path: Path, frames: int) -> np.ndarray | None:
-    """The camera poses of ``path`` (``poses.txt``: one 4x4 camera-to-world row per frame,
-    metres) when it exists; InputError when it does not hold one pose per frame."""
-    if not path.is_file():
-        return None
-    poses = read_poses(path)
-    if len(poses) < frames:
-        raise InputError(f"{path}: {len(poses)} poses for {frames} frames")
-    return poses[:frames]
+                         gt, float(gt_scale), read_frame_poses(
+                             Path(images).parent / POSES_FILE, len(paths)))

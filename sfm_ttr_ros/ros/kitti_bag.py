@@ -45,7 +45,7 @@ from msg_adapters.compressed import rgb8_to_compressed
 from msg_adapters.odometry import ODOMETRY_MSGTYPE, odometry_msg
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.kitti import KittiDrive, kitti_intrinsics, parse_kitti_timestamp
-from sfm_ttr_ros.data.poses import POSES_FILE, drive_oxts_poses, read_poses
+from sfm_ttr_ros.data.poses import POSES_FILE
 from sfm_ttr_ros.ros.bag import (
     CAMERA_INFO_MSGTYPE,
     IMAGE_MSGTYPE,
@@ -131,19 +131,13 @@ class DriveOdometry:
 
 
 def drive_odometry(kd: KittiDrive, camera_frame: str) -> DriveOdometry:
-    """The drive's poses: ``poses.txt`` (camera 02's, one row per frame) for the camera
-    ``camera_frame``, else real KITTI's OXTS (the IMU's), else none."""
-    path = kd.drive_dir / POSES_FILE
-    if path.is_file() and kd.camera == "02":
-        poses = read_poses(path)
-        if len(poses) != len(kd):
-            raise InputError(f"{path} has {len(poses)} poses for the drive's {len(kd)} frames")
-        return DriveOdometry("poses.txt", camera_frame, dict(zip(kd.frame_names, poses,
-                                                                  strict=True)))
-    poses = drive_oxts_poses(kd.drive_dir, kd.frame_names)
-    if poses is not None:
-        return DriveOdometry("oxts", IMU_FRAME, dict(zip(kd.frame_names, poses, strict=True)))
-    return DriveOdometry()
+    """The drive's poses (:meth:`KittiDrive.poses`): ``poses.txt``'s for the camera
+    ``camera_frame``, real KITTI's OXTS for the IMU, else none."""
+    source, poses = kd.poses()
+    if poses is None:
+        return DriveOdometry()
+    child = camera_frame if source == POSES_FILE else IMU_FRAME
+    return DriveOdometry(source, child, dict(zip(kd.frame_names, poses, strict=True)))
 
 
 def _drive_stamps_ns(drive) -> list[int]:
