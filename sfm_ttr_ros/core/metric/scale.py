@@ -34,6 +34,14 @@ from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
 
 
+def in_metres(depth: np.ndarray | None, metres_per_unit: float | None) -> np.ndarray | None:
+    """A float32 depth map in the outputs' units: times the metric factor when there is one
+    (the same array when there is none, or when the factor is 1: the network learnt metres)."""
+    if depth is None or metres_per_unit is None or metres_per_unit == 1.0:
+        return depth
+    return (depth * np.float32(metres_per_unit)).astype(np.float32, copy=False)
+
+
 @dataclass
 class WindowMetric:
     """One window's metric estimate: metres per SfM unit ``m``, per network unit of the weights

@@ -26,6 +26,7 @@ import time
 import numpy as np
 import torch
 
+from sfm_ttr_ros.core.metric.scale import in_metres
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.refinement.encoder import finite_state
 
@@ -129,6 +130,4 @@ class ServingModel:
         with self._lock, torch.inference_mode():
             depth = self._model.predict([image])[0]
             self.predictions += 1
-            if self._metres_per_unit is not None:
-                depth = depth * np.float32(self._metres_per_unit)
-            return depth, self._version
+            return in_metres(depth, self._metres_per_unit), self._version

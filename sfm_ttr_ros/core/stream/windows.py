@@ -88,6 +88,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError, check_choice
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.metric.scale import in_metres
 from sfm_ttr_ros.core.outcomes import CHECKS, Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm.reconstruction import SfmCancelled
@@ -248,13 +249,6 @@ class FrameOutput:
 class _Entry:
     frame: Frame
     published: bool = False
-
-
-def _in_metres(depth: np.ndarray | None, metres_per_unit: float | None) -> np.ndarray | None:
-    """A depth map in the outputs' units: times the metric factor when there is one."""
-    if depth is None or metres_per_unit is None:
-        return depth
-    return (depth * np.float32(metres_per_unit)).astype(np.float32, copy=False)
 
 
 class StreamProcessor:
@@ -719,7 +713,7 @@ class StreamProcessor:
                                  else dataclasses.replace(cloud_frame, image=RELEASED_IMAGE))
             self.windows.append(stats)
             k = getattr(self.ttr, "metres_per_unit", None)
-            outs = [FrameOutput(f, _in_metres(res.depths[f.name], k), res.refined,
+            outs = [FrameOutput(f, in_metres(res.depths[f.name], k), res.refined,
                                 None if res.refined else stats.reason_key,
                                 "" if res.refined else stats.reason, window=index,
                                 metres_per_unit=k) for f in new]
@@ -815,7 +809,7 @@ class StreamProcessor:
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
         k = getattr(self.ttr, "metres_per_unit", None)
-        outs = [FrameOutput(f, _in_metres(depths.get(id(f)), k), False, key, reason, window,
+        outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
                             metres_per_unit=k) for f in frames]
         self._account(outs)
         return outs

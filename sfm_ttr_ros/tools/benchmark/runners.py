@@ -19,6 +19,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator, mean_over_frames
+from sfm_ttr_ros.core.metric.scale import in_metres
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream.windows import (
     FrameOutput,
@@ -223,9 +224,8 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         for o in outs:
             depth = o.depth
             if depth is None:  # served live only (virtual time): evaluated with the weights now
-                depth = ttr.predict([seq.frame(o.frame.index).image])[0]
-                if o.metres_per_unit is not None:
-                    depth = depth * np.float32(o.metres_per_unit)
+                depth = in_metres(ttr.predict([seq.frame(o.frame.index).image])[0],
+                                  o.metres_per_unit)
             run.add(o.frame.index, depth, o.refined, o.reason_key)
 
     feed_odometry(ttr, seq, indices, rate)
