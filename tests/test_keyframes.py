@@ -11,7 +11,7 @@ import numpy as np
 from test_stream import ScriptedTTR, check_accounting
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector
+from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector, keyframe_interval
 from sfm_ttr_ros.core.stream.windows import StreamProcessor, StreamSettings
 
 RNG = np.random.default_rng(0)
@@ -27,7 +27,7 @@ def verdict(sel: KeyframeSelector, f: Frame, policy="newest", newest=None, floor
     """What the stream asks of the rule per frame: "stale", "keyframe" or "other"."""
     if sel.is_stale(f, policy, floor_s, window_size, newest):
         return "stale"
-    return "keyframe" if sel.is_keyframe(f, min_motion) else "other"
+    return "keyframe" if sel.is_keyframe(f, floor_s, min_motion) else "other"
 
 
 def judge(sel: KeyframeSelector, stamps, policy="newest", newest=None, **kw):
@@ -37,9 +37,9 @@ def judge(sel: KeyframeSelector, stamps, policy="newest", newest=None, **kw):
 def test_every_frame_is_a_keyframe_unless_a_floor_says_otherwise():
     sel = KeyframeSelector()
     assert all(judge(sel, [0.1 * i for i in range(15)]))
-    assert sel.reason == "every_frame" and sel.interval_s == 0.0
+    assert keyframe_interval(0.0) == (0.0, "every_frame")
     kept = judge(sel, [1.5 + 0.1 * i for i in range(30)], floor_s=0.45)
-    assert sel.reason == "min_interval" and sel.interval_s == 0.45
+    assert keyframe_interval(0.45) == (0.45, "min_interval")
     assert sum(kept) == 6  # 3 s of 10 Hz frames, one every 0.5 s
 
 

@@ -33,6 +33,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
+from sfm_ttr_ros.core.stream.keyframes import keyframe_interval
 from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
 from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
@@ -171,11 +172,11 @@ class StreamDiagnostics:
 
     def _keyframe_values(self) -> dict[str, object]:
         """The keyframe rule now (core/stream/keyframes.py)."""
-        kf = self.stream.keyframes
-        return {"keyframes.policy": self.stream.settings.keyframe_policy,
-                "keyframes.interval_s": kf.interval_s,
-                "keyframes.needed_s": kf.needed_s(self.stream.settings.window_stride),
-                "keyframes.reason": kf.reason, "keyframes.stale": kf.stale,
+        kf, s = self.stream.keyframes, self.stream.settings
+        interval, reason = keyframe_interval(s.min_keyframe_interval_s)
+        return {"keyframes.policy": s.keyframe_policy, "keyframes.interval_s": interval,
+                "keyframes.needed_s": kf.needed_s(s.window_stride),
+                "keyframes.reason": reason, "keyframes.stale": kf.stale,
                 "keyframes.behind_s": self.stream.behind_s()}
 
     def _last_window_values(self) -> dict[str, object]:

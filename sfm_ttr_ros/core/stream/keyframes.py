@@ -50,6 +50,12 @@ def thumbnail(image: np.ndarray) -> np.ndarray:
     return cv2.resize(grey, (tw, th), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
+def keyframe_interval(floor_s: float) -> tuple[float, str]:
+    """(the floor between keyframes, what sets it: ``every_frame`` or ``min_interval``) for
+    ``min_keyframe_interval_s`` (diagnostics)."""
+    return max(floor_s, 0.0), ("min_interval" if floor_s > 0 else "every_frame")
+
+
 class KeyframeSelector:
     """The keyframe rule of one stream (module docstring); the worker thread's state."""
 
@@ -58,8 +64,6 @@ class KeyframeSelector:
         self._thumb: np.ndarray | None = None
         self._window_seconds: deque[float] = deque(maxlen=WINDOW_HISTORY)
         self._stamps: deque[float] = deque(maxlen=CADENCE_FRAMES + 1)
-        self.interval_s = 0.0  # the floor between keyframes now
-        self.reason = "every_frame"  # what sets it: every_frame or min_interval
         self.stale = 0  # frames skipped behind so far
 
     def reset(self) -> None:
@@ -90,13 +94,11 @@ class KeyframeSelector:
         ``newest_stamp``: the stamp of the newest frame queued after it (None: none);
         ``released``: the queue took its image while the worker was behind (stale under
         newest whatever the stamps). Called for every frame taken, before
-        :meth:`is_keyframe`: it also keeps the stream's cadence and the floor up to date."""
+        :meth:`is_keyframe`: it also keeps the stream's cadence."""
         self._stamps.append(frame.stamp)
-        self.interval_s = max(floor_s, 0.0)
-        self.reason = "min_interval" if floor_s > 0 else "every_frame"
         if policy == "all":
             return False
-        span = window_size * max(self.interval_s, self.frame_interval())
+        span = window_size * max(floor_s, self.frame_interval())
         behind = newest_stamp is not None and span > 0 and newest_stamp - frame.stamp >= span
         if released or behind:
             self.stale += 1
@@ -104,13 +106,11 @@ class KeyframeSelector:
             return True
         return False
 
-    def is_keyframe(self, frame: Frame, min_motion: float) -> bool:
-        """Whether a frame that is not stale is a keyframe: the floor (set by
-        :meth:`is_stale`) after the last keyframe and, with ``min_motion`` > 0, that much
-        grey-level change from it."""
-        interval = self.interval_s
-        if self._stamp is not None and interval > 0 and \
-                frame.stamp - self._stamp < interval - 1e-9:
+    def is_keyframe(self, frame: Frame, floor_s: float, min_motion: float) -> bool:
+        """Whether a frame that is not stale is a keyframe: ``floor_s`` seconds after the last
+        keyframe and, with ``min_motion`` > 0, that much grey-level change from it."""
+        if self._stamp is not None and floor_s > 0 and \
+                frame.stamp - self._stamp < floor_s - 1e-9:
             return False
         thumb = thumbnail(frame.image) if min_motion > 0 else None
         if (self._stamp is not None and thumb is not None and self._thumb is not None

@@ -576,7 +576,8 @@ class StreamProcessor:
                 outs += self._intrinsics_changed(intr, size_changed)
         self._intr, self._intr_fallback = intr, frame.fallback_intrinsics
 
-        if not self.keyframes.is_keyframe(frame, s.min_keyframe_motion):
+        if not self.keyframes.is_keyframe(frame, s.min_keyframe_interval_s,
+                                          s.min_keyframe_motion):
             outs += self._unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
             return outs
         self._buffer.append(_Entry(frame))
