@@ -377,16 +377,18 @@ class SfmTTR:
     def refinement_inputs(self, frames: Sequence[Frame], intrinsics: Intrinsics
                           ) -> tuple[list[FrameSupervision], list[PhotometricFrame]] | Stop:
         """A window's inputs to the refinement, as :meth:`process_window` makes them (Fig. 2 up
-        to Sec. 3.3: the predictions before, SfM, the scale, Eq. (5)'s supervision per frame,
-        the photometric frames), without the checks and without refining: what a profile of
-        the refinement's steps runs on (tools/step_profile.py). The weights are not touched;
-        a window that stops before refining gives its :class:`Stop`."""
+        to Sec. 3.3: the predictions before, SfM, the scale and its metres, Eq. (5)'s
+        supervision per frame, the photometric frames), without the checks and without
+        refining: what a profile of the refinement's steps runs on (tools/step_profile.py). The
+        weights are not touched; a window that stops before refining gives its :class:`Stop`."""
         check_window(frames, intrinsics)
         self._stop = False
         w = self._predict_before(frames, intrinsics)
         if stop := self._reconstruct(w):
             return stop
         if stop := self._align(w):
+            return stop
+        if stop := self._measure_metric(w):  # the targets in metres, as the window trains on
             return stop
         self._supervise(w)
         res = w.result
