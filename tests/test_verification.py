@@ -92,7 +92,7 @@ def test_sanity_check_names_the_first_failing_check_and_skips_what_is_off():
     assert c.reason_key is Unrefined.CHECK_PARALLAX
     c = sanity_check(CheckConfig(min_parallax=0.0, max_scale_jump=1.2), WindowCheck(**{
         **stats, "reprojection_error": 0.5}))
-    assert c.reason_key is Unrefined.CHECK_SCALE_JUMP and c.reason_key.is_check
+    assert c.reason_key is Unrefined.CHECK_SCALE_JUMP and c.reason_key in CHECKS
     c = sanity_check(CheckConfig(max_scale_jump=1.2), WindowCheck(scale_jump=float("nan")))
     assert c.reason_key is None  # NaN: no shared frames, nothing to judge
     # the statistics without a threshold are still measured and reported

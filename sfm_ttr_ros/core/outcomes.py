@@ -48,11 +48,6 @@ class Unrefined(_Outcome):
     STAMP_JUMP_BACK = "stamp_jump_back"
     END_OF_STREAM = "end_of_stream"
 
-    @property
-    def is_check(self) -> bool:
-        """A window check refused the window (its frames keep the weights before it)."""
-        return self in CHECKS
-
 
 class Dropped(_Outcome):
     """Why a received frame was never published on the windowed output."""

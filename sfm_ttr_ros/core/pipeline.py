@@ -30,7 +30,7 @@ from sfm_ttr_ros.core.alignment.affine import (
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig, AlignmentResult
 from sfm_ttr_ros.core.checks.measures import CheckConfig, WindowCheck
 from sfm_ttr_ros.core.checks.window import WindowChecks
-from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.errors import InputError, check_choice
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.odometry import OdometryTrack
@@ -91,9 +91,7 @@ class TTRConfig:
     reuse_predictions: bool = True
 
     def __post_init__(self) -> None:
-        if self.weight_policy not in WEIGHT_POLICIES:
-            raise InputError(f"weight_policy must be one of {WEIGHT_POLICIES}, got "
-                             f"{self.weight_policy!r}")
+        check_choice("weight_policy", self.weight_policy, WEIGHT_POLICIES)
         if self.predict_batch_cuda < 0:
             raise InputError(f"predict_batch_cuda must be >= 0, got {self.predict_batch_cuda}")
         v = float(self.max_loss_ratio)

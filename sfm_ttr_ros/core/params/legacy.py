@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.params.node import OUTPUTS, NodeSettings
+from sfm_ttr_ros.core.params.node import OUTPUTS, NodeSettings, parse_outputs
 
 #: (old value, every value given) → the values that replace it
 Translate = Callable[[Any, Mapping[str, Any]], dict[str, Any]]
@@ -44,8 +44,7 @@ def _fallback(values: Mapping[str, Any]) -> dict[str, Any]:
 def _output(name: str) -> Translate:
     def translate(value: Any, values: Mapping[str, Any]) -> dict[str, Any]:
         current = values.get("outputs", NodeSettings.outputs)  # the new name's, if given
-        names = [n.strip() for n in str(current).split(",") if n.strip()]
-        names = [n for n in names if n != name] + ([name] if value else [])
+        names = (parse_outputs(current) - {name}) | ({name} if value else set())
         return {"outputs": ",".join(n for n in OUTPUTS if n in names)}
     return translate
 

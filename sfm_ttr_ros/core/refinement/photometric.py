@@ -394,10 +394,10 @@ def prepare_frames(model: DepthModel, names: Sequence[str], images: Mapping[str,
             continue
         target = net_image(name)
         src_images = [net_image(n) for n, _ in sources]
-        identity = (identity_errors(target, src_images, cfg.alpha, cfg.seed)
-                    if cfg.automask else None)
         with torch.no_grad():
             stats = ssim_target(target) if cfg.alpha != 0 else None
+        identity = (identity_errors(target, src_images, cfg.alpha, cfg.seed, stats)
+                    if cfg.automask else None)
         frames.append(PhotometricFrame(name, target, src_images, [n for n, _ in sources],
                                        [T for _, T in sources], K, identity, stats))
     return frames
@@ -406,15 +406,18 @@ def prepare_frames(model: DepthModel, names: Sequence[str], images: Mapping[str,
 # -- losses -------------------------------------------------------------------------------------
 
 def identity_errors(target_image: torch.Tensor, source_images: Sequence[torch.Tensor],
-                    alpha: float = ALPHA, seed: int = 0) -> torch.Tensor:
+                    alpha: float = ALPHA, seed: int = 0,
+                    target_stats: SsimTarget | None = None) -> torch.Tensor:
     """Auto-masking's identity errors pe(I_t, I_s) + N(0, 1)·1e-5, N x S x H x W (one channel
     per source; noise from a generator seeded with ``seed``: deterministic). They do not depend
     on the depth: a refinement loop computes them once per frame and passes them to
-    :func:`photometric_loss` (``identity=``), which saves two SSIM maps per step."""
+    :func:`photometric_loss` (``identity=``), which saves two SSIM maps per step.
+    ``target_stats``: the target's :func:`ssim_target` if computed before."""
     gen = torch.Generator().manual_seed(int(seed))
     out = []
     with torch.no_grad():
-        stats = ssim_target(target_image) if alpha != 0 else None
+        stats = target_stats if target_stats is not None or alpha == 0 else \
+            ssim_target(target_image)
         for src in source_images:
             err = reprojection_error(src, target_image, alpha, stats)
             noise = torch.randn(err.shape, generator=gen, dtype=err.dtype)
