@@ -45,7 +45,7 @@ import torch
 
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
-from sfm_ttr_ros.core.refinement.objective import FrameTerms, forward, network_outputs
+from sfm_ttr_ros.core.refinement.objective import FrameTerms, objective
 from sfm_ttr_ros.core.refinement.photometric import (
     PhotometricConfig,
     PhotometricFrame,
@@ -220,20 +220,21 @@ def static_step_loss(model: DepthModel, inputs: dict[str, torch.Tensor], layout:
     Ph-TTR or Eq. (5) + λ·Ph-TTR) read from padded static inputs: the same numbers up to the
     order of Eq. (5)'s sum, no host value read (fit for a CUDA graph)."""
     x = _rebuild(layout.like_x, iter([inputs[f"x{i}"] for i in range(layout.n_x)]))
-    if not layout.photometric:
-        depth = forward(model, x, frozen_stages)
+
+    def sfm_term(depth: torch.Tensor) -> torch.Tensor:
         return padded_weighted_l1(sample_depth(depth, inputs["grid"], cfg.sampling),
                                   inputs["target"], inputs["weight"], inputs["count"])
-    outputs = network_outputs(model, x, frozen_stages, pcfg.scales)
-    stats = SsimTarget(*(inputs[k] for k in SSIM_KEYS)) if SSIM_KEYS[0] in inputs else None
-    ph = photometric_objective(outputs, inputs["image"], list(inputs["sources"].unbind(0)),
-                               inputs["K"], list(inputs["poses"].unbind(0)), pcfg,
-                               inputs.get("identity"), stats, K_inv=inputs["K_inv"]).total
-    if not layout.sfm:
-        return ph
-    sfm = padded_weighted_l1(sample_depth(outputs[0].depth, inputs["grid"], cfg.sampling),
-                             inputs["target"], inputs["weight"], inputs["count"])
-    return sfm + cfg.photometric_weight * (inputs["has_photometric"] * ph)
+
+    def photometric_term(outputs) -> torch.Tensor:
+        stats = SsimTarget(*(inputs[k] for k in SSIM_KEYS)) if SSIM_KEYS[0] in inputs else None
+        return photometric_objective(outputs, inputs["image"],
+                                     list(inputs["sources"].unbind(0)), inputs["K"],
+                                     list(inputs["poses"].unbind(0)), pcfg,
+                                     inputs.get("identity"), stats, K_inv=inputs["K_inv"]).total
+
+    return objective(model, x, frozen_stages, cfg, pcfg, sfm_term if layout.sfm else None,
+                     photometric_term if layout.photometric else None,
+                     inputs["has_photometric"] if layout.sfm and layout.photometric else None)
 
 
 # -- the runner -------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ points); :func:`step_loss` then runs one forward pass and returns the frame's ob
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,19 +95,41 @@ def step_loss(model: DepthModel, terms: FrameTerms, frozen_stages: int, cfg: Ref
     network. A frame without a photometric term (no registered neighbour, or hybrid with
     λ = 0) gets Eq. (5) alone."""
     frame = terms.photometric
-    if frame is None or cfg.loss == "sfm":
-        depth = forward(model, terms.x, frozen_stages)
+
+    def sfm_term(depth: torch.Tensor) -> torch.Tensor:
         return weighted_l1(sample_depth(depth, terms.grid, cfg.sampling), terms.target,
                            terms.weight)
-    outputs = network_outputs(model, terms.x, frozen_stages, photometric_cfg.scales)
-    ph = photometric_objective(outputs, frame.target, frame.sources, frame.K_device,
-                               frame.poses_device, photometric_cfg, frame.identity,
-                               frame.ssim_target, K_inv=frame.K_inv).total
-    if cfg.loss == "photometric":
+
+    def photometric_term(outputs: list[ScaleOutput]) -> torch.Tensor:
+        return photometric_objective(outputs, frame.target, frame.sources, frame.K_device,
+                                     frame.poses_device, photometric_cfg, frame.identity,
+                                     frame.ssim_target, K_inv=frame.K_inv).total
+
+    with_photometric = frame is not None and cfg.loss != "sfm"
+    return objective(model, terms.x, frozen_stages, cfg, photometric_cfg,
+                     sfm_term if cfg.loss != "photometric" else None,
+                     photometric_term if with_photometric else None)
+
+
+def objective(model: DepthModel, x, frozen_stages: int, cfg: RefinementConfig,
+              photometric_cfg: PhotometricConfig,
+              sfm_term: Callable[[torch.Tensor], torch.Tensor] | None,
+              photometric_term: Callable[[list[ScaleOutput]], torch.Tensor] | None,
+              has_photometric: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. (5), Ph-TTR or Eq. (5) + λ·Ph-TTR (module docstring) from one forward pass:
+    ``sfm_term(depth)`` Eq. (5) of the frame's points, ``photometric_term(outputs)`` its
+    Ph-TTR total (None: the term is absent); ``has_photometric`` (0 or 1, a tensor) gates the
+    photometric term of the hybrid without a host value (the step captured as a graph,
+    core/refinement/graph_step.py). Shared by the eager and the captured step."""
+    if photometric_term is None:
+        return sfm_term(forward(model, x, frozen_stages))
+    outputs = network_outputs(model, x, frozen_stages, photometric_cfg.scales)
+    ph = photometric_term(outputs)
+    if sfm_term is None:
         return ph
-    sfm = weighted_l1(sample_depth(outputs[0].depth, terms.grid, cfg.sampling), terms.target,
-                      terms.weight)
-    return sfm + cfg.photometric_weight * ph
+    if has_photometric is not None:
+        ph = has_photometric * ph
+    return sfm_term(outputs[0].depth) + cfg.photometric_weight * ph
 
 
 def network_outputs(model: DepthModel, x, frozen_stages: int,
