@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -30,9 +29,11 @@ from sfm_ttr_ros.tools.benchmark.report import (
 from sfm_ttr_ros.tools.benchmark.runners import (
     DEFAULT_MODES,
     MODES,
+    NODE_MODE,
     ModeRun,
     log,
     mode_config,
+    mode_stream,
     run_no_ttr,
     run_offline,
     run_online,
@@ -188,10 +189,9 @@ def _run_mode(bench: _Benchmark, mode: str, model) -> ModeRun:
     if mode == "no_ttr":
         run_no_ttr(run, seq, indices, model, bench.ttr, progress)
     elif mode.endswith("_online"):  # sfm_ttr / ph_ttr / hybrid: the mode's loss
-        stream = bench.stream if mode == "node_online" else \
-            dataclasses.replace(bench.stream, keyframe_policy="all")  # the paper's windows
-        virtual = mode == "node_online" and opts.node_rate > 0
-        run_online(run, seq, indices, model, mode_config(mode, bench.ttr), stream, progress,
+        virtual = mode == NODE_MODE and opts.node_rate > 0
+        run_online(run, seq, indices, model, mode_config(mode, bench.ttr),
+                   mode_stream(mode, bench.stream), progress,
                    opts.node_rate if virtual else None)
     elif mode == "sfm_ttr_live":
         run_live(run, seq, indices, model, bench.ttr, bench.stream, progress, opts.rate)

@@ -8,6 +8,7 @@ evaluates each published depth, overall and by depth band."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import time
 from collections import Counter, defaultdict
@@ -359,3 +360,9 @@ def mode_config(mode: str, cfg: TTRConfig) -> TTRConfig:
                 out.weight_policy = PAPER_POLICY
             return out
     return cfg
+
+
+def mode_stream(mode: str, stream: StreamSettings) -> StreamSettings:
+    """The windows of an online ``mode``: the node's keyframe rule for ``node_online``, every
+    frame in consecutive windows (the paper's) for the other methods."""
+    return stream if mode == NODE_MODE else dataclasses.replace(stream, keyframe_policy="all")
