@@ -69,12 +69,8 @@ def camera_info_to_intrinsics(msg: CameraInfo, use_projection: bool | None = Non
             hint = " (P is set: pass use_projection=True to use it)"
         raise CameraInfoError(f"CameraInfo {what} is all zero: camera not calibrated{hint}")
     fx, fy, cx, cy = float(M[0, 0]), float(M[1, 1]), float(M[0, 2]), float(M[1, 2])
-    roi = msg.roi
-    if int(roi.width) > 0 and int(roi.height) > 0:
-        cx -= float(roi.x_offset)
-        cy -= float(roi.y_offset)
-        width, height = int(roi.width), int(roi.height)
-    bx, by = max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
+    x0, y0, width, height, bx, by = _roi_and_binning(msg)
+    cx, cy = cx - x0, cy - y0
     if bx > 1 or by > 1:
         fx, cx, fy, cy = fx / bx, cx / bx, fy / by, cy / by
         width, height = width // bx, height // by
@@ -134,14 +130,22 @@ def intrinsics_to_camera_info(
                            header=header, classes=c)
 
 
+def _roi_and_binning(msg) -> tuple[float, float, int, int, int, int]:
+    """(x offset, y offset, width, height, binning x, binning y) of ``msg``: its ROI when one
+    is set (else no offset and the full size), binning factors at least 1 (image_geometry's
+    rule, REP 104: the ROI first, then the binning)."""
+    roi = msg.roi
+    if int(roi.width) > 0 and int(roi.height) > 0:
+        x0, y0, w, h = float(roi.x_offset), float(roi.y_offset), int(roi.width), int(roi.height)
+    else:
+        x0, y0, w, h = 0.0, 0.0, int(msg.width), int(msg.height)
+    return x0, y0, w, h, max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
+
+
 def _effective_size(msg) -> tuple[int, int]:
     """The size of the images ``msg`` describes: its ROI when one is set, then divided by the
     binning factors (image_geometry's rule, REP 104)."""
-    w, h = int(msg.width), int(msg.height)
-    roi = msg.roi
-    if int(roi.width) > 0 and int(roi.height) > 0:
-        w, h = int(roi.width), int(roi.height)
-    bx, by = max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
+    _, _, w, h, bx, by = _roi_and_binning(msg)
     return w // bx, h // by
 
 
@@ -156,17 +160,15 @@ def scale_camera_info(msg, width: int, height: int, header=None, *,
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise CameraInfoError(f"cannot scale a CameraInfo to {width}x{height}")
+    x0, y0, _, _, bx, by = _roi_and_binning(msg)
     w, h = _effective_size(msg)
     if w <= 0 or h <= 0:
         raise CameraInfoError(f"CameraInfo describes a {w}x{h} image: nothing to scale")
     K = _matrix(msg.k, 3, 3, "K").copy()
     P = _matrix(msg.p, 3, 4, "P").copy()
-    roi = msg.roi
-    if int(roi.width) > 0 and int(roi.height) > 0:
-        for M in (K, P):
-            M[0, 2] -= float(roi.x_offset)
-            M[1, 2] -= float(roi.y_offset)
-    bx, by = max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
+    for M in (K, P):
+        M[0, 2] -= x0
+        M[1, 2] -= y0
     sx, sy = width / w / bx, height / h / by
     for M in (K, P):
         M[0] *= sx
