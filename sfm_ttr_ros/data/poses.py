@@ -102,7 +102,7 @@ def oxts_poses(packets: Sequence[np.ndarray]) -> np.ndarray:
         t = [scale * lon * math.pi * EARTH_RADIUS_M / 180.0,
              scale * EARTH_RADIUS_M * math.log(math.tan((90.0 + lat) * math.pi / 360.0)), alt]
         T = np.eye(4)
-        T[:3, :3] = _rz(yaw) @ _ry(pitch) @ _rx(roll)
+        T[:3, :3] = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
         T[:3, 3] = t
         if first_inv is None:
             first_inv = np.linalg.inv(T)
@@ -110,17 +110,20 @@ def oxts_poses(packets: Sequence[np.ndarray]) -> np.ndarray:
     return np.array(out)
 
 
-def _rx(a: float) -> np.ndarray:
+def rot_x(a: float) -> np.ndarray:
+    """Rotation by ``a`` radians about x."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
 
 
-def _ry(a: float) -> np.ndarray:
+def rot_y(a: float) -> np.ndarray:
+    """Rotation by ``a`` radians about y."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def _rz(a: float) -> np.ndarray:
+def rot_z(a: float) -> np.ndarray:
+    """Rotation by ``a`` radians about z."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 

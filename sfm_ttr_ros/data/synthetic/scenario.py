@@ -63,6 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.data.poses import rot_y
 from sfm_ttr_ros.data.synthetic.geometry import CAR_COLOURS, _Builder, _car_shape
 from sfm_ttr_ros.data.synthetic.materials import CAR, DARK
 from sfm_ttr_ros.data.synthetic.render import SyntheticSequence, render_frames
@@ -70,7 +71,6 @@ from sfm_ttr_ros.data.synthetic.scene import (
     FRAME_RATE,
     KITTI_START_STAMP,
     SceneParams,
-    _rot_y,
     camera_pose,
     sample_scene_params,
 )
@@ -305,7 +305,7 @@ def plan_drive(
             if seg.kind in ("rotate", "turn"):
                 amplitude = ROTATE_AMPLITUDE_DEG if seg.kind == "rotate" else TURN_AMPLITUDE_DEG
                 yaw = math.radians(amplitude) * _sweep((k + 1) / (n + 1))
-                R_wc = _rot_y(yaw) @ R_wc  # about the world vertical, centre unchanged
+                R_wc = rot_y(yaw) @ R_wc  # about the world vertical, centre unchanged
             plan.poses.append((R_wc, C))
         plan.labels += [seg.kind] * n
         if seg.kind == "crossing":

@@ -11,6 +11,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics
+from sfm_ttr_ros.data.poses import rot_x, rot_y
 
 DOMAINS = ("A", "B")
 KITTI_START_STAMP = 1317042145.964389  # 2011-09-26 13:02:25.964389 UTC, a KITTI-like epoch
@@ -161,16 +162,6 @@ def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
 # ---------------------------------------------------------------------------------------------
 
 
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
 def camera_pose(params: SceneParams, z: float) -> tuple[np.ndarray, np.ndarray]:
     """World-from-camera rotation and camera centre at path position ``z`` (metres)."""
     p = params
@@ -182,7 +173,7 @@ def camera_pose(params: SceneParams, z: float) -> tuple[np.ndarray, np.ndarray]:
     yaw = heading + p.yaw_jitter * math.sin(0.23 * z + 1.3 * phase)
     pitch = p.pitch + 0.003 * math.sin(0.41 * z + phase)
     height = p.camera_height + 0.01 * math.sin(0.7 * z + phase)
-    R_wc = _rot_y(yaw) @ _rot_x(-pitch)  # positive pitch looks down (y is down)
+    R_wc = rot_y(yaw) @ rot_x(-pitch)  # positive pitch looks down (y is down)
     return R_wc, np.array([x, -height, z])
 
 
