@@ -5,9 +5,9 @@ Both configurations run, one after the other in one process, over the SAME gener
 (default: synthetic domain B, seed 3, 60 frames of 1242x375, exact ground truth), fed frame by
 frame through :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor` exactly as the ROS node
 feeds it, and
-every output is converted as the node converts it before publishing (``depth_to_image``,
-``depth_to_colored_image``, ``numpy_to_pointcloud2`` for the window's cloud,
-``make_diagnostic_array`` per window, as the node's ``outputs`` parameter says), then serialised
+every windowed output is converted as the node converts it before publishing (``depth_to_image``,
+``numpy_to_pointcloud2`` for the window's cloud, ``make_diagnostic_array`` per window, as the
+node's ``outputs`` parameter says; the live outputs are not part of this run), then serialised
 with ``rclpy.serialization`` (what ``publish`` does to a message before handing it to the
 middleware; no transport). Each input frame arrives as an rgb8 Image message (built beforehand)
 and is decoded with ``image_to_rgb8`` as the node's subscription callback does.
@@ -89,7 +89,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -105,6 +105,7 @@ from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator  # noqa: 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics  # noqa: E402
 from sfm_ttr_ros.core.models.registry import ModelConfig, build_model, resolve_device  # noqa: E402
 from sfm_ttr_ros.core.params import TARGETS, build, parse_overrides  # noqa: E402
+from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS  # noqa: E402
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor  # noqa: E402
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics  # noqa: E402
@@ -124,8 +125,8 @@ from sfm_ttr_ros.tools.benchmark import (  # noqa: E402
 DEFAULT_CACHE = Path(tempfile.gettempdir()) / "sfm_ttr_speed_cache"
 STAGES = ("feature_extraction", "matching", "mapping", "sfm_other", "alignment", "refinement",
           "prediction", "conversion", "other")
-CONVERSIONS = ("input_image", "depth_image", "colored_image", "camera_info", "cloud",
-               "pointcloud", "diagnostics", "serialize")
+CONVERSIONS = ("input_image", "depth_image", "camera_info", "pointcloud", "diagnostics",
+               "serialize")
 NAIVE_STEPS = 200  # the paper's
 # The naive run refines as the paper does (every encoder stage, 200 steps) at the learning rate
 # that measured best for 200 steps with the default network (docs/decisions.md, "Refinement":
@@ -134,7 +135,7 @@ NAIVE_STEPS = 200  # the paper's
 NAIVE_LR = 3e-5
 LATENCY_DEFINITION = (
     "per window: from the push of the window's last frame into the stream to all of its "
-    "outputs (depth and coloured-depth messages of its new frames, the cloud, diagnostics) "
+    "outputs (the depth messages of its new frames, the cloud, diagnostics) "
     "converted and serialised = the duration of that synchronous push (the window's processing "
     "time); queued_latency_at_input_rate_s adds the wait behind earlier frames for a single "
     "worker fed at the drive's frame rate (no overload skipping)")
@@ -267,14 +268,13 @@ class RunConfig:
     model: ModelConfig
     feature_cache: bool = True
     overrides: list[str] = field(default_factory=list)
-    # what the node publishes besides ~/depth/image (its outputs parameter)
-    publish: dict[str, bool] = field(default_factory=lambda: {
-        "colored": True, "points": True, "diagnostics": True})
+    # what the node publishes (its outputs parameter: Settings.node.published)
+    published: frozenset[str] = frozenset(DEFAULT_OUTPUTS)
 
     def describe(self) -> dict[str, Any]:
         return {"ttr": dataclasses.asdict(self.ttr), "stream": dataclasses.asdict(self.stream),
                 "model": dataclasses.asdict(self.model), "feature_cache": self.feature_cache,
-                "publish": dict(self.publish), "overrides": list(self.overrides)}
+                "published": sorted(self.published), "overrides": list(self.overrides)}
 
 
 #: What the naive run sets besides NAIVE_STEPS / NAIVE_LR (``--naive-set`` can change it): the
@@ -311,10 +311,8 @@ def build_configs(params_file: str | Path | None = None, tuned_set: Sequence[str
         else:
             raise InputError(f"unknown configuration {name!r} (naive, tuned)")
         s = build(values)
-        publish = {k: f"depth_{k}" in s.node.published or k in s.node.published
-                   for k in ("colored", "points", "diagnostics")}
         out.append(RunConfig(name, s.ttr, s.stream, s.model, feature_cache=(name != "naive"),
-                             overrides=overrides, publish=publish))
+                             overrides=overrides, published=s.node.published))
     return out
 
 
@@ -342,22 +340,20 @@ class Publisher:
     """What the node does with the messages, timed: decode each input Image, build each
     output's messages as the node does (:mod:`sfm_ttr_ros.ros.outputs`) and serialise them."""
 
-    def __init__(self, publish: dict[str, bool] | None = None):
+    def __init__(self, published: Collection[str] = DEFAULT_OUTPUTS):
         from rclpy.serialization import serialize_message
 
         from msg_adapters import image_to_rgb8, intrinsics_to_camera_info, numpy_to_image
         from sfm_ttr_ros.ros import outputs
         from sfm_ttr_ros.ros.camera import CameraSource
 
-        publish = publish or {}
         self._ser = serialize_message
         self._outputs = outputs
         self._decode, self._encode = image_to_rgb8, numpy_to_image
         self._camera_info, self._camera_source = intrinsics_to_camera_info, CameraSource
         self._cameras: dict[Intrinsics, object] = {}
-        self.publish_colored = publish.get("colored", True)
-        self.publish_points = publish.get("points", True)
-        self.publish_diagnostics = publish.get("diagnostics", True)
+        self.publish_points = "points" in published
+        self.publish_diagnostics = "diagnostics" in published
         self.t: dict[str, float] = defaultdict(float)
         self.bytes = 0
         self.messages = 0
@@ -463,7 +459,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
     frame index. ``frames``: a :class:`Drive` or an iterator of (intrinsics, frames) chunks.
     ``on_frame(k)`` is called after the k-th frame (1-based) outside the clock."""
     ttr = make_ttr(cfg)
-    pub = Publisher(cfg.publish)
+    pub = Publisher(cfg.published)
     model = ttr.model
     predict_t = [0.0]
     real_predict = ttr.predict

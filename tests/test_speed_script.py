@@ -194,7 +194,7 @@ def test_set_is_the_one_syntax_of_the_schema(bs, tiny_model):
                               {"type": "mobilenet"}, names=("tuned",))
     assert type(cfg.ttr.refinement.lr) is float and cfg.ttr.refinement.lr == 1.0
     assert type(cfg.ttr.sfm.min_tri_angle) is float and cfg.ttr.sfm.min_tri_angle == 2.0
-    assert cfg.publish == {"colored": True, "points": False, "diagnostics": True}
+    assert cfg.published == {"depth", "depth_colored", "diagnostics"}
     assert not cfg.model.channels_last and cfg.model.type == tiny_model["type"]
     (naive,) = bs.build_configs(None, (), ["refinement.steps=3", "ttr.reuse_predictions=true"],
                                 tiny_model, names=("naive",))

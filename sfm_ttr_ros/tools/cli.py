@@ -51,6 +51,7 @@ STREET_FRAMES = 30  # `generate --frames` default (street scenario)
 def cmd_generate(args: argparse.Namespace) -> int:
     """Write a synthetic KITTI-format drive (raw layout + improved-GT PNGs)."""
     from sfm_ttr_ros.data.kitti import SEGMENTS_FILE, write_kitti_drive
+    from sfm_ttr_ros.data.poses import CAMERA_HEIGHT_FILE, POSES_FILE
     from sfm_ttr_ros.data.synthetic import (
         DEFAULT_HARD_SEGMENTS,
         make_hard_sequence,
@@ -81,8 +82,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
           f"to {args.kitti_raw} (GT: {args.kitti_gt})")
     drive_dir = Path(args.kitti_raw) / drive[:10] / drive
     print(f"camera height above the road: {seq.params.camera_height:.3f} m "
-          f"({drive_dir / 'camera_height.txt'}); camera poses (camera-to-world, metres): "
-          f"{drive_dir / 'poses.txt'}")
+          f"({drive_dir / CAMERA_HEIGHT_FILE}); camera poses (camera-to-world, metres): "
+          f"{drive_dir / POSES_FILE}")
     if seq.labels:
         print(f"segment labels in {drive}/image_02/{SEGMENTS_FILE}")
     return 0

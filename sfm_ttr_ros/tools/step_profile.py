@@ -245,11 +245,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _settings(args):
-    from sfm_ttr_ros.core.params import build, parse_overrides
-    from sfm_ttr_ros.tools.benchmark import default_params_file, read_params_file
+    from sfm_ttr_ros.core.params import build
+    from sfm_ttr_ros.tools.benchmark import default_params_file
+    from sfm_ttr_ros.tools.cli_args import parameter_values
 
-    path = Path(args.params_file) if args.params_file else default_params_file()
-    values = {**read_params_file(path), **parse_overrides(args.set)}
+    # only the file and --set: this --steps (0 = the settings') is no PARAM_FLAGS flag and
+    # goes over --set, below
+    files = argparse.Namespace(params_file=args.params_file, set=args.set)
+    _, values = parameter_values(files, None if args.params_file else default_params_file())
     if args.steps:
         values["refinement.steps"] = args.steps
     return build(values)

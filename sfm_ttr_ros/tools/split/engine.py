@@ -134,8 +134,7 @@ def check_cluster_address(address: str | None, timeout: float = REACH_TIMEOUT_S)
 def _start(ray, config: EngineConfig) -> str:
     common = {"include_dashboard": False, "log_to_driver": False,
               "logging_level": logging.WARNING, "configure_logging": True}
-    if config.address:
-        check_cluster_address(config.address)
+    if config.address:  # something answers there: checked before any work (command.py)
         try:
             ray.init(address=config.address, **common)
         except (ConnectionError, TimeoutError) as exc:  # something answers, not a Ray head
