@@ -3,6 +3,7 @@
 Tiny randomly initialised Depth Anything and DPT configs are written with ``save_pretrained``
 to a temporary directory and loaded back offline: nothing is downloaded."""
 
+import dataclasses
 import json
 import os
 
@@ -106,6 +107,22 @@ def test_forward_normalises_like_the_processor(model_dirs):
     with torch.no_grad():
         direct = model.net(pixel_values=(x - mean) / std).predicted_depth
         assert torch.equal(model(x)[:, 0], direct)
+
+
+def test_normalisation_constants_are_buffers_outside_the_state_dict(model_dirs):
+    """mean / std live on the model's device as buffers (a forward copies nothing from the
+    host, which a CUDA graph capture refuses); the state dict keeps the network's own keys;
+    a preprocessing with other constants is followed."""
+    model = load(model_dirs, "da")
+    names = {n for n, _ in model.named_buffers()}
+    assert {"pixel_mean", "pixel_std"} <= names
+    assert not {"pixel_mean", "pixel_std"} & set(model.state_dict())
+    assert model.pixel_mean.flatten().tolist() == pytest.approx(DA_PROCESSOR["image_mean"])
+    x = model.preprocess(FRAME)
+    model.preprocessing = dataclasses.replace(model.preprocessing, mean=(0.0, 0.0, 0.0),
+                                              std=(1.0, 1.0, 1.0))
+    assert torch.equal(model.normalise(x), x * model.preprocessing.pixel_scale)
+    assert model.pixel_std.flatten().tolist() == [1.0, 1.0, 1.0]
 
 
 def test_input_size_sets_the_resize_target(model_dirs):

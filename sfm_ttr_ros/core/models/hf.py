@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -224,6 +225,11 @@ class HFDepthModel(DepthModel):
         self.net = net
         self.output_kind = output_kind
         self.preprocessing = preprocessing
+        # the processor's mean / std as buffers (not in the state dict): they move with the
+        # model, and a forward copies nothing from the host (a CUDA graph capture refuses that)
+        self.register_buffer("pixel_mean", _channels(preprocessing.mean), persistent=False)
+        self.register_buffer("pixel_std", _channels(preprocessing.std), persistent=False)
+        self._normalised_by = (preprocessing.mean, preprocessing.std)  # the buffers' values
         self.encoder_name = _encoder_name(net, encoder_module)
         # Not registered: its modules are net's own (one set of state_dict keys).
         object.__setattr__(self, "_decoder", _ModuleGroup(_other_modules(net,
@@ -279,9 +285,12 @@ class HFDepthModel(DepthModel):
         prep = self.preprocessing
         pixels = x * prep.pixel_scale if prep.pixel_scale != 1.0 else x
         if prep.mean is not None:
-            mean = torch.tensor(prep.mean, dtype=x.dtype, device=x.device).view(1, -1, 1, 1)
-            std = torch.tensor(prep.std, dtype=x.dtype, device=x.device).view(1, -1, 1, 1)
-            pixels = (pixels - mean) / std
+            if self._normalised_by != (prep.mean, prep.std):
+                # the preprocessing was replaced with other constants: new buffers, once
+                self.pixel_mean = _channels(prep.mean).to(x.device)
+                self.pixel_std = _channels(prep.std).to(x.device)
+                self._normalised_by = (prep.mean, prep.std)
+            pixels = (pixels - self.pixel_mean.to(x.dtype)) / self.pixel_std.to(x.dtype)
         return pixels
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -310,6 +319,13 @@ class HFDepthModel(DepthModel):
                              "frozen_encoder_levels does not apply to it (use 0)")
         grid = features[0]
         return _at_size(stages.decode(features), (grid.height, grid.width))
+
+
+def _channels(values: Sequence[float] | None) -> torch.Tensor | None:
+    """Per-channel constants as a 1 x C x 1 x 1 float32 tensor (None stays None)."""
+    if values is None:
+        return None
+    return torch.tensor(tuple(values), dtype=torch.float32).view(1, -1, 1, 1)
 
 
 def _at_size(out: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
