@@ -12,6 +12,7 @@ from conftest import tiny_model
 from test_frozen_stages import mobile
 from test_refinement_loss import INPUT, N_FRAMES, photometric_frames, supervision
 
+import sfm_ttr_ros.core.refinement.graph_cache as graph_cache
 import sfm_ttr_ros.core.refinement.graph_step as graph_step
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
@@ -23,6 +24,14 @@ from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 #: order of Eq. (5)'s sum over the (padded) points (measured: <= 1.3e-7 relative over 6 steps).
 RTOL = 1e-5
 STEPS = 5
+
+
+@pytest.fixture(autouse=True)
+def no_kept_graphs():
+    """Each test starts without graphs or refusals kept by another."""
+    graph_cache.forget_captures()
+    yield
+    graph_cache.forget_captures()
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +146,7 @@ def test_the_replay_loop_with_a_stand_in_graph(drive, monkeypatch):
     seq, names = drive
     model = tiny_model(INPUT, batch_norm=1)
 
-    def capture(body, device):
+    def capture(body, device, stream=None):
         graphs.append(_FakeGraph(body, model.parameters()))
         return graphs[-1]
 
@@ -201,3 +210,138 @@ def test_step_inputs_of_any_structure():
     assert isinstance(again[2], Grid) and again[2].size == (3, 5)
     other = (torch.ones(2), [torch.zeros(3), 8, "patch", None], Grid(torch.ones(1, 4), (3, 5)))
     assert graph_step._signature(x) != graph_step._signature(other)
+
+
+def _stand_in_captures(monkeypatch, model, fail: bool = False) -> list:
+    """capture_step replaced by a stand-in graph (or a refusal); the calls listed."""
+    calls = []
+
+    def capture(body, device, stream=None):
+        calls.append(stream)
+        if fail:
+            raise RuntimeError("operation not permitted when stream is capturing")
+        return _FakeGraph(body, model.parameters())
+
+    monkeypatch.setattr(graph_step, "capture_step", capture)
+    return calls
+
+
+def test_one_graph_serves_every_window_of_a_layout(drive, monkeypatch):
+    """Two windows from the same start weights (restored in place, as the weight policy does):
+    the second replays the first's graph from its first step (no warm-up, no capture), with
+    Adam's state reset: its losses are the eager loop's of a fresh start."""
+    from sfm_ttr_ros.core.refinement.encoder import restore_encoder, snapshot_encoder
+
+    seq, names = drive
+    model = tiny_model(INPUT, batch_norm=1)
+    calls = _stand_in_captures(monkeypatch, model)
+    _on_cuda(monkeypatch)
+    start = snapshot_encoder(model)
+    cfg = RefinementConfig(steps=8, lr=1e-3, loss="hybrid")
+    runs = []
+    for _ in range(2):
+        restore_encoder(model, start)
+        runs.append(refine_encoder(model, uneven(supervision(seq, names)), cfg,
+                                   photometric=photometric_frames(model, seq, names)))
+    first, second = runs
+    assert len(calls) == 1 and (first.graph_reused, second.graph_reused) == (False, True)
+    assert second.step_mode == "graph" and second.steps_done == 8
+    assert all(p.grad is None for p in model.parameters())  # kept by the graph, not the model
+    m_eager = tiny_model(INPUT, batch_norm=1)
+    eager = refine_encoder(m_eager, uneven(supervision(seq, names)),
+                           RefinementConfig(steps=8, lr=1e-3, loss="hybrid", step_mode="eager"),
+                           photometric=photometric_frames(m_eager, seq, names))
+    assert second.loss_history == pytest.approx(eager.loss_history, rel=RTOL)
+    assert first.loss_history == pytest.approx(eager.loss_history, rel=RTOL)
+    # another layout (more points per frame than the cap): a graph of its own
+    more = supervision(seq, names)
+    for s in more:
+        s.pixels, s.target, s.weights = (np.concatenate([a] * 2) for a in
+                                         (s.pixels, s.target, s.weights))
+    restore_encoder(model, start)
+    third = refine_encoder(model, more, cfg, photometric=photometric_frames(model, seq, names))
+    assert len(calls) == 2 and not third.graph_reused
+
+
+def test_a_refused_capture_is_not_tried_again(drive, monkeypatch, caplog):
+    """The first window's capture fails: its reason is logged once; the next window of the
+    same model and objective does not try again and carries the reason."""
+    seq, names = drive
+    model = tiny_model(INPUT, batch_norm=1)
+    calls = _stand_in_captures(monkeypatch, model, fail=True)
+    _on_cuda(monkeypatch)
+    cfg = RefinementConfig(steps=6, lr=1e-3, loss="sfm")
+    with caplog.at_level("WARNING", logger=graph_cache.__name__):
+        runs = [refine_encoder(model, uneven(supervision(seq, names)), cfg) for _ in range(3)]
+    assert len(calls) == 1
+    assert runs[0].step_mode_reason.startswith("capture failed: RuntimeError")
+    for r in runs[1:]:
+        assert r.step_mode == "static" and r.steps_done == 6
+        assert r.step_mode_reason.startswith("capture failed earlier") and "capturing" in \
+            r.step_mode_reason
+    assert sum("not captured" in m for m in caplog.messages) == 1
+
+
+def test_the_pacer_bounds_the_replays_in_flight():
+    """With an event factory: every replay marked, the host waits for the oldest once more
+    than ``in_flight`` are queued (in launch order); without one it does nothing."""
+    log = []
+
+    class Event:
+        def __init__(self):
+            self.n = len([e for e in log if e[0] == "record"])
+
+        def record(self):
+            log.append(("record", self.n))
+
+        def synchronize(self):
+            log.append(("wait", self.n))
+
+    pacer = graph_cache.ReplayPacer(2, Event)
+    for _ in range(5):
+        pacer.launched()
+    assert [n for kind, n in log if kind == "wait"] == [0, 1, 2]
+    assert pacer.waits == 3 and pacer.queued == 2
+    assert log.index(("wait", 0)) == log.index(("record", 2)) + 1  # waits after the 3rd launch
+    off = graph_cache.ReplayPacer(2, None)
+    for _ in range(5):
+        off.launched()
+    assert off.waits == off.queued == 0
+    with pytest.raises(ValueError):
+        graph_cache.ReplayPacer(0, Event)
+
+
+def test_point_caps_are_few():
+    assert [graph_cache.point_cap(n) for n in (1, 256, 257, 600, 1024, 1025)] == \
+        [256, 256, 512, 1024, 1024, 2048]
+
+
+def test_the_eager_cpu_path_is_the_plain_loop(drive):
+    """The CPU reference, bit for bit: refine_encoder's eager steps are Sec. 3.3's loop written
+    out (step_loss, zero_grad, backward, Adam; frames shuffled per pass with the seed)."""
+    from sfm_ttr_ros.core.refinement.encoder import set_bn_mode
+    from sfm_ttr_ros.core.refinement.objective import frame_terms, step_loss
+    from sfm_ttr_ros.core.refinement.trainable import select_trainable
+
+    seq, names = drive
+    cfg = RefinementConfig(steps=6, lr=1e-3, loss="sfm", step_mode="auto")
+    model = tiny_model(INPUT, batch_norm=1)
+    res = refine_encoder(model, uneven(supervision(seq, names)), cfg)
+    ref = tiny_model(INPUT, batch_norm=1)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    params = select_trainable(ref, cfg.trainable, cfg.lora_rank, 0)
+    set_bn_mode(ref, cfg.bn_mode)
+    terms = [frame_terms(ref, s, 0, cfg, None) for s in uneven(supervision(seq, names))]
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    losses, order = [], []
+    for _ in range(cfg.steps):
+        order = order or list(rng.permutation(len(terms)))
+        loss = step_loss(ref, terms[order.pop()], 0, cfg, cfg.photometric_config())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert res.loss_history == losses
+    for (k, a), b in zip(model.state_dict().items(), ref.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k

@@ -63,6 +63,10 @@ class RefinementResult:
     # not "graph" when it is not ("" = captured; e.g. "not on CUDA (cpu)", "capture failed: ...")
     step_mode: str = ""
     step_mode_reason: str = ""
+    # graph: host seconds spent capturing the step this window (re-arming an earlier window's
+    # graph: ~0) and whether the graph was an earlier window's (core/refinement/graph_cache.py)
+    capture_s: float = 0.0
+    graph_reused: bool = False
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -156,6 +160,7 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
             result.loss_history = runner.losses(result.steps_done)
             if runner.reason:  # the capture failed: the same step ran eagerly
                 result.step_mode, result.step_mode_reason = runner.mode, runner.reason
+            result.capture_s, result.graph_reused = runner.capture_s, runner.reused
             runner.close()
         model.eval()
         merge_lora(model)  # the encoder leaves with its own module tree and state_dict keys

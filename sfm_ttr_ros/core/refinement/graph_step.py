@@ -1,8 +1,9 @@
 """A refinement step without host overhead on CUDA: the step of
 :func:`~sfm_ttr_ros.core.refinement.encoder.refine_encoder` (Izquierdo & Civera, CVPR 2023,
 Sec. 3.3: one frame's objective, Eq. (5) / Ph-TTR / the hybrid, its backward pass and Adam on
-the encoder) on static input buffers, captured once per window as one ``torch.cuda.CUDAGraph``
-and replayed.
+the encoder) on static input buffers, captured once per model, CUDA stream and layout as one
+``torch.cuda.CUDAGraph`` and replayed in every window of that layout
+(:mod:`~sfm_ttr_ros.core.refinement.graph_cache`).
 
 Why (measured on an H200, ``shared/notes/gpu-refinement-facts.md``): a window's refinement is
 host-bound there, ~1,000 kernel launches a step, 35-60 ms a step, the GPU busy 0.28 s of a
@@ -11,10 +12,12 @@ host-bound there, ~1,000 kernel launches a step, 35-60 ms a step, the GPU busy 0
 How:
 
 * every frame of a window gets the same input shapes (:func:`window_inputs`): its SfM points
-  padded to the window's largest frame with weight 0 (Eq. (5) divides by the frame's own count:
+  padded to the layout's cap (the window's largest frame rounded up to a power of two,
+  :func:`~sfm_ttr_ros.core.refinement.graph_cache.point_cap`) with weight 0 (Eq. (5)
+  divides by the frame's own count:
   :func:`~sfm_ttr_ros.core.refinement.supervision.padded_weighted_l1`); its photometric sources
-  padded to the window's most with a source no pixel can use (a pose that puts every point
-  behind its camera, and an identity error of +inf: the per-pixel minimum is unchanged); in the
+  padded to the objective's source offsets (or the window's most) with a source no pixel can
+  use (a pose that puts every point behind its camera, and an identity error of +inf: the per-pixel minimum is unchanged); in the
   hybrid, a frame without a photometric term has that term multiplied by 0. The frames' padded
   inputs stay on the device; a step copies the chosen frame's into the static buffers (device
   to device) and replays.
@@ -22,15 +25,19 @@ How:
   the backward pass, Adam, the loss written into a preallocated history at a device counter)
   runs eagerly ("static", any device) and is what the graph captures ("graph", CUDA); on the
   CPU the tests hold its losses to the eager loop's.
-* on CUDA the first :data:`GRAPH_WARM_UP_STEPS` steps run eagerly on a side stream (lazy set-up:
-  Adam's state, cuDNN), then the step is captured (``Adam(capturable=True, foreach=True)``; the
+* on CUDA, for a layout not captured yet, the first :data:`GRAPH_WARM_UP_STEPS` steps run
+  eagerly on a side stream (lazy set-up: Adam's state, cuDNN), then the step is captured on that
+  stream (``Adam(capturable=True, foreach=True)``; the
   gradients set to None first so that the backward pass allocates them from the graph's pool;
   ``capture_error_mode="thread_local"`` so that the live server's thread goes on) and replayed.
-  No host sync inside the loop: the losses are read once at the end; ``on_step`` runs between
-  replays (a preview, when one is due, copies the weights; nothing else waits for the device).
+  A later window of the layout re-arms that graph (Adam's state reset in place) and replays
+  from its first step. No host sync inside the loop but the pacer's: at most
+  :data:`~sfm_ttr_ros.core.refinement.graph_cache.REPLAYS_IN_FLIGHT` replays queued, so a live
+  frame never waits behind more; the losses are read once at the end; ``on_step`` runs between
+  replays (a preview, when one is due, copies the weights).
 * a capture that raises leaves the remaining steps to the same body run eagerly (mode
-  "static", the reason kept); LoRA adapters, frames of different shapes, too few steps or a
-  model off CUDA run the eager loop (:func:`plan_step_mode`).
+  "static", the reason kept, and not tried again for that model and objective); LoRA
+  adapters, frames of different shapes, too few steps or a model off CUDA run the eager loop (:func:`plan_step_mode`).
 
 Not measured yet on a GPU (scripts/gpu_window_check.sh measures it).
 """
@@ -38,6 +45,8 @@ Not measured yet on a GPU (scripts/gpu_window_check.sh measures it).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import time
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
@@ -45,6 +54,16 @@ import torch
 
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
+from sfm_ttr_ros.core.refinement.graph_cache import (
+    REPLAYS_IN_FLIGHT,
+    CapturedStep,
+    ReplayPacer,
+    cached_step,
+    keep_step,
+    point_cap,
+    refusal,
+    refuse,
+)
 from sfm_ttr_ros.core.refinement.objective import FrameTerms, objective
 from sfm_ttr_ros.core.refinement.photometric import (
     PhotometricConfig,
@@ -191,8 +210,11 @@ class StepLayout:
         self.photometric = cfg.loss in ("photometric", "hybrid") and bool(with_ph)
         self.sfm = cfg.loss != "photometric"
         self.like_ph = with_ph[0] if with_ph else None
+        # the caps (graph_cache): sources up to the objective's offsets, points rounded up
         self.s_max = max((len(p.sources) for p in with_ph), default=0)
-        self.n_max = max(int(t.target.shape[0]) for t in frames)
+        if self.photometric:
+            self.s_max = max(self.s_max, len(cfg.photometric_config().source_offsets))
+        self.n_max = point_cap(max(int(t.target.shape[0]) for t in frames))
 
     def inputs(self, t: FrameTerms, pcfg: PhotometricConfig) -> dict[str, torch.Tensor]:
         """Frame ``t``'s step inputs in this layout (every frame's: the same keys and shapes)."""
@@ -239,40 +261,94 @@ def static_step_loss(model: DepthModel, inputs: dict[str, torch.Tensor], layout:
 
 # -- the runner -------------------------------------------------------------------------------
 
-def capture_step(body: Callable[[], None], device: torch.device):
-    """``body`` captured as one CUDA graph (not run: a capture records the kernels only)."""
+def capture_step(body: Callable[[], None], device: torch.device, stream=None):
+    """``body`` captured as one CUDA graph (not run: a capture records the kernels only), on
+    ``stream`` (the warm-up's side stream; None: torch's own)."""
     graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+    with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
         body()
     return graph
 
 
+def bump_versions(tensors: Sequence[torch.Tensor]) -> None:
+    """Mark ``tensors`` as modified in place (their autograd version counters + 1).
+    ``torch.autograd.graph.increment_version`` is newer than the torch floor
+    (sfm_ttr_ros/requirements.py): older releases bump one tensor at a time."""
+    from torch.autograd import graph as autograd_graph
+
+    if hasattr(autograd_graph, "increment_version"):
+        autograd_graph.increment_version(list(tensors))
+        return
+    for t in tensors:
+        torch._C._increment_version(t)
+
+
 class StaticStepRunner:
     """A window's steps on static buffers (module docstring): ``step(frame)`` per step, then
-    ``losses(steps)`` once. ``capture``: capture the step after the warm-up steps (CUDA);
-    ``mode`` / ``reason`` say what ran ("graph", or "static" with the reason)."""
+    ``losses(steps)`` once. ``capture``: replay the step captured for this model, stream and
+    layout by an earlier window (:mod:`~sfm_ttr_ros.core.refinement.graph_cache`), else capture
+    it after the warm-up steps (CUDA); ``mode`` / ``reason`` say what ran ("graph", or "static"
+    with the reason); ``capture_s`` the host seconds spent capturing (or re-arming a kept
+    graph) this window; ``reused`` whether the graph was an earlier window's."""
 
     def __init__(self, model: DepthModel, frames: Sequence[FrameTerms],
                  params: Sequence[torch.nn.Parameter], cfg: RefinementConfig,
                  frozen_stages: int, capture: bool):
         self.model, self.cfg, self.frozen = model, cfg, frozen_stages
+        self.params = list(params)
         self.pcfg = cfg.photometric_config()
         self.device = model.device
         self.layout, self.frames = window_inputs(frames, cfg)
-        self.buffers = {k: v.clone() for k, v in self.frames[0].items()}
-        self.loaded = 0
         cuda = self.device.type == "cuda"
-        # capturable: Adam's step count and bias corrections stay on the device
-        self.optimizer = torch.optim.Adam(params, lr=cfg.lr, capturable=cuda,
-                                          foreach=True if cuda else None)
-        self.history = torch.full((max(1, cfg.steps),), float("nan"), device=self.device)
-        self.counter = torch.zeros(1, dtype=torch.long, device=self.device)
+        self.refusal_key, self.key = self._keys(cuda)
+        self.graph, self.entry = None, None
+        self.steps_run = self.replays = 0
+        self.capture_s, self.reused = 0.0, False
         self.capture = capture
         # what ran when it is not what was planned ("" = as planned)
         self.mode, self.reason = ("graph" if capture else "static"), ""
-        self.graph = None
-        self.steps_run = self.replays = 0
+        self.pacer = ReplayPacer(REPLAYS_IN_FLIGHT, torch.cuda.Event if capture and cuda
+                                 else None)
         self._side = torch.cuda.Stream(self.device) if capture and cuda else None
+        if capture and (why := refusal(self.refusal_key)):
+            self.capture, self.mode = False, "static"
+            self.reason = f"capture failed earlier for this model and objective: {why}"
+        if self.capture and self._adopt():
+            return
+        self.buffers = {k: v.clone() for k, v in self.frames[0].items()}
+        self.loaded = 0
+        # capturable: Adam's step count and bias corrections stay on the device
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, capturable=cuda,
+                                          foreach=True if cuda else None)
+        self.history = torch.full((max(1, cfg.steps),), float("nan"), device=self.device)
+        self.counter = torch.zeros(1, dtype=torch.long, device=self.device)
+
+    def _keys(self, cuda: bool) -> tuple[tuple, tuple]:
+        """(what a refused capture is remembered by: the model's class, the objective and the
+        inputs' structure without their sizes; the kept graph's key: the CUDA stream, the
+        history's length and the inputs' shapes too)."""
+        first = self.frames[0]
+        objective_cfg = dataclasses.replace(self.cfg, steps=0, seed=0)
+        refusal_key = (type(self.model).__qualname__, str(self.device), repr(objective_cfg),
+                       self.frozen, tuple(sorted((k, str(v.dtype)) for k, v in first.items())))
+        stream = torch.cuda.current_stream(self.device).cuda_stream if cuda else 0
+        shapes = tuple(sorted((k, tuple(v.shape)) for k, v in first.items()))
+        return refusal_key, (*refusal_key, stream, self.cfg.steps, shapes)
+
+    def _adopt(self) -> bool:
+        """Take the graph an earlier window captured under this key, re-armed (Adam's state
+        and the history reset in place); False when there is none."""
+        t0 = time.perf_counter()
+        entry = cached_step(self.model, self.key, self.params)
+        if entry is None:
+            return False
+        entry.start_window()
+        self.entry, self.graph, self.reused = entry, entry.graph, True
+        self.buffers, self.optimizer = entry.buffers, entry.optimizer
+        self.history, self.counter = entry.history, entry.counter
+        self.loaded = -1  # the buffers hold the last window's frame: load the first one
+        self.capture_s = time.perf_counter() - t0
+        return True
 
     def _body(self) -> None:
         """Objective, backward pass, Adam, the loss into the history: what the graph holds."""
@@ -304,22 +380,34 @@ class StaticStepRunner:
         current.wait_stream(self._side)
 
     def _capture(self) -> None:
-        """Capture the step; on any refusal the remaining steps run the body eagerly."""
+        """Capture the step on the warm-up's stream and keep it for later windows; on any
+        refusal the remaining steps run the body eagerly and the refusal is remembered."""
+        t0 = time.perf_counter()
         self.optimizer.zero_grad(set_to_none=True)
         try:
-            self.graph = capture_step(self._body, self.device)
+            with self._warm_up_stream():
+                self.graph = capture_step(self._body, self.device, self._side)
         except Exception as exc:  # noqa: BLE001 - any refusal of the capture: run it eagerly
             self.graph, self.capture = None, False
             self.mode, self.reason = "static", f"capture failed: {type(exc).__name__}: {exc}"
             self.optimizer.zero_grad(set_to_none=True)
+            refuse(self.refusal_key, self.reason[len("capture failed: "):])
+        else:
+            self.entry = CapturedStep(self.graph, self.buffers, self.optimizer, self.history,
+                                      self.counter, self.params,
+                                      addresses=tuple(p.data_ptr() for p in self.params))
+            keep_step(self.model, self.key, self.entry)
+        self.capture_s += time.perf_counter() - t0
 
     def step(self, frame: int) -> None:
-        """One refinement step on frame ``frame`` of the window (no host sync)."""
+        """One refinement step on frame ``frame`` of the window (no host sync but the
+        pacer's bounded wait)."""
         if self.capture and self.graph is None and self.steps_run >= GRAPH_WARM_UP_STEPS:
             self._capture()
         if self.graph is not None:
             self._load(frame)
             self.graph.replay()
+            self.pacer.launched()
             self.replays += 1
         else:
             with self._warm_up_stream():
@@ -333,13 +421,16 @@ class StaticStepRunner:
         return self.history[:steps].tolist() if steps else []
 
     def close(self) -> None:
-        """Release the graph, its gradients and the window's buffers. Replays change the
-        weights and BatchNorm statistics in place without bumping their version counters,
-        which the predictions' cache keys on (core/prediction.py): bumped here once."""
+        """End the window: the kept graph's gradients off the parameters (the graph keeps
+        them), the window's inputs released. Replays change the weights and BatchNorm
+        statistics in place without bumping their version counters, which the predictions'
+        cache keys on (core/prediction.py): bumped here once."""
         if self.replays:
-            from torch.autograd.graph import increment_version
-
-            increment_version([*self.model.parameters(), *self.model.buffers()])
-        self.graph = None
-        self.optimizer.zero_grad(set_to_none=True)
-        self.frames, self.buffers = [], {}
+            bump_versions([*self.model.parameters(), *self.model.buffers()])
+        if self.entry is not None:  # the kept graph's buffers live on with it
+            self.entry.end_window()
+        else:
+            self.optimizer.zero_grad(set_to_none=True)
+            self.buffers = {}
+        self.graph = self.entry = None
+        self.frames = []
