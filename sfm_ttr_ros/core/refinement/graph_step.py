@@ -17,10 +17,10 @@ How:
   divides by the frame's own count:
   :func:`~sfm_ttr_ros.core.refinement.supervision.padded_weighted_l1`); its photometric sources
   padded to the objective's source offsets (or the window's most) with a source no pixel can
-  use (a pose that puts every point behind its camera, and an identity error of +inf: the per-pixel minimum is unchanged); in the
-  hybrid, a frame without a photometric term has that term multiplied by 0. The frames' padded
-  inputs stay on the device; a step copies the chosen frame's into the static buffers (device
-  to device) and replays.
+  use (a pose that puts every point behind its camera, and an identity error of +inf: the
+  per-pixel minimum is unchanged); in the hybrid, a frame without a photometric term has
+  that term multiplied by 0. The frames' padded inputs stay on the device; a step copies the
+  chosen frame's into the static buffers (device to device) and replays.
 * one step body (:meth:`StaticStepRunner._body`: the objective read from the static buffers,
   the backward pass, Adam, the loss written into a preallocated history at a device counter)
   runs eagerly ("static", any device) and is what the graph captures ("graph", CUDA); on the
@@ -37,7 +37,8 @@ How:
   replays (a preview, when one is due, copies the weights).
 * a capture that raises leaves the remaining steps to the same body run eagerly (mode
   "static", the reason kept, and not tried again for that model and objective); LoRA
-  adapters, frames of different shapes, too few steps or a model off CUDA run the eager loop (:func:`plan_step_mode`).
+  adapters, frames of different shapes, too few steps or a model off CUDA run the eager loop
+  (:func:`plan_step_mode`).
 
 Not measured yet on a GPU (scripts/gpu_window_check.sh measures it).
 """
