@@ -67,6 +67,20 @@ def test_serving_swaps_weights_atomically(one_thread):
     assert {v for v, _ in seen} == {1, 2}
 
 
+def test_live_stream_exists_on_cuda_only(one_thread):
+    """Off CUDA the serving copy predicts on the caller's thread as before (no stream, no
+    event): the same depth as the network itself."""
+    from sfm_ttr_ros.core.stream.serving import live_stream
+
+    model = small_model(seed=0)
+    serving = ServingModel(model)
+    assert live_stream(torch.device("cpu")) is None and serving.stream is None
+    serving.update(snapshot_encoder(model), 1)
+    assert serving._weights_copied is None
+    with torch.inference_mode():
+        assert np.array_equal(serving.predict(IMAGE)[0], model.predict([IMAGE])[0])
+
+
 def test_serving_copy_is_independent_and_refuses_non_finite_weights(one_thread):
     model, state_a, _ = two_states()
     serving = ServingModel(model)

@@ -15,10 +15,17 @@ replaces, :meth:`update` (the window was accepted) drops that copy and :meth:`re
 not: cancelled, rolled back, refused) puts them back, so a window that fails leaves the served
 weights as they were before it. ``interim_step`` is the refinement step of the previewed
 weights (0: a finished window's, or the start-up weights).
+
+On CUDA the serving copy predicts on a stream of its own with a higher priority than the
+refinement's (:data:`LIVE_STREAM_PRIORITY`): its kernels are not queued behind a window's
+replays (which :class:`~sfm_ttr_ros.core.refinement.graph_cache.ReplayPacer` bounds), and the
+device schedules them first. New weights are copied in on the caller's stream; the live stream
+waits for that copy (an event) before its next prediction. On the CPU none of this exists.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import threading
 import time
@@ -29,6 +36,16 @@ import torch
 from sfm_ttr_ros.core.metric.scale import in_metres
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.refinement.encoder import finite_state
+
+#: The live stream's priority (CUDA: lower is more urgent; the default stream's is 0)
+LIVE_STREAM_PRIORITY = -1
+
+
+def live_stream(device: torch.device):
+    """A CUDA stream for live predictions, more urgent than the default one; None off CUDA."""
+    if device.type != "cuda":
+        return None
+    return torch.cuda.Stream(device, priority=LIVE_STREAM_PRIORITY)
 
 
 class ServingModel:
@@ -49,6 +66,22 @@ class ServingModel:
         self._before_preview: tuple[dict[str, torch.Tensor], int, float, float | None] | None \
             = None
         self.predictions = 0
+        self.stream = live_stream(self._model.device)
+        self._weights_copied = None  # CUDA: an event after the last weights' copy
+
+    def _weights_changed(self) -> None:
+        """Mark the end of a weights' copy on the caller's stream (CUDA; under the lock)."""
+        if self.stream is not None:
+            self._weights_copied = torch.cuda.Event()
+            self._weights_copied.record()
+
+    def _on_live_stream(self):
+        """Run on the live stream after the last weights' copy (CUDA; under the lock)."""
+        if self.stream is None:
+            return contextlib.nullcontext()
+        if self._weights_copied is not None:
+            self.stream.wait_event(self._weights_copied)
+        return torch.cuda.stream(self.stream)
 
     @property
     def model(self) -> DepthModel:
@@ -87,6 +120,7 @@ class ServingModel:
             raise ValueError("refusing to serve non-finite encoder weights")
         with self._lock:
             self._model.encoder.load_state_dict(encoder_state)
+            self._weights_changed()
             self._metres_per_unit = metres_per_unit
             self._version = int(version)
             self._updated = time.monotonic()
@@ -103,6 +137,7 @@ class ServingModel:
                 self._before_preview = (copy.deepcopy(self._model.encoder.state_dict()),
                                         self._version, self._updated, self._metres_per_unit)
             self._model.encoder.load_state_dict(encoder_state)
+            self._weights_changed()
             self._version, self._interim_step = int(version), int(step)
             self._updated = time.monotonic()
 
@@ -114,6 +149,7 @@ class ServingModel:
                 return False
             state, self._version, self._updated, self._metres_per_unit = self._before_preview
             self._model.encoder.load_state_dict(state)
+            self._weights_changed()
             self._interim_step = 0
             self._before_preview = None
             return True
@@ -121,13 +157,13 @@ class ServingModel:
     def warm_up(self) -> None:
         """One prediction on a grey image at the network's input size, not counted: the first
         forward pass pays for allocations and kernel set-up, a frame should not."""
-        with self._lock, torch.inference_mode():
+        with self._lock, torch.inference_mode(), self._on_live_stream():
             self._model.predict([warm_up_image(self._model)])
 
     def predict(self, image: np.ndarray) -> tuple[np.ndarray, int]:
         """(depth H x W float32 at the image's size, version of the weights that made it);
         in metres when the served weights have a metric factor."""
-        with self._lock, torch.inference_mode():
+        with self._lock, torch.inference_mode(), self._on_live_stream():
             depth = self._model.predict([image])[0]
             self.predictions += 1
             return in_metres(depth, self._metres_per_unit), self._version
