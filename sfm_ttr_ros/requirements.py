@@ -6,7 +6,8 @@ it builds before its dependencies are installed) for ``install_requires``; ``req
 and ``tests/test_package.py`` checks that they agree. At start-up the ``refiner`` node and the
 ``sfm-ttr`` commands that run SfM call :func:`check_sfm_dependencies`: a pycolmap or torch older
 than its floor, or a pycolmap without an API the code calls, is one clear error there
-(:class:`~sfm_ttr_ros.core.errors.InputError`) instead of every window failing later.
+(:class:`~sfm_ttr_ros.core.errors.InputError`) instead of every window failing later; so is a
+torch without a name of :data:`TORCH_API` (what the CUDA path calls).
 
 How each floor was found: the releases were installed side by side (``pip download NAME==V
 --no-deps``) and the package's own tests run against them: pycolmap 4.2.0 passes
@@ -49,6 +50,17 @@ PYCOLMAP_API = (
     "IncrementalPipelineOptions", "SequentialPairingOptions", "extract_features",
     "geometric_verification", "import_images", "incremental_mapping", "logging",
     "match_sequential", "pair_id_to_image_pair",
+)
+
+#: Every torch name the CUDA path calls (core/refinement/graph_step.py, graph_cache.py,
+#: core/stream/serving.py), all in the floor's release (2.3: ``torch.cuda.graph`` with
+#: ``stream=`` and ``capture_error_mode=``, ``Adam(capturable=, foreach=)``, stream priorities);
+#: ``torch.autograd.graph.increment_version`` is newer (2.5) and guarded: older releases use
+#: ``torch._C._increment_version`` one tensor at a time (graph_step.bump_versions). A torch
+#: missing one is refused at start-up by :func:`check_torch`.
+TORCH_API = (
+    "cuda.CUDAGraph", "cuda.Event", "cuda.Stream", "cuda.current_stream", "cuda.graph",
+    "cuda.stream", "cuda.synchronize", "optim.Adam", "optim.Optimizer", "_C._increment_version",
 )
 
 
@@ -119,6 +131,10 @@ def check_torch(module=None) -> None:
     if too_old(version, low):
         raise InputError(f"torch {version} is too old: the package needs "
                          f"{requirement('torch')} ({why})")
+    missing = _missing(module, TORCH_API)
+    if missing:
+        raise InputError(f"torch {version} lacks {', '.join(missing)}, which the CUDA path "
+                         f"calls: install a release of '{requirement('torch')}' that has them")
 
 
 def check_sfm_dependencies() -> None:

@@ -21,11 +21,12 @@ from sfm_ttr_ros.core.errors import InputError
 REPO = Path(__file__).resolve().parents[1]
 
 
-def fake_pycolmap(version: str, without: tuple[str, ...] = ()) -> types.SimpleNamespace:
+def fake_pycolmap(version: str, without: tuple[str, ...] = (),
+                  api: tuple[str, ...] = req.PYCOLMAP_API) -> types.SimpleNamespace:
     """A module-like object with every name the code calls (as dotted attributes), less
     ``without``."""
     mod = types.SimpleNamespace(__version__=version)
-    for dotted in req.PYCOLMAP_API:
+    for dotted in api:
         if dotted in without:
             continue
         obj = mod
@@ -81,10 +82,30 @@ def test_a_too_old_pycolmap_or_one_missing_an_api_is_one_clear_error():
     with pytest.raises(InputError, match=r"pycolmap 4\.2\.5 lacks CancellationToken, "
                                          r"Device\.cpu, which SfM calls"):
         req.check_pycolmap(fake_pycolmap("4.2.5", without=("CancellationToken", "Device.cpu")))
-    req.check_torch(types.SimpleNamespace(__version__="2.13.0+cpu"))
+    req.check_torch(fake_pycolmap("2.13.0+cpu", api=req.TORCH_API))
     with pytest.raises(InputError, match=r"torch 2\.1\.2 is too old.*NumPy 2"):
         req.check_torch(types.SimpleNamespace(__version__="2.1.2"))
+    with pytest.raises(InputError, match=r"torch 2\.4\.0 lacks cuda\.graph, which the CUDA"):
+        req.check_torch(fake_pycolmap("2.4.0", without=("cuda.graph",), api=req.TORCH_API))
     req.check_sfm_dependencies()  # the installed ones pass
+
+
+def test_the_torch_api_of_the_cuda_path_is_listed_and_installed():
+    """Every ``torch.cuda.X`` the CUDA path's modules name is in TORCH_API (so the check at
+    start-up covers it), and the installed torch has them all; the one name newer than the
+    floor (increment_version) is guarded by a fallback the floor has."""
+    import torch
+
+    assert not req._missing(torch, req.TORCH_API)
+    used = set()
+    for rel in ("core/refinement/graph_step.py", "core/refinement/graph_cache.py",
+                "core/stream/serving.py"):
+        text = (REPO / "sfm_ttr_ros" / rel).read_text()
+        used |= {f"cuda.{n}" for n in re.findall(r"torch\.cuda\.([A-Za-z_]\w*)", text)}
+        used |= {f"optim.{n}" for n in re.findall(r"torch\.optim\.([A-Za-z_]\w*)", text)}
+        if "increment_version" in text:
+            assert "_increment_version" in text  # the guarded fallback
+    assert used <= set(req.TORCH_API), used - set(req.TORCH_API)
 
 
 def test_the_installed_pycolmap_has_every_name_the_code_calls():
