@@ -105,3 +105,21 @@ def test_the_gpu_checks_summary(data, report, tmp_path):
     assert s["bench_graph"]["node_online"]["step_modes"] == {"graph": 2}
     assert s["bench_graph"]["node_online"]["refine_s"] == 2.0
     assert s["timing"] == {} and s["bench_eager"] is None  # parts that wrote nothing
+
+
+def test_a_cuda_trace_counts_host_steps_and_device_work_only():
+    """A CUDA profile of two steps (tests/data/cuda_profile_trace.json, torch.profiler's Chrome
+    trace events): each ProfilerStep range also appears on the device's timeline
+    (gpu_user_annotation) and must not double the steps; launches are counted on the host;
+    device busy time is kernels, copies and sets only, never annotation spans."""
+    trace = json.loads((REPO / "tests" / "data" / "cuda_profile_trace.json").read_text())
+    events = [e for e in trace["traceEvents"] if e.get("ph") == "X"]
+    assert len(step_profile.step_ranges(events)) == 2
+    launches = step_profile._count_per_step(events, lambda n: n in step_profile.KERNEL_LAUNCHES)
+    assert launches == [3, 3]
+    graphs = step_profile._count_per_step(events, lambda n: n in step_profile.GRAPH_LAUNCHES)
+    assert graphs == [1, 1]
+    assert step_profile._device_busy_ms(events) == pytest.approx(2 * (100 + 20 + 10 + 2 + 68)
+                                                                 / 1e3)
+    assert step_profile._device_busy_ms([e for e in events if e["cat"] != "kernel"]) == \
+        pytest.approx(2 * 12 / 1e3)

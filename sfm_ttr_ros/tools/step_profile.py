@@ -12,8 +12,12 @@ on one window of a sequence (SfM, alignment and supervision as the pipeline make
   step W = GRAPH_WARM_UP_STEPS + 1 to the device's end (synchronised once);
 * ``launches``: per step, kernel launches on CUDA (``cudaLaunchKernel`` and the like; a graph
   replay is one ``cudaGraphLaunch``, counted apart), ``aten::`` ops on the CPU; per step = the
-  profiler's ``ProfilerStep`` ranges, which end at each step's ``on_step``;
-* ``device_busy_ms``: the sum of the device's kernel and copy times (CUDA only), and per step;
+  profiler's host-side ``ProfilerStep`` ranges (kineto category ``user_annotation``; with CUDA
+  tracing each also appears on the device's timeline as ``gpu_user_annotation``, not a step),
+  which end at each step's ``on_step``; only host-side events are counted;
+* ``device_busy_ms``: the sum of the device's kernel, copy and set times (categories
+  ``kernel``, ``gpu_memcpy``, ``gpu_memset``; never annotation spans), CUDA only, and per
+  step;
 * ``step_mode`` / ``reason``: which path ran (eager, static, graph) and why.
 
 :func:`step_benchmark` is the notes' micro-benchmark on the real step (Eq. (5) at ``points``
@@ -52,6 +56,9 @@ KERNEL_LAUNCHES = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", 
                    "cudaLaunchCooperativeKernel")
 GRAPH_LAUNCHES = ("cudaGraphLaunch", "cuGraphLaunch")
 MODES = ("eager", "auto", "static")
+#: Kineto categories of host-side events (ranges, ops, runtime calls) and of the device's work
+HOST_CATEGORIES = ("cpu_op", "user_annotation", "cuda_runtime", "cuda_driver")
+DEVICE_WORK = ("kernel", "gpu_memcpy", "gpu_memset")
 
 
 def _sync(device) -> None:
@@ -91,28 +98,47 @@ def _timed_refinement(model, supervision, photometric, cfg: RefinementConfig,
             "losses": [float(v) for v in res.loss_history]}
 
 
-def _count_per_step(events, names: Callable[[str], bool]) -> list[int]:
-    """Per ``ProfilerStep`` range (host clock), the events whose name ``names`` accepts."""
-    steps = sorted((e.time_range.start, e.time_range.end) for e in events
-                   if e.name.startswith("ProfilerStep"))
+def trace_events(prof) -> list[dict[str, Any]]:
+    """The profiler's complete events as its Chrome trace writes them (``name``, ``cat``: the
+    kineto category, ``ts`` / ``dur`` in us): the category is what tells a host-side range
+    from its copy on the device's timeline."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "trace.json"
+        prof.export_chrome_trace(str(path))
+        events = json.loads(path.read_text()).get("traceEvents", [])
+    return [e for e in events if e.get("ph") == "X"]
+
+
+def step_ranges(events: Sequence[dict[str, Any]]) -> list[tuple[float, float]]:
+    """The ``ProfilerStep#k`` ranges on the host clock (category ``user_annotation``; their
+    copies on the device's timeline, ``gpu_user_annotation``, are not steps)."""
+    return sorted((e["ts"], e["ts"] + e["dur"]) for e in events
+                  if e.get("cat") == "user_annotation"
+                  and str(e.get("name", "")).startswith("ProfilerStep"))
+
+
+def _count_per_step(events: Sequence[dict[str, Any]], names: Callable[[str], bool]
+                    ) -> list[int]:
+    """Per host-side ``ProfilerStep`` range, the host-side events (:data:`HOST_CATEGORIES`)
+    whose name ``names`` accepts."""
+    steps = step_ranges(events)
     counts = [0] * len(steps)
     starts = [s for s, _ in steps]
     for e in events:
-        if not names(e.name):
+        if e.get("cat") not in HOST_CATEGORIES or not names(str(e.get("name", ""))):
             continue
-        i = int(np.searchsorted(starts, e.time_range.start, side="right")) - 1
-        if 0 <= i < len(steps) and e.time_range.start <= steps[i][1]:
+        i = int(np.searchsorted(starts, e["ts"], side="right")) - 1
+        if 0 <= i < len(steps) and e["ts"] <= steps[i][1]:
             counts[i] += 1
     return counts
 
 
-def _device_busy_ms(events) -> float | None:
-    """The sum of the device-side (kernel, copy, set) events' durations, ms; None without
-    any."""
-    from torch.autograd import DeviceType
-
-    spans = [e.time_range.elapsed_us() for e in events
-             if getattr(e, "device_type", None) == DeviceType.CUDA]
+def _device_busy_ms(events: Sequence[dict[str, Any]]) -> float | None:
+    """The sum of the device's kernel, copy and set durations (:data:`DEVICE_WORK`; never the
+    annotations drawn on its timeline), ms; None without any."""
+    spans = [float(e["dur"]) for e in events if e.get("cat") in DEVICE_WORK]
     return sum(spans) / 1e3 if spans else None
 
 
@@ -126,7 +152,7 @@ def profile_refinement(model, supervision, photometric, cfg: RefinementConfig
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities, schedule=lambda step: ProfilerAction.RECORD) as prof:
         out = _timed_refinement(model, supervision, photometric, cfg, lambda k: prof.step())
-    events = prof.events()
+    events = trace_events(prof)
     if cuda:
         launches = _count_per_step(events, lambda n: n in KERNEL_LAUNCHES)
         out["graph_launches"] = _count_per_step(events, lambda n: n in GRAPH_LAUNCHES)
