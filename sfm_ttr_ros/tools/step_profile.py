@@ -266,7 +266,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--micro-frames", type=int, default=4)
     p.add_argument("--sfm-features", nargs="*", default=[], choices=("colmap", "torch"),
                    help="time the window's SfM with these features")
-    p.add_argument("--out", default="", help="JSON report (default: stdout only)")
+    p.add_argument("--windows", type=int, default=0,
+                   help="the window refined this many times with the graph: capture cost and "
+                        "memory per window (tools/gpu_check.py; 0 = not)")
+    p.add_argument("--out", default="", help="JSON report, rewritten after each part "
+                                             "(default: stdout only)")
     return p
 
 
@@ -322,14 +326,29 @@ def run(args) -> dict[str, Any]:
             report["loss"], report["steps"] = cfg.loss, cfg.steps
             report["profile" if not args.no_profile else "timing"] = compare_modes(
                 model, *inputs, cfg, args.modes, profiled=not args.no_profile)
+            save(args.out, report)
+        if args.windows and not isinstance(inputs, Stop):
+            from sfm_ttr_ros.tools.gpu_check import graph_windows
+
+            report["windows"] = graph_windows(model, *inputs, cfg, args.windows)
+            save(args.out, report)
     finally:
         ttr.close()
     if args.micro_steps:
         report["micro"] = step_benchmark(model, args.micro_steps, args.micro_points,
                                          args.micro_frames, args.modes or ("eager", "auto"))
+        save(args.out, report)
     if args.sfm_features:
         report["sfm"] = sfm_features(frames, seq.intrinsics, s.ttr.sfm, args.sfm_features)
     return report
+
+
+def save(out: str, report: dict[str, Any]) -> None:
+    """Write ``report`` to ``out`` now (nothing when ``out`` is empty): a part stopped by its
+    time limit leaves what it measured so far."""
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(report, indent=1, default=str) + "\n")
 
 
 def summary_lines(report: dict[str, Any]) -> list[str]:
@@ -365,9 +384,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"profile_refinement: {exc}", file=sys.stderr)
         return 2
     print("\n".join(summary_lines(report)))
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(report, indent=1, default=str) + "\n")
+    save(args.out, report)
     return 0
 
 
@@ -414,6 +431,7 @@ def check_summary(out: str | Path) -> dict[str, Any]:
     parts = out / "parts.jsonl"
     res["parts"] = [json.loads(line) for line in parts.read_text().splitlines()
                     if line.strip()] if parts.is_file() else []
+    res["windows"] = (res["profile"] or {}).get("windows")
     for name in ("profile", "timing"):
         r = res[name] or {}
         res[name] = {key: {m: _mode_summary(v) for m, v in r[key].items()
@@ -421,13 +439,19 @@ def check_summary(out: str | Path) -> dict[str, Any]:
                      for key in ("profile", "timing", "micro") if key in r} | (
             {"sfm": r["sfm"]} if "sfm" in r else {}) | (
             {"stop": r["stop"]} if "stop" in r else {})
-    res["bench_graph"] = _bench_summary(out / "bench_graph" / "results.json")
-    res["bench_eager"] = _bench_summary(out / "bench_eager" / "results.json")
+    for bench in ("bench_graph", "bench_eager", "holo_graph", "holo_eager"):
+        res[bench] = _bench_summary(out / bench / "results.json")
     return res
 
 
 def write_check_summary(out: str | Path) -> Path:
-    """:func:`check_summary` written to ``out/check.json``; its path."""
+    """:func:`check_summary` written to ``out/check.json`` and its figures' table
+    (:func:`~sfm_ttr_ros.tools.gpu_check.summary_table`) to ``out/figures.md``; the JSON's
+    path."""
+    from sfm_ttr_ros.tools.gpu_check import summary_table
+
+    summary = check_summary(out)
     path = Path(out) / "check.json"
-    path.write_text(json.dumps(check_summary(out), indent=1, default=str) + "\n")
+    path.write_text(json.dumps(summary, indent=1, default=str) + "\n")
+    (Path(out) / "figures.md").write_text("\n".join(summary_table(summary)) + "\n")
     return path
