@@ -454,8 +454,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=10.0, help="frames per second")
     ap.add_argument("--out", default="soak_out", help="folder for soak.json, soak.png, the log")
     ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"),
-                    help="the node's command (split like a shell line), e.g. "
-                    "'.venv/bin/python scripts/studies/heap_probe.py' for the heap probe")
+                    help="the node's command (split like a shell line)")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
     ap.add_argument("--set", dest="set", action="append", metavar="NAME=VALUE",
                     help="a node parameter over --params-file, as in sfm-ttr (repeatable)")
