@@ -77,11 +77,12 @@ def add_parameter_args(p: argparse.ArgumentParser, groups: tuple[str, ...],
                                 f"file's, else {param.default!r}]".replace("%", "%%"))
 
 
-def parameter_values(args: argparse.Namespace, default_file: Path | None = None
-                     ) -> tuple[Path | None, dict[str, Any]]:
+def parameter_values(args: argparse.Namespace, default_file: Path | None = None,
+                     overrides: list[str] | None = None) -> tuple[Path | None, dict[str, Any]]:
     """(the parameter file read, or None; the values): the file's (``--params-file``, else
-    ``default_file``), then the flags given, then ``--set``. A ``--model`` flag drops the
-    file's encoder, decoder and model paths and output kind (they belong to its model)."""
+    ``default_file``), then the flags given, then ``overrides`` (default: ``--set``). A
+    ``--model`` flag drops the file's encoder, decoder and model paths and output kind (they
+    belong to its model). The one reader of parameter files for the commands."""
     path = Path(args.params_file) if args.params_file else default_file
     values: dict[str, Any] = {}
     if path is not None:
@@ -95,7 +96,7 @@ def parameter_values(args: argparse.Namespace, default_file: Path | None = None
         v = getattr(args, _dest(flag), None)
         if v is not None:
             values[name] = v
-    values.update(schema.parse_overrides(args.set or []))
+    values.update(schema.parse_overrides(args.set or [] if overrides is None else overrides))
     return path, values
 
 
