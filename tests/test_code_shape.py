@@ -35,7 +35,8 @@ ALLOWED_CLASSES: set[str] = {
 
 def function_lengths(source: str) -> Iterator[tuple[str, int]]:
     """(qualified name, lines) of every function and method in ``source``, nested ones too."""
-    return (item for item in definition_lengths(source) if item[0].endswith("()"))
+    return ((name.removesuffix("()"), n) for name, n in definition_lengths(source)
+            if name.endswith("()"))
 
 
 def class_lengths(source: str) -> Iterator[tuple[str, int]]:
@@ -78,7 +79,7 @@ def repo_functions() -> dict[str, int]:
     for rel, path in source_files():
         short = rel.removeprefix("sfm_ttr_ros/")
         for name, lines in function_lengths(path.read_text()):
-            out[f"{short}:{name.removesuffix('()')}"] = lines
+            out[f"{short}:{name}"] = lines
     return out
 
 
@@ -121,7 +122,7 @@ def test_the_check_sees_what_it_checks():
     lengths = dict(function_lengths(source))
     assert lengths["fits"] == MAX_LINES  # the decorator does not count
     assert lengths["C.method"] == MAX_LINES + 4 and lengths["C.method.inner"] == 2
-    assert dict(class_lengths(source)) == {"C": MAX_LINES + 7, "C.Inner": 2}
+    assert dict(class_lengths(source)) == {"C": MAX_LINES + 8, "C.Inner": 2}
     functions = repo_functions()
     assert "tools/benchmark/run.py:run_benchmark" in functions
     assert "ros/player.py:TopicRecorder.start" in functions
@@ -131,3 +132,18 @@ def test_the_check_sees_what_it_checks():
     classes = package_classes()
     assert "tools/benchmark/runners.py:ModeRun" in classes
     assert not any(k.startswith(".venv") for k in functions)
+
+
+#: The documents' and the scripts folder's bounds: figures that must go go to docs/decisions.md
+#: or the data folders (docs/benchmarks/), not into a longer BENCHMARKS.md.
+DOC_LINES = {"README.md": 300, "BENCHMARKS.md": 600}
+MAX_SCRIPTS = 8
+
+
+def test_the_docs_and_scripts_stay_within_their_bounds():
+    for name, limit in DOC_LINES.items():
+        lines = len((REPO / name).read_text().splitlines())
+        assert lines <= limit, f"{name} has {lines} lines (at most {limit})"
+    scripts = sorted(p.name for p in (REPO / "scripts").iterdir()
+                     if p.name != "README.md" and not p.name.startswith((".", "__")))
+    assert len(scripts) <= MAX_SCRIPTS, f"scripts/ holds {len(scripts)} entries: {scripts}"
