@@ -218,14 +218,8 @@ def render_sequence(
                          noise_std=noise_std, start_stamp=start_stamp)
 
 
-def street_frames(
-    params: SceneParams,
-    num_frames: int,
-    width: int = 1242,
-    height: int = 375,
-    seed: int = 0,
-    start_stamp: float = KITTI_START_STAMP,
-) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+def street_frames(params: SceneParams, num_frames: int, width: int = 1242, height: int = 375,
+                  seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
     """The frames of :func:`render_sequence` (same images, depths and 10 Hz stamps), one
     ``(image, depth, stamp)`` at a time, along ONE street laid out for the whole drive: a long
     drive without holding more than one frame. (``render_sequence(start_offset=...)`` lays a
@@ -240,7 +234,7 @@ def street_frames(
     for i in range(num_frames):
         R_wc, C = camera_pose(params, i * params.speed)
         img, depth = _render(scene, R_wc, C, intr)
-        yield _finish(img, params, rng, 0.0, 0.0), depth, float(start_stamp + i / FRAME_RATE)
+        yield _finish(img, params, rng, 0.0, 0.0), depth, float(KITTI_START_STAMP + i / FRAME_RATE)
 
 
 def make_sequence(
