@@ -52,6 +52,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # msg_adapters / sfm_ttr_ros from this checkout (the client side)
 
 from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
+from sfm_ttr_ros.tools.process import rss_mib  # noqa: E402
 
 # the node under test: cheap windows on top of params/kitti.yaml, a deep input history so DDS
 # itself never drops a message (every image sent must be counted by the node)
@@ -60,17 +61,6 @@ LIGHT = ["refinement.steps=2", "window_size=4", "window_stride=4", "sfm.max_imag
          "qos_depth=2000", "max_pending=40", "overload_pending=12",
          "diagnostics_period_s=0.5", "outputs=depth,depth_refined,diagnostics"]
 PAD = 3
-
-
-def rss_mib(pid: int) -> float:
-    """Resident set size of a process (Linux /proc), MiB; NaN when gone."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
 
 
 class Fuzzer:
@@ -435,61 +425,14 @@ def run(args: argparse.Namespace) -> dict:
                                    f"{log_path}")
             time.sleep(0.2)
         report["start_s"] = time.monotonic() - t0
-        n = args.messages
-        sample = lambda: rss.append((time.monotonic() - t0, rss_mib(proc.pid)))  # noqa: E731
 
-        # 1. before any CameraInfo: frames smaller than kitti.yaml's fallback principal point
-        import numpy as np
-        npr = np.random.default_rng(args.seed)
-        for w, h in [(416, 128), (100, 50), (160, 48), (1242, 100), (300, 375)] * 2:
-            f.rgb("fallback_pp_outside", npr.integers(0, 255, (h, w, 3), dtype=np.uint8))
-            time.sleep(0.02)
-        f.set_param("fallback_intrinsics", "721.5377 721.5377 5000 172.854", True)
-        for _ in range(3):
-            f.rgb("live_cx_5000", npr.integers(0, 255, (375, 1242, 3), dtype=np.uint8))
-            time.sleep(0.02)
-        f.set_param("fallback_intrinsics", "721.5377 721.5377 609.5593 172.854", True)
-        sample()
-        rss_first = rss[-1][1]
-        # 2. invalid parameter sets (and two valid ones)
-        for name, value in invalid_parameter_sets():
-            f.set_param(name, value, False)
-        f.set_param("refinement.steps", 3, True)
-        f.set_param("window_stride", 2, True)
-        sample()
-        # 3. hostile images, CameraInfos, real windows, a burst
-        budget = max(0, n - f.sent)
-        n_burst = max(10, budget * 15 // 100)
-        n_infos = max(10, budget * 12 // 100)
-        n_drive = 16
-        n_hostile = max(0, budget - n_burst - 2 * n_infos - 2 * n_drive)
-        for chunk in range(4):
-            hostile_images(f, n_hostile // 4 + (n_hostile % 4 if chunk == 3 else 0))
-            sample()
-            camera_infos(f, n_infos // 4 + (n_infos % 4 if chunk == 3 else 0))
-            sample()
-        f.wait_drained(60.0)  # the windows below get a queue of their own
-        real_windows(f, n_drive)
-        f.wait_drained(120.0)
-        sample()
-        burst = npr.integers(0, 255, (48, 160, 3), dtype=np.uint8)
-        for i in range(n_burst):  # far above max_pending (40), no pause
-            f.rgb("burst", np.roll(burst, i, axis=1))
-        sample()
+        def sample() -> float:
+            rss.append((time.monotonic() - t0, rss_mib(proc.pid)))
+            return rss[-1][1]
+
+        rss_first = _send_all(f, args, sample)
         report["send_s"] = time.monotonic() - t0
-        # 4. drain: everything received and nothing pending, then one more status
-        deadline = time.monotonic() + args.drain_timeout
-        while time.monotonic() < deadline and proc.poll() is None:
-            d = f.last_diag()
-            if (d.get("frames_pending") == "0"
-                    and int(d.get("frames_received", -1)) == f.images
-                    and f.refined_back >= int(d.get("frames_refined", 0))
-                    + int(d.get("frames_unrefined", 0)) - int(d.get("frames_live_only", 0))):
-                break
-            time.sleep(0.5)
-            sample()
-        time.sleep(2.0)
-        sample()
+        _drain(f, proc, args.drain_timeout, sample)
         alive = proc.poll() is None
         d = f.last_diag()
         report.update(_checks(f, d, alive, rss, rss_first, log_path))
@@ -503,6 +446,73 @@ def run(args: argparse.Namespace) -> dict:
     report["checks"]["clean_exit"] = report["exit_code"] == 0
     report["ok"] = all(report["checks"].values())
     return report
+
+
+def _send_all(f: Fuzzer, args: argparse.Namespace, sample) -> float:
+    """The script: frames before any CameraInfo, invalid parameter sets, hostile images and
+    CameraInfos, real windows, a burst; ``sample()`` the node's RSS between the parts. Returns
+    the RSS (MiB) after the first part."""
+    import numpy as np
+
+    npr = np.random.default_rng(args.seed)
+    # 1. before any CameraInfo: frames smaller than kitti.yaml's fallback principal point
+    for w, h in [(416, 128), (100, 50), (160, 48), (1242, 100), (300, 375)] * 2:
+        f.rgb("fallback_pp_outside", npr.integers(0, 255, (h, w, 3), dtype=np.uint8))
+        time.sleep(0.02)
+    f.set_param("fallback_intrinsics", "721.5377 721.5377 5000 172.854", True)
+    for _ in range(3):
+        f.rgb("live_cx_5000", npr.integers(0, 255, (375, 1242, 3), dtype=np.uint8))
+        time.sleep(0.02)
+    f.set_param("fallback_intrinsics", "721.5377 721.5377 609.5593 172.854", True)
+    rss_first = sample()
+    # 2. invalid parameter sets (and two valid ones)
+    for name, value in invalid_parameter_sets():
+        f.set_param(name, value, False)
+    f.set_param("refinement.steps", 3, True)
+    f.set_param("window_stride", 2, True)
+    sample()
+    _send_hostile(f, args.messages, npr, sample)
+    return rss_first
+
+
+def _send_hostile(f: Fuzzer, n: int, npr, sample) -> None:
+    """3. hostile images, CameraInfos, real windows, a burst (``n`` messages in all)."""
+    import numpy as np
+
+    budget = max(0, n - f.sent)
+    n_burst = max(10, budget * 15 // 100)
+    n_infos = max(10, budget * 12 // 100)
+    n_drive = 16
+    n_hostile = max(0, budget - n_burst - 2 * n_infos - 2 * n_drive)
+    for chunk in range(4):
+        hostile_images(f, n_hostile // 4 + (n_hostile % 4 if chunk == 3 else 0))
+        sample()
+        camera_infos(f, n_infos // 4 + (n_infos % 4 if chunk == 3 else 0))
+        sample()
+    f.wait_drained(60.0)  # the windows below get a queue of their own
+    real_windows(f, n_drive)
+    f.wait_drained(120.0)
+    sample()
+    burst = npr.integers(0, 255, (48, 160, 3), dtype=np.uint8)
+    for i in range(n_burst):  # far above max_pending (40), no pause
+        f.rgb("burst", np.roll(burst, i, axis=1))
+    sample()
+
+
+def _drain(f: Fuzzer, proc: subprocess.Popen, timeout: float, sample) -> None:
+    """4. drain: everything received and nothing pending, then one more status."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        d = f.last_diag()
+        if (d.get("frames_pending") == "0"
+                and int(d.get("frames_received", -1)) == f.images
+                and f.refined_back >= int(d.get("frames_refined", 0))
+                + int(d.get("frames_unrefined", 0)) - int(d.get("frames_live_only", 0))):
+            break
+        time.sleep(0.5)
+        sample()
+    time.sleep(2.0)
+    sample()
 
 
 def _checks(f: Fuzzer, d: dict[str, str], alive: bool, rss, rss_first, log_path) -> dict:

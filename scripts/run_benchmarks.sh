@@ -12,11 +12,10 @@
 #
 # GPU: on a generated 90-frame KITTI-size drive, the node's windows and its live output at
 # 10 Hz with the network on CUDA and the host held to 2 cores (taskset), the per-window time
-# line in live/results.json; SfM features in torch on CUDA against pycolmap's SIFT
-# (scripts/studies/compare_features.py); one GPU worker's time per sequence on a 3-drive split.
+# line in live/results.json; one GPU worker's time per sequence on a 3-drive split. (The SfM
+# features in torch against pycolmap's SIFT were a study: docs/decisions.md, "Studies".)
 # Without pycolmap in its Python (the lent GPU machines), a wheel in out/whl is installed to a
-# scratch folder first; out/data/hololens_000 (a few frames) is used by the feature comparison
-# when there.
+# scratch folder first.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -41,13 +40,7 @@ if [ "${1:-}" = "--gpu" ]; then
     "${PIN[@]}" "${CLI[@]}" benchmark "${D1[@]}" --params-file params/kitti.yaml \
         --set device=cuda --modes no_ttr node_online sfm_ttr_live --rate 10 --figure-frames 0 \
         --out "$OUT/live"
-    # 2. SfM features in torch on CUDA against pycolmap's SIFT, the same windows
-    SHARED_ARGS=()
-    [ -d out/data/hololens_000 ] && SHARED_ARGS=(--shared-data out/data --hololens-frames 15)
-    "$PY" scripts/studies/compare_features.py --device cuda "${SHARED_ARGS[@]}" \
-        --kitti-raw "$OUT/data/raw2" --kitti-gt "$OUT/data/gt2" \
-        --drive 2011_09_26_drive_0001_sync --out "$OUT/features_cuda.json"
-    # 3. one GPU worker's time per sequence: a 3-drive split, in process
+    # 2. one GPU worker's time per sequence: a 3-drive split, in process
     {
         for seed in 1 2 3; do
             echo "kitti 2011_09_26_drive_0001_sync raw=data/raw$seed gt=data/gt$seed name=b$seed"

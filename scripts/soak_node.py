@@ -47,11 +47,9 @@ REPO = Path(__file__).resolve().parents[1]
 #: Seconds per bucket of the report's ``rss_mib.max_per_30s``.
 RSS_BUCKET_S = 30.0
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
-
-from fuzz_node import rss_mib  # noqa: E402
 
 from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
+from sfm_ttr_ros.tools.process import rss_mib  # noqa: E402
 
 KITTI_W, KITTI_H = 1242, 375
 
@@ -272,15 +270,7 @@ def run(args: argparse.Namespace) -> dict:
     print(f"soak: rendering a {args.drive_frames}-frame {KITTI_W}x{KITTI_H} drive", flush=True)
     seq = make_sequence(seed=args.seed, domain="A", num_frames=args.drive_frames, width=KITTI_W,
                         height=KITTI_H)
-    # the node runs in the output folder: paths of the command made absolute first
-    exe = [str(Path(t).absolute()) if Path(t).exists() else t for t in shlex.split(args.exe)]
-    cmd = [*exe, "--ros-args", "--params-file", args.params_file]
-    cmd += node_arguments(list(args.set or []))
-    log_path = out / "refiner.log"
-    with open(log_path, "w") as log:
-        node_env = dict(kv.split("=", 1) for kv in args.node_env or [])
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=out,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1", **node_env})
+    cmd, proc, log_path = _start_node(args, out)
     if not args.clients_default_dds:  # the clients as a camera driver following the README
         from sfm_ttr_ros.ros import dds
         print(f"soak: clients' {dds.apply_profile()}", flush=True)
@@ -306,35 +296,8 @@ def run(args: argparse.Namespace) -> dict:
                 raise RuntimeError(f"the node did not come up; see {log_path}")
             time.sleep(0.2)
         c.t0 = t0 = time.monotonic()
-        cpu = cpu_times()
-        duration = args.minutes * 60.0
-        period = 1.0 / args.rate
-        next_rss = 0.0
-        stamp0 = 1_700_000_000 * 10**9
         print(f"soak: {args.minutes:g} min at {args.rate:g} Hz into {' '.join(cmd)}", flush=True)
-        while True:
-            now = time.monotonic() - t0
-            if now >= duration or proc.poll() is not None:
-                break
-            if now >= next_rss:
-                rss.append((now, rss_mib(proc.pid)))
-                next_rss += args.rss_period
-                node_live.append(node_sample(now, c.diag, cpu))
-                cpu = cpu_times()
-            loop, i = divmod(sent, len(seq.images))
-            rgb = seq.images[i]
-            if loop:  # a new pixel digest per loop: no prediction is reused across loops
-                rgb = rgb.copy()
-                rgb[0, 0, 0] = loop % 256
-            c.publish(rgb, seq.intrinsics, stamp0 + sent * int(period * 1e9))
-            sent += 1
-            if sent % int(60 * args.rate) == 0:
-                d = c.diag
-                print(f"  {now / 60:.1f} min: {sent} sent, RSS {rss[-1][1]:.0f} MiB, "
-                      f"{d.get('frames_refined')} refined, {d.get('frames_unrefined')} unrefined, "
-                      f"{d.get('frames_dropped')} dropped, {d.get('frames_pending')} pending",
-                      flush=True)
-            time.sleep(max(0.0, t0 + sent * period - time.monotonic()))
+        sent = _feed(args, c, proc, seq, rss, node_live)
         # drain
         drain_end = time.monotonic() + args.drain_timeout
         while time.monotonic() < drain_end and proc.poll() is None:
@@ -357,6 +320,56 @@ def run(args: argparse.Namespace) -> dict:
         close_client_and_node(c, proc, timeout=30)
     return _report(args, out, cmd, sent, alive, proc.returncode, d, rss, live, refined,
                    log_path, node_live)
+
+
+def _start_node(args: argparse.Namespace, out: Path) -> tuple[list[str], subprocess.Popen, Path]:
+    """(the node's command, its process, its log): started in the output folder (the command's
+    paths made absolute first)."""
+    exe = [str(Path(t).absolute()) if Path(t).exists() else t for t in shlex.split(args.exe)]
+    cmd = [*exe, "--ros-args", "--params-file", args.params_file]
+    cmd += node_arguments(list(args.set or []))
+    log_path = out / "refiner.log"
+    with open(log_path, "w") as log:
+        node_env = dict(kv.split("=", 1) for kv in args.node_env or [])
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=out,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1", **node_env})
+    return cmd, proc, log_path
+
+
+def _feed(args: argparse.Namespace, c, proc: subprocess.Popen, seq, rss: list, node_live: list
+          ) -> int:
+    """The looped drive at ``--rate`` for ``--minutes`` (or until the node ends), the node's RSS
+    and live figures sampled every ``--rss-period`` s; the frames sent."""
+    t0 = c.t0
+    cpu = cpu_times()
+    duration = args.minutes * 60.0
+    period = 1.0 / args.rate
+    next_rss = 0.0
+    stamp0 = 1_700_000_000 * 10**9
+    sent = 0
+    while True:
+        now = time.monotonic() - t0
+        if now >= duration or proc.poll() is not None:
+            return sent
+        if now >= next_rss:
+            rss.append((now, rss_mib(proc.pid)))
+            next_rss += args.rss_period
+            node_live.append(node_sample(now, c.diag, cpu))
+            cpu = cpu_times()
+        loop, i = divmod(sent, len(seq.images))
+        rgb = seq.images[i]
+        if loop:  # a new pixel digest per loop: no prediction is reused across loops
+            rgb = rgb.copy()
+            rgb[0, 0, 0] = loop % 256
+        c.publish(rgb, seq.intrinsics, stamp0 + sent * int(period * 1e9))
+        sent += 1
+        if sent % int(60 * args.rate) == 0:
+            d = c.diag
+            print(f"  {now / 60:.1f} min: {sent} sent, RSS {rss[-1][1]:.0f} MiB, "
+                  f"{d.get('frames_refined')} refined, {d.get('frames_unrefined')} unrefined, "
+                  f"{d.get('frames_dropped')} dropped, {d.get('frames_pending')} pending",
+                  flush=True)
+        time.sleep(max(0.0, t0 + sent * period - time.monotonic()))
 
 
 def node_sample(now: float, diag: dict, cpu_before: tuple[float, float]) -> tuple:
@@ -454,8 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=10.0, help="frames per second")
     ap.add_argument("--out", default="soak_out", help="folder for soak.json, soak.png, the log")
     ap.add_argument("--exe", default=str(Path(sys.executable).parent / "refiner"),
-                    help="the node's command (split like a shell line), e.g. "
-                    "'.venv/bin/python scripts/studies/heap_probe.py' for the heap probe")
+                    help="the node's command (split like a shell line)")
     ap.add_argument("--params-file", default=str(REPO / "params" / "kitti.yaml"))
     ap.add_argument("--set", dest="set", action="append", metavar="NAME=VALUE",
                     help="a node parameter over --params-file, as in sfm-ttr (repeatable)")

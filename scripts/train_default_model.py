@@ -136,25 +136,8 @@ def evaluate(model, domain: str, seeds: list[int], frames: int = 4) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--scenes", type=int, default=160, help="training scenes (domain A)")
-    ap.add_argument("--frames-per-scene", type=int, default=10)
-    ap.add_argument("--steps", type=int, default=1000)
-    ap.add_argument("--batch", type=int, default=6)
-    ap.add_argument("--lr", type=float, default=4e-4)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--cache", default="/tmp/sfm_ttr_train_cache")
-    ap.add_argument("--out", default="sfm_ttr_ros/core/models/weights")
-    ap.add_argument("--fp16", action=argparse.BooleanOptionalAction, default=True,
-                    help="store weights as float16 (half the size; loaded back as float32)")
-    args = ap.parse_args(argv)
-
-    torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
-    t0 = time.time()
+def render_dataset(args: argparse.Namespace, t0: float) -> list:
+    """The training scenes rendered (cached) by ``--workers`` processes; their files."""
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     seeds = [10_000 * (args.seed + 1) + i for i in range(args.scenes)]
@@ -165,10 +148,12 @@ def main(argv=None) -> int:
             paths.append(p)
             if (i + 1) % 20 == 0:
                 print(f"rendered {i + 1}/{len(jobs)} scenes ({time.time() - t0:.0f} s)", flush=True)
-    images, depths = load_dataset(paths)
-    t_data = time.time() - t0
-    print(f"dataset: {len(images)} frames {images.shape[1:3]} in {t_data:.0f} s", flush=True)
+    return paths
 
+
+def train(args: argparse.Namespace, images: np.ndarray, depths: np.ndarray):
+    """(the trained network, the final running loss): AdamW with a one-cycle schedule over
+    random batches, the disparity heads started near the data's typical depth."""
     model = MobileDepthNet(INPUT_SIZE, pretrained_encoder=True)
     # start the disparity heads near the data's typical depth (~10 m), not 0.2 m
     start_disp = (1 / 10.0 - 1 / model.max_depth) / (1 / model.min_depth - 1 / model.max_depth)
@@ -201,6 +186,35 @@ def main(argv=None) -> int:
         if (step + 1) % 50 == 0:
             print(f"step {step + 1}/{args.steps} loss {running:.4f} "
                   f"({time.time() - t1:.0f} s)", flush=True)
+    return model, running
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scenes", type=int, default=160, help="training scenes (domain A)")
+    ap.add_argument("--frames-per-scene", type=int, default=10)
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--batch", type=int, default=6)
+    ap.add_argument("--lr", type=float, default=4e-4)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--cache", default="/tmp/sfm_ttr_train_cache")
+    ap.add_argument("--out", default="sfm_ttr_ros/core/models/weights")
+    ap.add_argument("--fp16", action=argparse.BooleanOptionalAction, default=True,
+                    help="store weights as float16 (half the size; loaded back as float32)")
+    args = ap.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    t0 = time.time()
+    paths = render_dataset(args, t0)
+    images, depths = load_dataset(paths)
+    t_data = time.time() - t0
+    print(f"dataset: {len(images)} frames {images.shape[1:3]} in {t_data:.0f} s", flush=True)
+
+    t1 = time.time()
+    model, running = train(args, images, depths)
     t_train = time.time() - t1
 
     model.eval()
@@ -217,7 +231,7 @@ def main(argv=None) -> int:
     report = {
         "command": " ".join(["scripts/train_default_model.py", *sys.argv[1:]]),
         "args": vars(args),
-        "frames": int(n), "input_size": list(INPUT_SIZE), "data_seconds": round(t_data),
+        "frames": int(len(images)), "input_size": list(INPUT_SIZE), "data_seconds": round(t_data),
         "train_seconds": round(t_train), "final_loss": running, "metrics": metrics,
     }
     (out / "training_report.json").write_text(json.dumps(report, indent=2))

@@ -455,6 +455,12 @@ def test_run_takes_a_params_file_and_set(data, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["refined"] and len(summary["loss_history"]) == 3
     assert summary["frames"] == N_FRAMES and "metrics" in summary
+    # per_frame.csv written as the benchmark's (tools/report.write_per_frame_csv)
+    rows = list(csv.DictReader(open(out / "per_frame.csv")))
+    assert list(rows[0]) == ["index", "name", "no_ttr_abs_rel", "no_ttr_rmse", "no_ttr_refined",
+                             "sfm_ttr_abs_rel", "sfm_ttr_rmse", "sfm_ttr_refined"]
+    assert len(rows) == N_GT and all(r["no_ttr_refined"] == "0" for r in rows)
+    assert all(r["sfm_ttr_refined"] == "1" and float(r["sfm_ttr_abs_rel"]) > 0 for r in rows)
 
 
 def _write_png16(path: Path, depth_m: np.ndarray, scale: float = 256.0) -> None:

@@ -19,8 +19,8 @@ which the node counts).
   :data:`~sfm_ttr_ros.ros.names.DIAG_NAME`.
 
 Every message is built by msg_adapters. The node publishes what these return, in their order
-(each image before its CameraInfo, as image_transport's CameraPublisher); the speed benchmark
-(scripts/benchmark_speed.py) converts through the same functions. ``timings``, when given, adds
+(each image before its CameraInfo, as image_transport's CameraPublisher); ``sfm-ttr speed``
+(tools/benchmark/messages.py) converts through the same functions. ``timings``, when given, adds
 the seconds spent building each message under ``depth_image``, ``colored_image``,
 ``camera_info``, ``cloud``, ``pointcloud`` and ``diagnostics``.
 """

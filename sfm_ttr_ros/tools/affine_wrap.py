@@ -5,7 +5,7 @@ a_j in [0.5, 5] and a shift b_j in [0, 0.3·a_j] drawn at random PER FRAME: what
 Anything relative head promises and no more. It lets the affine path (per-frame
 scale-and-shift alignment, :mod:`sfm_ttr_ros.core.alignment.affine`) be compared with the paper's
 scale-only path on the same network and the same SfM (tests/test_affine_refinement.py,
-scripts/studies/affine_equivalence.py).
+docs/decisions.md, "Studies").
 
 A frame keeps its pair between prediction and refinement: it is recognised by the nearest
 per-channel mean of its network input among the images given at construction, not by an exact

@@ -77,17 +77,20 @@ def add_parameter_args(p: argparse.ArgumentParser, groups: tuple[str, ...],
                                 f"file's, else {param.default!r}]".replace("%", "%%"))
 
 
-def parameter_values(args: argparse.Namespace, default_file: Path | None = None
-                     ) -> tuple[Path | None, dict[str, Any]]:
+def parameter_values(args: argparse.Namespace, default_file: Path | None = None,
+                     overrides: list[str] | None = None) -> tuple[Path | None, dict[str, Any]]:
     """(the parameter file read, or None; the values): the file's (``--params-file``, else
-    ``default_file``), then the flags given, then ``--set``. A ``--model`` flag drops the
-    file's encoder, decoder and model paths and output kind (they belong to its model)."""
+    ``default_file``), then the flags given, then ``overrides`` (default: ``--set``). A
+    ``--model`` flag drops the file's encoder, decoder and model paths and output kind (they
+    belong to its model). The commands' one way of reading parameters (the file through
+:func:`sfm_ttr_ros.tools.benchmark.settings.read_params_file`, the reader the demo and the
+benchmark's defaults use too)."""
     path = Path(args.params_file) if args.params_file else default_file
     values: dict[str, Any] = {}
     if path is not None:
-        from sfm_ttr_ros.ros.names import NODE_NAME
+        from sfm_ttr_ros.tools.benchmark.settings import read_params_file
 
-        values.update(schema.read_params_file(path, NODE_NAME))
+        values.update(read_params_file(path))
     if getattr(args, "model", None) is not None:
         values["encoder_path"], values["decoder_path"] = "", ""
         values["model_path"], values["output_kind"] = "", ""
@@ -95,7 +98,7 @@ def parameter_values(args: argparse.Namespace, default_file: Path | None = None
         v = getattr(args, _dest(flag), None)
         if v is not None:
             values[name] = v
-    values.update(schema.parse_overrides(args.set or []))
+    values.update(schema.parse_overrides(args.set or [] if overrides is None else overrides))
     return path, values
 
 

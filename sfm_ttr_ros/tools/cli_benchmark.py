@@ -241,6 +241,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def add_commands(subparsers) -> None:
-    """Register ``benchmark`` and ``evaluate`` on the ``sfm-ttr`` sub-command parser."""
+    """Register ``benchmark``, its ``speed`` measurement and ``evaluate`` on the ``sfm-ttr``
+    sub-command parser."""
+    from sfm_ttr_ros.tools.cli_speed import add_speed_parser
+
     add_benchmark_parser(subparsers)
+    add_speed_parser(subparsers)
     add_evaluate_parser(subparsers)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import csv
 import json
 import time
 from pathlib import Path
@@ -148,26 +147,19 @@ def run_whole_sequence(seq, settings, out: str | Path, *, start: int = 0, max_fr
     if evals["before"].summary()["frames"]:
         full = {k: e.summary() for k, e in evals.items()}
         summary["metrics"] = {k: _plain(v) for k, v in full.items()}
-        write_per_frame(out / "per_frame.csv", full, res.refined)
+        write_per_frame(out / "per_frame.csv", frames, full, res.refined)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
 
 
-def write_per_frame(path: Path, full: dict, refined: bool) -> None:
-    """abs rel and RMSE of every evaluated frame before and after (the columns of the
-    benchmark's per_frame.csv, methods ``no_ttr`` and ``sfm_ttr``)."""
-    rows = {k: {r["name"]: r for r in v["per_frame"]} for k, v in full.items()}
-    cols = ["name"]
-    for method in METHODS.values():
-        cols += [f"{method}_abs_rel", f"{method}_rmse", f"{method}_refined"]
-    with open(path, "w", newline="") as fh:
-        wr = csv.writer(fh)
-        wr.writerow(cols)
-        for name in rows["before"]:
-            row = [name]
-            for key in METHODS:
-                r = rows[key].get(name, {})
-                row += [f"{r['abs_rel']:.6f}" if "abs_rel" in r else "",
-                        f"{r['rmse']:.6f}" if "rmse" in r else "",
-                        int(bool(refined) and key == "after")]
-            wr.writerow(row)
+def write_per_frame(path: Path, frames, full: dict, refined: bool) -> None:
+    """abs rel and RMSE of every evaluated frame before and after, methods ``no_ttr`` and
+    ``sfm_ttr`` (:func:`~sfm_ttr_ros.tools.report.write_per_frame_csv`, the benchmark's
+    per_frame.csv)."""
+    from sfm_ttr_ros.tools.report import write_per_frame_csv
+
+    index_of = {f.name: f.index for f in frames}
+    rows = {METHODS[key]: {index_of[r["name"]]: {**r, "refined": bool(refined) and key == "after"}
+                           for r in v["per_frame"]} for key, v in full.items()}
+    evaluated = [(index_of[r["name"]], r["name"]) for r in full["before"]["per_frame"]]
+    write_per_frame_csv(path, evaluated, rows, columns=("abs_rel", "rmse", "refined"))

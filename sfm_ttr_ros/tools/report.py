@@ -3,8 +3,9 @@ evaluate`` write, written one way wherever they report the same thing.
 
 * ``results.json``: :func:`write_json` (strict JSON: NaN / inf as null, numpy scalars and arrays
   as numbers and lists, paths as strings; indented by 2, newline at the end);
-* ``results.md``: :func:`metric_table` (the KITTI metrics, one row per method, 4 decimals) and
-  :func:`gain_table` (the relative gains against a baseline, in %);
+* ``results.md``: :func:`metric_table` (the KITTI metrics, one row per method, 4 decimals),
+  :func:`gain_table` (the relative gains against a baseline, in %) and :func:`markdown_table`
+  (any other table: ``sfm-ttr speed``'s);
 * ``per_frame.csv``: :func:`write_per_frame_csv` (``index``, ``name``, then per method
   ``<method>_abs_rel``, ``<method>_rmse`` and whatever else it knows per frame).
 """
@@ -59,6 +60,13 @@ def metric_table(results: Mapping[str, Mapping[str, Any]], decimals: int = 4) ->
         rows[method] = {k: (math.nan if r.get(k) is None else r.get(k)) for k in METRICS}
         rows[method]["frames"] = r.get("frames")
     return format_table(rows, decimals=decimals)
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
+    """Markdown lines of a table: ``header``, the first column left-aligned and the others
+    right-aligned, one line per row (cells as given, already formatted)."""
+    return ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1),
+            *("| " + " | ".join(str(c) for c in row) + " |" for row in rows)]
 
 
 def format_gain(v) -> str:

@@ -38,20 +38,19 @@ camera, one label per frame (:func:`make_hard_sequence`, :data:`DEFAULT_HARD_SEG
 Modules, one job each: :mod:`.scene` (parameters, domains, camera path),
 :mod:`.textures` (procedural textures), :mod:`.materials` (mip-mapped atlases and their
 lookup), :mod:`.geometry` (the street's objects), :mod:`.raycast` (intersections),
-:mod:`.shading`, :mod:`.render` (frames and drives), :mod:`.scenario` (segment drives).
+:mod:`.shading`, :mod:`.render` (frames and drives; :func:`street_frames` a long drive one
+frame at a time), :mod:`.scenario` (segment drives).
 """
 
 from __future__ import annotations
 
-from sfm_ttr_ros.data.synthetic.geometry import _build_scene
 from sfm_ttr_ros.data.synthetic.materials import _materials
 from sfm_ttr_ros.data.synthetic.render import (
     SyntheticSequence,
-    _finish,
-    _render,
     make_sequence,
     render_frames,
     render_sequence,
+    street_frames,
 )
 from sfm_ttr_ros.data.synthetic.scenario import (
     DEFAULT_HARD_SEGMENTS,
@@ -75,8 +74,7 @@ from sfm_ttr_ros.data.synthetic.scene import (
     scene_intrinsics,
 )
 
-# the private names are the speed script's chunked renderer (scripts/benchmark_speed.py) and
-# the texture test's (tests/test_synthetic.py)
+# the private name is the texture test's (tests/test_synthetic.py)
 __all__ = [
     "DEFAULT_HARD_SEGMENTS",
     "DOMAINS",
@@ -88,10 +86,7 @@ __all__ = [
     "Segment",
     "SyntheticSequence",
     "Vehicle",
-    "_build_scene",
-    "_finish",
     "_materials",
-    "_render",
     "as_segments",
     "camera_pose",
     "make_hard_sequence",
@@ -103,4 +98,5 @@ __all__ = [
     "render_sequence",
     "sample_scene_params",
     "scene_intrinsics",
+    "street_frames",
 ]

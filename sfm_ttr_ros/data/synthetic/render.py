@@ -6,7 +6,7 @@ and street drives along the path (:func:`render_sequence`, :func:`make_sequence`
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -216,6 +216,25 @@ def render_sequence(
     poses = [camera_pose(params, start_offset + i * params.speed) for i in range(num_frames)]
     return render_frames(params, poses, width, height, seed, blur_sigma=blur_sigma,
                          noise_std=noise_std, start_stamp=start_stamp)
+
+
+def street_frames(params: SceneParams, num_frames: int, width: int = 1242, height: int = 375,
+                  seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray, float]]:
+    """The frames of :func:`render_sequence` (same images, depths and 10 Hz stamps), one
+    ``(image, depth, stamp)`` at a time, along ONE street laid out for the whole drive: a long
+    drive without holding more than one frame. (``render_sequence(start_offset=...)`` lays a
+    street out from its first frame's cell, so drives rendered piece by piece that way would
+    not join.) The intrinsics are ``scene_intrinsics(params, width, height)``."""
+    if num_frames < 1:
+        raise InputError(f"num_frames must be >= 1, got {num_frames}")
+    intr = scene_intrinsics(params, int(width), int(height))
+    z_end = (num_frames - 1) * params.speed
+    scene = _build_scene(params, -40.0, z_end + params.max_depth * 1.5 + 20.0)
+    rng = np.random.default_rng([int(seed), 4242])
+    for i in range(num_frames):
+        R_wc, C = camera_pose(params, i * params.speed)
+        img, depth = _render(scene, R_wc, C, intr)
+        yield _finish(img, params, rng, 0.0, 0.0), depth, float(KITTI_START_STAMP + i / FRAME_RATE)
 
 
 def make_sequence(

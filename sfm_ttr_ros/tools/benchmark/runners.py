@@ -20,7 +20,9 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator, mean_over_frames
+from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.metric.scale import in_metres
+from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream.windows import (
     FrameOutput,
@@ -48,6 +50,24 @@ LOSS_MODES = ("ph_ttr_online", "hybrid_online", "ph_ttr_offline", "hybrid_offlin
 MODES = (*DEFAULT_MODES, "sfm_ttr_live", *LOSS_MODES)
 #: The top-level stages of a window (WindowResult.timings also holds ``sfm_*`` sub-stages).
 STAGES = ("predict_before", "sfm", "align", "refine", "predict_after")
+
+
+@dataclasses.dataclass
+class StreamTaps:
+    """What a caller measures around the node's stream in :func:`run_online` (the speed
+    measurement, :mod:`.speed`), none of it changing what the stream does: the window pipeline
+    it builds (``make_ttr``), sinks the stream calls inside its push (``on_output``,
+    ``on_window``), the node's subscription callback timed with each push (``prepare`` outside
+    the clock returns what ``receive`` takes inside it), ``attach`` once the stream exists (before
+    the warm-up), and ``pushed`` with the seconds of every push and of the final flush."""
+
+    make_ttr: Callable[[Any, TTRConfig], SfmTTR] = SfmTTR
+    on_output: Callable[[FrameOutput], None] | None = None
+    on_window: Callable[[WindowStats], None] | None = None
+    prepare: Callable[[Frame], Any] | None = None
+    receive: Callable[[Frame, Any], None] | None = None
+    attach: Callable[[StreamProcessor, SfmTTR], None] | None = None
+    pushed: Callable[[float], None] | None = None
 
 
 class ModeRun:
@@ -192,12 +212,14 @@ def feed_odometry(ttr: SfmTTR, seq: ImageSequence, indices: Sequence[int],
 
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                cfg: TTRConfig, settings: StreamSettings, progress,
-               rate: float | None = None) -> None:
+               rate: float | None = None, taps: StreamTaps | None = None) -> None:
     """Every frame through the node's :class:`StreamProcessor`, synchronously (each frame
     waits for the one before: the windows' accuracy at any speed), or with ``rate`` (Hz) in
     virtual time: frames arrive at that rate while the worker spends its measured time on each
-    (:func:`_push_in_virtual_time`), as the node's keyframe rule sees a camera."""
-    ttr = SfmTTR(model, copy.deepcopy(cfg))
+    (:func:`_push_in_virtual_time`), as the node's keyframe rule sees a camera. ``taps``: what
+    a caller measures around the pushes (:class:`StreamTaps`)."""
+    taps = taps or StreamTaps()
+    ttr = taps.make_ttr(model, copy.deepcopy(cfg))
     dropped: list[tuple[Any, str]] = []
     windows: dict[str, Any] = {"windows": 0, "windows_refined": 0, "window_log": []}
 
@@ -217,6 +239,8 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             progress(f"{run.mode}: window {ws.index} (frames {span}, {ws.new_frames} new) "
                      f"{what}; {ws.registered}/{len(ws.names)} registered, {ws.points} points, "
                      f"{secs:.1f} s")
+        if taps.on_window is not None:
+            taps.on_window(ws)
 
     def on_drop(frame, key: str, message: str) -> None:
         dropped.append((frame, key))
@@ -230,23 +254,23 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             run.add(o.frame.index, depth, o.refined, o.reason_key)
 
     feed_odometry(ttr, seq, indices, rate)
-    stream = StreamProcessor(ttr, copy.deepcopy(settings), on_window=on_window,
-                             on_drop=on_drop, logger=log)
+    stream = StreamProcessor(ttr, copy.deepcopy(settings), on_output=taps.on_output,
+                             on_window=on_window, on_drop=on_drop, logger=log)
+    if taps.attach is not None:
+        taps.attach(stream, ttr)
     # the node's worker pays these before its first frame (StreamRefiner.start): not timed
     run.extra["warm_up_s"] = ttr.warm_up()
     try:
         if rate is None:
-            for i in indices:
-                f = seq.frame(i)
-                t0 = time.perf_counter()
-                outs = stream.push(f, seq.intrinsics)
-                run.seconds += time.perf_counter() - t0
-                take(outs)
+            _push_in_order(stream, seq, indices, take, run, taps)
         else:
             _push_in_virtual_time(stream, seq, indices, rate, take, run)
         t0 = time.perf_counter()
         outs = stream.flush()
-        run.seconds += time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        run.seconds += dt
+        if taps.pushed is not None:
+            taps.pushed(dt)
         take(outs)
         # Frames the stream dropped were never published by the node; they still count, with
         # the latest weights' prediction, under their drop reason.
@@ -261,6 +285,24 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra.update(windows)
     run.extra["stream_counters"] = counters
     run.extra["metric"] = ttr.metric_status()
+
+
+def _push_in_order(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int], take,
+                   run: ModeRun, taps: StreamTaps) -> None:
+    """Each frame pushed once the one before is done, each push timed (with the ``taps``'
+    ``receive``, as the node's subscription callback comes before its push)."""
+    for i in indices:
+        f = seq.frame(i)
+        message = taps.prepare(f) if taps.prepare is not None else None
+        t0 = time.perf_counter()
+        if taps.receive is not None:
+            taps.receive(f, message)
+        outs = stream.push(f, seq.intrinsics)
+        dt = time.perf_counter() - t0
+        run.seconds += dt
+        if taps.pushed is not None:
+            taps.pushed(dt)
+        take(outs)
 
 
 def _push_in_virtual_time(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int],
@@ -318,7 +360,7 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                 depths = ttr.predict([f.image for f in frames])
                 run.seconds += time.perf_counter() - t0
                 for f, d in zip(frames, depths, strict=True):
-                    run.add(f.index, d, False, "window_error")
+                    run.add(f.index, d, False, Unrefined.WINDOW_ERROR)
                 info.append({"frames": len(frames), "refined": False, "reason": msg})
                 continue
             run.seconds += time.perf_counter() - t0

@@ -30,7 +30,9 @@ def default_params_file(name: str = PARAMS_FILE) -> Path:
 
 
 def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
-    """:func:`sfm_ttr_ros.core.params.read_params_file` for the refiner node."""
+    """:func:`sfm_ttr_ros.core.params.read_params_file` for the refiner node: the tools' one
+    reader of parameter files (``sfm-ttr run`` / ``benchmark`` / ``speed`` through
+    :func:`~sfm_ttr_ros.tools.cli_args.parameter_values`, the demo, the benchmark's defaults)."""
     return schema.read_params_file(path, node_name)
 
 

@@ -88,7 +88,7 @@ def window_timeline_figure(abs_rel: Mapping[str, Mapping[int, float]],
             cv2.rectangle(img, (x0, y), (x1, y + strip - 4), _outcome_colour(w), -1)
             cv2.rectangle(img, (x0, y), (x1, y + strip - 4), (90, 90, 90), 1)
             if not w.get("refined"):
-                key = str(w.get("reason_key", "")).replace("check_", "").replace("_by_check", "")
+                key = str(w.get("reason_key", "")).replace("check_", "")
                 cv2.putText(img, key[: max(1, (x1 - x0) // 6)], (x0 + 2, y + 12), _FONT, 0.3,
                             (0, 0, 0), 1, cv2.LINE_AA)
         y += strip
