@@ -106,7 +106,7 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics  # noqa: E402
 from sfm_ttr_ros.core.models.registry import ModelConfig, build_model, resolve_device  # noqa: E402
 from sfm_ttr_ros.core.params import TARGETS, build, parse_overrides  # noqa: E402
 from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS  # noqa: E402
-from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
+from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult  # noqa: E402
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor  # noqa: E402
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics  # noqa: E402
 from sfm_ttr_ros.core.stream.windows import (  # noqa: E402
@@ -406,9 +406,9 @@ class Publisher:
         camera = self.camera(Intrinsics(1.0, 1.0, 0.0, 0.0, shape[1], shape[0]))
         for msg in self._outputs.frame_messages(FrameOutput(f, d, False), camera).values():
             self._send(msg)
-        cloud = WindowStats(index=0, names=[f.name], new_frames=1, refined=True, cloud_frame=f,
-                            cloud_xyz=np.zeros((1, 3), np.float32),
-                            cloud_error=np.zeros(1, np.float32))
+        cloud = WindowStats(index=0, new_frames=1, cloud_frame=f, result=WindowResult(
+            [f.name], {}, {}, refined=True, cloud_frame=f.name,
+            cloud_xyz=np.zeros((1, 3), np.float32), cloud_error=np.zeros(1, np.float32)))
         for msg in self._outputs.window_messages(cloud).values():
             self._send(msg)
         self._send(self._outputs.diagnostics_message(Status("ok", "", {"a": 1}), 0.0))
