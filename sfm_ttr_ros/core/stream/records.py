@@ -5,13 +5,17 @@ through, with what only the stream knows beside it)."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from sfm_ttr_ros.core.alignment.scale import AlignmentResult
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
+from sfm_ttr_ros.core.refinement.encoder import RefinementResult
 
 _NAN = float("nan")
 
@@ -43,6 +47,35 @@ def unrefined_result(names: list[str], key: Unrefined, reason: str) -> WindowRes
     return WindowResult(names, {}, {}, refined=False, reason=reason, reason_key=key)
 
 
+def _read(name: str, doc: str = "") -> property:
+    """``WindowStats.<name>``: the result's field of that name."""
+    return property(lambda self: getattr(self.result, name), doc=doc)
+
+
+def _stage(stage: str, read: Callable[[Any], Any], default: Any, doc: str = "") -> property:
+    """A figure of one stage's record in the result (``sfm``, ``refinement``, ``check``,
+    ``metric``): ``read`` of it, ``default`` when the window did not reach that stage."""
+    def get(self: WindowStats) -> Any:
+        record = getattr(self.result, stage)
+        return default if record is None else read(record)
+    return property(get, doc=doc)
+
+
+def _inliers(a: AlignmentResult | None) -> tuple[float, int]:
+    """(RANSAC inlier ratio, supervision points) of an alignment ((NaN, 0): none)."""
+    if a is None or not a.ransac_inliers.size:
+        return _NAN, 0
+    return float(np.mean(a.ransac_inliers)), int(a.selected.sum())
+
+
+def _step_mode(r: RefinementResult) -> str:
+    """How the steps ran: "eager", "static" or "graph", with the reason after a colon when it
+    is not "graph" ("" = no step ran)."""
+    if not r.steps_done:
+        return ""
+    return f"{r.step_mode}: {r.step_mode_reason}" if r.step_mode_reason else r.step_mode
+
+
 @dataclass
 class WindowStats:
     """What one window did (diagnostics, the node's cloud, the benchmark's windows).
@@ -70,19 +103,6 @@ class WindowStats:
                                    timings=dict(result.timings))
         return cls(index, new_frames, kept, steps, started_at, cloud_frame=cloud_frame)
 
-    # -- the outcome ---------------------------------------------------------------------------
-    @property
-    def names(self) -> list[str]:
-        return self.result.names
-
-    @property
-    def refined(self) -> bool:
-        return self.result.refined
-
-    @property
-    def ok(self) -> bool:
-        return self.refined
-
     @property
     def reason_key(self) -> Unrefined | None:
         """What is counted for the window's frames when it was not refined (None when it was)."""
@@ -93,88 +113,28 @@ class WindowStats:
         """Why the window was not refined, for people ("" when it was)."""
         return "" if self.refined else self.result.reason
 
-    # -- SfM -----------------------------------------------------------------------------------
-    @property
-    def registered(self) -> int:
-        return self.result.sfm.num_registered if self.result.sfm is not None else 0
-
-    @property
-    def points(self) -> int:
-        return self.result.sfm.num_points if self.result.sfm is not None else 0
-
-    @property
-    def mapping_attempts(self) -> int:
-        """Runs of the incremental mapper (``sfm.mapping_attempts``)."""
-        return len(self.result.sfm.attempts) if self.result.sfm is not None else 0
-
-    @property
-    def reprojection_error(self) -> float:
-        """Mean, px, of the reconstruction kept."""
-        return self.result.sfm.reprojection_error if self.result.sfm is not None else _NAN
-
-    # -- alignment and refinement --------------------------------------------------------------
-    @property
-    def inlier_ratio(self) -> float:
-        a = self.result.alignment
-        return float(np.mean(a.ransac_inliers)) if a is not None and a.ransac_inliers.size \
-            else _NAN
-
-    @property
-    def selected_points(self) -> int:
-        a = self.result.alignment
-        return int(a.selected.sum()) if a is not None and a.ransac_inliers.size else 0
-
-    @property
-    def scale(self) -> float:
-        return self.result.scale
-
-    @property
-    def loss_before(self) -> float:
-        return self.result.loss_before
-
-    @property
-    def loss_after(self) -> float:
-        return self.result.loss_after
-
-    @property
-    def steps_done(self) -> int:
-        r = self.result.refinement
-        return r.steps_done if r is not None else 0
-
-    @property
-    def step_mode(self) -> str:
-        """How the steps ran (``RefinementResult.step_mode``): "eager", "static" or "graph",
-        with the reason after a colon when it is not "graph" ("" = no step ran)."""
-        r = self.result.refinement
-        if r is None or not r.steps_done:
-            return ""
-        return f"{r.step_mode}: {r.step_mode_reason}" if r.step_mode_reason else r.step_mode
-
-    # -- checks, metric scale, timings, cloud --------------------------------------------------
-    @property
-    def unsupported_change(self) -> float:
-        """Share of the unsupported pixels moved (the check after refining)."""
-        return self.result.check.unsupported_change if self.result.check is not None else _NAN
-
-    @property
-    def metric_estimate(self) -> float:
-        """Metres per network unit of the window's own estimate (NaN: none; metric_reason
-        says why)."""
-        return self.result.metric.k if self.result.metric is not None else _NAN
-
-    @property
-    def metric_reason(self) -> str:
-        return self.result.metric.reason if self.result.metric is not None else ""
-
-    @property
-    def timings(self) -> dict[str, float]:
-        return self.result.timings
-
-    @property
-    def cloud_xyz(self) -> np.ndarray:
-        """The sparse cloud in :attr:`cloud_frame`'s optical frame, network units."""
-        return self.result.cloud_xyz
-
-    @property
-    def cloud_error(self) -> np.ndarray:
-        return self.result.cloud_error
+    names = _read("names")
+    refined = _read("refined")
+    ok = _read("refined", "Whether the window was refined.")
+    scale = _read("scale", "ŝ of the scale alignment (Eq. 4).")
+    loss_before = _read("loss_before")
+    loss_after = _read("loss_after")
+    timings = _read("timings")
+    cloud_xyz = _read("cloud_xyz", "The sparse cloud in cloud_frame's optical frame.")
+    cloud_error = _read("cloud_error")
+    registered = _stage("sfm", lambda sfm: sfm.num_registered, 0)
+    points = _stage("sfm", lambda sfm: sfm.num_points, 0)
+    mapping_attempts = _stage("sfm", lambda sfm: len(sfm.attempts), 0,
+                              "Runs of the incremental mapper (sfm.mapping_attempts).")
+    reprojection_error = _stage("sfm", lambda sfm: sfm.reprojection_error, _NAN,
+                                "Mean, px, of the reconstruction kept.")
+    inlier_ratio = property(lambda self: _inliers(self.result.alignment)[0])
+    selected_points = property(lambda self: _inliers(self.result.alignment)[1])
+    steps_done = _stage("refinement", lambda r: r.steps_done, 0)
+    step_mode = _stage("refinement", _step_mode, "", _step_mode.__doc__)
+    unsupported_change = _stage("check", lambda c: c.unsupported_change, _NAN,
+                                "Share of the unsupported pixels moved (the check after).")
+    metric_estimate = _stage("metric", lambda m: m.k, _NAN,
+                             "Metres per network unit of the window's own estimate (NaN: "
+                             "none; metric_reason says why).")
+    metric_reason = _stage("metric", lambda m: m.reason, "")
