@@ -10,7 +10,8 @@ stream) and the accounting of every frame are written once, in docs/node.md, "Ho
 submit + process everything queued, for synchronous callers (benchmark, tests). The parts:
 :mod:`.settings`, :mod:`.records` (what comes out), :mod:`.frame_queue` (the only part two
 threads share), :mod:`.ledger` (the counters), :mod:`.admission` (the per-frame rules),
-:mod:`.keyframes`; this module schedules the windows and the SfM begun ahead of them.
+:mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.publisher` (outputs, counted); this module
+schedules the windows, skips them under overload and begins the next one's SfM ahead.
 """
 
 from __future__ import annotations
