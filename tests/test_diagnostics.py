@@ -8,8 +8,11 @@ import pytest
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import Unrefined
+from sfm_ttr_ros.core.pipeline import WindowResult
+from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
-from sfm_ttr_ros.core.stream.windows import StreamProcessor, WindowStats
+from sfm_ttr_ros.core.stream.records import WindowStats
+from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
 INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
 FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_dropped",
@@ -110,11 +113,13 @@ def test_depth_without_camera_info_is_counted_per_output_and_warned_once(stream)
 
 def test_the_last_window_is_reported_with_its_timings(stream):
     diag = StreamDiagnostics(stream)
-    stream.windows.append(WindowStats(
-        index=4, names=["a", "b", "c"], new_frames=3, refined=False, reason_key="sfm_failed",
-        reason="SfM failed: too few matches", registered=1, points=0, steps=5,
-        mapping_attempts=2, reprojection_error=0.25,
-        timings={"sfm": 1.25, "predict_before": 0.5}))
+    one = np.ones(1)
+    registered = FrameObservations("a", np.zeros((1, 2), np.float32), one, one * 0.25, one,
+                                   np.zeros(1, np.int64), np.eye(4))
+    sfm = SfmResult(False, "too few matches", 3, frames={"a": registered}, attempts=[{}, {}])
+    stream.windows.append(WindowStats(index=4, new_frames=3, steps=5, result=WindowResult(
+        ["a", "b", "c"], {}, {}, refined=False, reason="SfM failed: too few matches",
+        reason_key="sfm_failed", sfm=sfm, timings={"sfm": 1.25, "predict_before": 0.5})))
     status = diag.status()
     assert status.level == "warn"
     assert status.message == "last window not refined: SfM failed: too few matches"
@@ -125,7 +130,8 @@ def test_the_last_window_is_reported_with_its_timings(stream):
     assert (v["last_window.mapping_attempts"], v["last_window.reprojection_error_px"]) == (2, 0.25)
     assert v["last_window.time.sfm_s"] == 1.25 and v["last_window.time.predict_before_s"] == 0.5
     assert list(v)[-2:] == ["last_window.time.sfm_s", "last_window.time.predict_before_s"]
-    stream.windows.append(WindowStats(index=5, names=["c", "d"], new_frames=1, refined=True))
+    stream.windows.append(WindowStats(index=5, new_frames=1,
+                                      result=WindowResult(["c", "d"], {}, {}, refined=True)))
     assert diag.status() == Status("ok", "0 refined, 0 window(s) ok", diag.values())
 
 

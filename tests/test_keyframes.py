@@ -12,7 +12,8 @@ from test_stream import ScriptedTTR, check_accounting
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector, keyframe_interval
-from sfm_ttr_ros.core.stream.windows import StreamProcessor, StreamSettings
+from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
 RNG = np.random.default_rng(0)
 IMAGE = RNG.integers(0, 255, (24, 32, 3), np.uint8)

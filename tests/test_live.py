@@ -324,7 +324,7 @@ def test_the_window_worker_runs_its_own_openmp_team(threads):
     faster windows with 1 thread on 2 cores; the caller's team size is untouched."""
     from sfm_ttr_ros.core import threads as openmp
     from sfm_ttr_ros.core.stream.refiner import StreamRefiner
-    from sfm_ttr_ros.core.stream.windows import StreamSettings
+    from sfm_ttr_ros.core.stream.settings import StreamSettings
 
     if openmp.runtime() is None:
         pytest.skip("no OpenMP runtime in this torch")
@@ -372,7 +372,7 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     window_run; returns the refiner, the previews it served and the start-up prediction."""
     from sfm_ttr_ros.core.frames import Intrinsics
     from sfm_ttr_ros.core.stream.refiner import StreamRefiner
-    from sfm_ttr_ros.core.stream.windows import StreamSettings
+    from sfm_ttr_ros.core.stream.settings import StreamSettings
 
     cfg = TTRConfig(weight_policy="reset", min_supervision_points=10)
     cfg.refinement.steps, cfg.refinement.lr = 10, lr

@@ -12,8 +12,9 @@ from std_msgs.msg import Header  # noqa: E402
 
 from msg_adapters import camera_info_msg, image_to_numpy, pointcloud2_to_numpy  # noqa: E402
 from sfm_ttr_ros.core.frames import Frame, Intrinsics  # noqa: E402
+from sfm_ttr_ros.core.pipeline import WindowResult  # noqa: E402
 from sfm_ttr_ros.core.stream.live import LiveOutput  # noqa: E402
-from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats  # noqa: E402
+from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats  # noqa: E402
 from sfm_ttr_ros.ros import names, outputs  # noqa: E402
 from sfm_ttr_ros.ros.camera import CameraSource  # noqa: E402
 
@@ -92,8 +93,8 @@ def test_a_window_gives_its_cloud_in_the_newest_registered_frame():
     cloud_frame = Frame(index=3, image=np.zeros((4, 6, 3), np.uint8), header=header(9, "cam"))
     xyz = np.array([[0.0, 0.0, 1.0], [1.0, 2.0, 3.0]], np.float32)
     err = np.array([0.5, 1.5], np.float32)
-    stats = WindowStats(index=1, names=["a", "b"], new_frames=2, refined=True,
-                        cloud_frame=cloud_frame, cloud_xyz=xyz, cloud_error=err)
+    stats = WindowStats(index=1, new_frames=2, cloud_frame=cloud_frame, result=WindowResult(
+        ["a", "b"], {}, {}, refined=True, cloud_frame="b", cloud_xyz=xyz, cloud_error=err))
     msgs = outputs.window_messages(stats, points=True)
     assert list(msgs) == [names.POINTS_TOPIC]
     cloud = msgs[names.POINTS_TOPIC]
@@ -103,5 +104,5 @@ def test_a_window_gives_its_cloud_in_the_newest_registered_frame():
     np.testing.assert_array_equal(pts["reprojection_error"], err)
     assert outputs.window_messages(stats, points=False) == {}
     # no cloud (the window did not reach refinement): nothing to publish
-    empty = WindowStats(index=2, names=["a"], new_frames=1, refined=False)
+    empty = WindowStats(index=2, new_frames=1, result=WindowResult(["a"], {}, {}, False))
     assert outputs.window_messages(empty) == {}

@@ -17,12 +17,10 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
-from sfm_ttr_ros.core.stream.windows import (
-    RELEASED_IMAGE,
-    FrameOutput,
-    StreamProcessor,
-    StreamSettings,
-)
+from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE
+from sfm_ttr_ros.core.stream.records import FrameOutput
+from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
 W, H = 64, 32
 INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)

@@ -38,7 +38,7 @@ class Unrefined(_Outcome):
     CHECK_PARALLAX = "check_parallax"
     CHECK_SCALE_JUMP = "check_scale_jump"
     CHECK_UNSUPPORTED_CHANGE = "check_unsupported_change"
-    # -- the stream passed the frame on (core/stream/windows.py)
+    # -- the stream passed the frame on (core/stream/)
     NOT_KEYFRAME = "not_keyframe"
     STALE = "stale"
     OVERLOAD = "overload"

@@ -123,7 +123,7 @@ class StreamDiagnostics:
             # unrefined frames ~/depth already carried, not sent again (republish_unrefined off)
             "frames_live_only": c["live_only"],
             # among those: queued frames whose image the backlog bound released
-            # (core/stream/windows.py)
+            # (core/stream/frame_queue.py)
             "frames_backlog_released": c["backlog_released"],
             # ~/depth_refined images published without a CameraInfo beside them
             "frames_without_camera_info": self.without_camera_info["refined"],

@@ -8,7 +8,7 @@ the worker keeps up with every frame when stride·Δ ≥ T (2 CPU cores, KITTI-s
 * ``newest`` (the default): windows of consecutive frames taken from the NEWEST frames. A
   queued frame is **stale** when the frames queued after it already span the next window,
   (newest stamp − its stamp) ≥ window_size·max(min_keyframe_interval_s, frame interval), or
-  when the queue, full, took its image (core/stream/windows.py, back-pressure): it is
+  when the queue, full, took its image (core/stream/frame_queue.py, back-pressure): it is
   skipped, and the keyframes collected before it leave the window being filled, so that every
   window covers the latest seconds of the stream and the worker is never more than a window
   behind. A camera the windows keep up with loses no frame: at 1 Hz nothing changes;

@@ -38,13 +38,10 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.refinement.encoder import warm_up_optimiser
 from sfm_ttr_ros.core.stream.live import WARM_UP_WAIT_S, LiveOutput, LiveServer
+from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats
 from sfm_ttr_ros.core.stream.serving import ServingModel
-from sfm_ttr_ros.core.stream.windows import (
-    FrameOutput,
-    StreamProcessor,
-    StreamSettings,
-    WindowStats,
-)
+from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
 #: Windows whose serving times :attr:`StreamRefiner.served_at` keeps.
 SERVED_HISTORY = 1000

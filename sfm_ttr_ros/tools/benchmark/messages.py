@@ -15,6 +15,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS
+from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
 
@@ -108,9 +109,9 @@ class MessageCost:
         self.receive(f, msg)
         for m in self._outputs.frame_messages(FrameOutput(f, d, False), f.camera).values():
             self._send(m)
-        cloud = WindowStats(index=0, names=[f.name], new_frames=1, refined=True, cloud_frame=f,
-                            cloud_xyz=np.zeros((1, 3), np.float32),
-                            cloud_error=np.zeros(1, np.float32))
+        cloud = WindowStats(index=0, new_frames=1, cloud_frame=f, result=WindowResult(
+            [f.name], {}, {}, refined=True, cloud_frame=f.name,
+            cloud_xyz=np.zeros((1, 3), np.float32), cloud_error=np.zeros(1, np.float32)))
         for m in self._outputs.window_messages(cloud).values():
             self._send(m)
         self._send(self._outputs.diagnostics_message(Status("ok", "", {"a": 1}), 0.0))

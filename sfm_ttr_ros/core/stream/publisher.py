@@ -1,0 +1,125 @@
+"""How frames leave the stream: each :class:`~.records.FrameOutput` counted (the
+:class:`~.frame_queue.FrameQueue`'s ledger) before it goes to the sink, a frame no window refines
+predicted again with the latest weights unless the live output served it (docs/node.md, "How
+frames flow", rule 5), each dropped frame counted and reported (a throttled warning, the
+sink)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from sfm_ttr_ros.core.frames import Frame
+from sfm_ttr_ros.core.metric.scale import in_metres
+from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
+from sfm_ttr_ros.core.pipeline import SfmTTR, WindowResult
+from sfm_ttr_ros.core.stream.admission import Verdict
+from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE, FrameQueue
+from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats
+from sfm_ttr_ros.core.stream.throttle import Throttle
+
+
+class FramePublisher:
+    """The outputs of one stream, on the worker's thread (module docstring).
+
+    ``republish``: whether unrefined frames the live output served are predicted again
+    (``StreamSettings.republish_unrefined``, read at each call). Sinks: ``on_output``,
+    ``on_drop(frame_or_None, reason_key, message)``."""
+
+    def __init__(self, ttr: SfmTTR, queue: FrameQueue, republish: Callable[[], bool],
+                 on_output: Callable[[FrameOutput], None] | None,
+                 on_drop: Callable[[Frame | None, str, str], None] | None, log) -> None:
+        self.ttr = ttr
+        self.queue = queue
+        self.republish = republish
+        self.on_output = on_output
+        self.on_drop = on_drop
+        self.log = log
+        self._throttle = Throttle()
+
+    def window(self, new: Sequence[Frame], res: WindowResult, stats: WindowStats,
+               ran: bool) -> list[FrameOutput]:
+        """The ``new`` frames of window ``stats``: with the depths of the core's ``res`` when
+        the window ``ran``, else unrefined with its reason."""
+        if not ran:
+            return self.unrefined(new, stats.reason_key, stats.reason, window=stats.index)
+        k = getattr(self.ttr, "metres_per_unit", None)
+        outs = [FrameOutput(f, in_metres(res.depths[f.name], k), res.refined, stats.reason_key,
+                            stats.reason, window=stats.index, metres_per_unit=k) for f in new]
+        self._account(outs)
+        return outs
+
+    def unrefined(self, frames: Sequence[Frame], key: Unrefined, reason: str,
+                  window: int | None = None) -> list[FrameOutput]:
+        """Publish ``frames`` unrefined, predicted with the latest weights - except the frames
+        the live output already served, unless ``republish``: those come out with ``depth``
+        None (:attr:`FrameOutput.live_only`), counted under ``key`` all the same. Under
+        overload this is most frames, and predicting them again took ~40 % of the worker's
+        time that windows then lacked (BENCHMARKS.md "Live latency and the live share")."""
+        if not frames:
+            return []
+        again = self.republish()
+        todo = [f for f in frames
+                if f.image is not RELEASED_IMAGE and (again or not f.served_live)]
+        depths: dict[int, np.ndarray] = {}
+        if todo:
+            try:
+                depths = dict(zip(map(id, todo), self.ttr.predict([f.image for f in todo]),
+                                  strict=True))
+            except Exception as exc:
+                msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
+                self.log.error(msg)
+                self.queue.drop_taken(todo, Dropped.PREDICTION_ERROR)
+                for f in todo:
+                    self.drop(f, Dropped.PREDICTION_ERROR, msg)
+                failed = set(map(id, todo))
+                frames = [f for f in frames if id(f) not in failed]
+        k = getattr(self.ttr, "metres_per_unit", None)
+        outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
+                            metres_per_unit=k) for f in frames]
+        self._account(outs)
+        return outs
+
+    def verdict(self, frame: Frame, v: Verdict, flushed: Sequence[Frame]) -> list[FrameOutput]:
+        """What an admission verdict says, in its order (:class:`~.admission.Verdict`): its
+        log line, the ``flushed`` keyframes unrefined under ``v.flush``, then the frame dropped
+        or published unrefined."""
+        if v.throttle:
+            self.warn(v.throttle, v.log)
+        elif v.log:
+            (self.log.info if v.level == "info" else self.log.warning)(v.log)
+        if v.drop is not None:
+            self.queue.drop_taken([frame], v.drop)
+            self.drop(frame, v.drop, v.reason)
+            return []
+        outs = self.unrefined(flushed, v.flush, v.reason) if flushed else []
+        if v.unrefined is not None:
+            outs += self.unrefined([frame], v.unrefined, v.reason)
+        return outs
+
+    def _account(self, outs: list[FrameOutput]) -> None:
+        self.queue.settle(outs)
+        for o in outs:
+            if self.on_output is not None:
+                self.on_output(o)
+
+    def overflow(self, frame: Frame, max_pending: int) -> None:
+        """Report the frame the full queue dropped (counted by the queue)."""
+        with self.queue.locked() as ledger:
+            n = ledger.dropped[Dropped.OVERFLOW]
+        self.drop(frame, Dropped.OVERFLOW,
+                  f"input queue full (max_pending={max_pending}): dropped the oldest pending "
+                  f"frame (stamp {frame.stamp:.6f}); {n} dropped so far")
+
+    def drop(self, frame: Frame | None, key: Dropped, message: str) -> None:
+        """Report a dropped frame (already counted): a throttled warning and the sink."""
+        self.warn(f"drop:{key}", message)
+        if self.on_drop is not None:
+            self.on_drop(frame, key, message)
+
+    def warn(self, key: str, message: str) -> None:
+        """Log a warning at most once per :data:`~sfm_ttr_ros.core.stream.throttle.WARN_PERIOD_S`
+        per key."""
+        if self._throttle.due(key):
+            self.log.warning(message)
