@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import load_frames, reconstruct_window
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import (
@@ -20,10 +21,9 @@ from sfm_ttr_ros.core.frames import (
     Intrinsics,
     check_window,
     list_images,
-    load_frames,
     load_rgb,
 )
-from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor, reconstruct_window
+from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.data.sequence import open_image_folder
 from sfm_ttr_ros.tools.cli import main
 
@@ -179,7 +179,7 @@ def test_bad_window_rejected_before_sfm_or_network():
     with SfmReconstructor() as rec:
         with pytest.raises(InputError, match="one size"):
             rec.reconstruct([Frame(0, image(0)), Frame(1, image(1, (W, H + 2)))], INTR)
-        assert not rec.database_path.exists()  # rejected before pycolmap saw anything
+        assert not rec.workspace.database_path.exists()  # rejected before pycolmap saw anything
 
 
 def _never(*args, **kwargs):

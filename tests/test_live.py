@@ -164,7 +164,7 @@ class _FakeSfm:
     """A stand-in for one window's SfM: every frame registered with 300 observations."""
 
     def __init__(self, names, rng):
-        from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations
+        from sfm_ttr_ros.core.sfm.result import FrameObservations
 
         self.ok, self.reason, self.timings = True, "", {}
         self.frames = {}
@@ -214,15 +214,15 @@ def test_an_exploding_window_is_rolled_back(one_thread):
 
 
 def test_a_rollback_names_the_step_whose_loss_went_non_finite():
-    from sfm_ttr_ros.core.checks.window import WindowChecks
+    from sfm_ttr_ros.core.checks.window import WindowJudge
 
     enc = torch.nn.Linear(2, 2)
-    why = WindowChecks.rollback_reason(2.0, [1.0, 0.9, math.nan, math.nan], 1.0, 0.8, enc)
+    why = WindowJudge.rollback_reason(2.0, [1.0, 0.9, math.nan, math.nan], 1.0, 0.8, enc)
     assert why == "non-finite loss from step 3 of 4"
-    assert WindowChecks.rollback_reason(2.0, [1.0], 1.0, math.inf, enc) == \
+    assert WindowJudge.rollback_reason(2.0, [1.0], 1.0, math.inf, enc) == \
         "non-finite loss after refining"
-    assert WindowChecks.rollback_reason(2.0, [1.0, 0.9], 1.0, 0.8, enc) == ""
-    assert "max_loss_ratio" in WindowChecks.rollback_reason(2.0, [1.0, 5.0], 1.0, 3.0, enc)
+    assert WindowJudge.rollback_reason(2.0, [1.0, 0.9], 1.0, 0.8, enc) == ""
+    assert "max_loss_ratio" in WindowJudge.rollback_reason(2.0, [1.0, 5.0], 1.0, 3.0, enc)
 
 
 def test_live_latency_is_measured_from_arrival(one_thread):

@@ -21,7 +21,7 @@ from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.prediction import PREDICTION_CACHE_FRAMES
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import sample_at
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
 W, H = 160, 64
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)

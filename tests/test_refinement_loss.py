@@ -25,7 +25,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     scale_outputs,
 )
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
 W, H = 256, 80

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import tiny_model
 
-from sfm_ttr_ros.core.checks.measures import WindowCheck
+from sfm_ttr_ros.core.checks.measures import CheckReport
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
@@ -85,7 +85,7 @@ class ScriptedTTR:
         elif outcome == "rejected":
             key = Unrefined.CHECK_UNSUPPORTED_CHANGE
             res.reason_key, res.reason = key, "rejected by check: 0.03 of the pixels moved"
-            res.check = WindowCheck(unsupported_change=0.03, reason_key=key)
+            res.check = CheckReport(unsupported_change=0.03, reason_key=key)
         else:
             res.reason_key = Unrefined.TOO_FEW_POINTS
             res.reason = "too few supervision points: 3 selected of 10 (< 50)"

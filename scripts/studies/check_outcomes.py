@@ -35,7 +35,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.checks.measures import (
     UNSUPPORTED_HISTORY,
-    WindowCheck,
+    CheckReport,
     accept,
     sanity_check,
     unsupported_change,
@@ -129,7 +129,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             res = ttr.process_window(frames, seq.intrinsics)
             seconds = time.perf_counter() - t0
-            c = res.check or WindowCheck()
+            c = res.check or CheckReport()
             after = res.depths if res.refined else res.depths_candidate
             before_e = window_abs_rel(res.depths_before, res.names, seq, frame_names)
             after_e = window_abs_rel(after, res.names, seq, frame_names) if after else np.nan

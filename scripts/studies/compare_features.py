@@ -33,7 +33,8 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from sfm_ttr_ros.core.frames import Frame  # noqa: E402
-from sfm_ttr_ros.core.sfm.reconstruction import FEATURE_BACKENDS, SfmConfig, SfmReconstructor  # noqa: E402
+from sfm_ttr_ros.core.sfm.config import FEATURE_BACKENDS, SfmConfig  # noqa: E402
+from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor  # noqa: E402
 
 
 def depth_error(result, frames, gt) -> float | None:
@@ -58,7 +59,7 @@ def depth_error(result, frames, gt) -> float | None:
 def database_stats(rec: SfmReconstructor) -> dict:
     import pycolmap
 
-    with pycolmap.Database.open(rec.database_path) as db:
+    with pycolmap.Database.open(rec.workspace.database_path) as db:
         kp = [db.num_keypoints_for_image(i.image_id) for i in db.read_all_images()]
         _, geoms = db.read_two_view_geometries()
         inl = [0 if g.inlier_matches is None else len(g.inlier_matches) for g in geoms]

@@ -3,7 +3,7 @@ refinement → prediction.
 
 :meth:`SfmTTR.process_window` only calls the stages (private helpers here, each in front of the
 module that holds its equations) and two collaborators: :class:`~sfm_ttr_ros.core.checks.window.
-WindowChecks` (the window checks before, while and after refining, and rollback) and
+WindowJudge` (the window checks before, while and after refining, and rollback) and
 :class:`~sfm_ttr_ros.core.refinement.weights.WeightPolicy` (where a window's refinement starts,
 what an accepted window leaves to the next). The same :class:`SfmTTR` object serves the command line
 (offline: one window = the whole sequence, as in the paper), the benchmark and the ROS node
@@ -28,8 +28,8 @@ from sfm_ttr_ros.core.alignment.affine import (
     is_affine_output,
 )
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig, AlignmentResult
-from sfm_ttr_ros.core.checks.measures import CheckConfig, WindowCheck
-from sfm_ttr_ros.core.checks.window import WindowChecks
+from sfm_ttr_ros.core.checks.measures import CheckConfig, CheckReport
+from sfm_ttr_ros.core.checks.window import WindowJudge
 from sfm_ttr_ros.core.errors import InputError, check_choice
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.metric.config import MetricConfig
@@ -109,7 +109,7 @@ class WindowResult:
     refined: bool
     reason: str = ""  # why the window was not refined, for people ("" when it was)
     reason_key: Unrefined | None = None  # what is counted when it was not refined
-    check: WindowCheck | None = None  # what the window checks measured
+    check: CheckReport | None = None  # what the window checks measured
     # the refined weights' depths of a window a check refused after refining (for evaluation)
     depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
     sfm: SfmResult | None = None
@@ -205,7 +205,7 @@ class SfmTTR:
         self.predictor = Predictor(self.model, self.config.predict_batch,
                                    self.config.reuse_predictions, self.config.predict_batch_cuda)
         self.weights = WeightPolicy(self.model, on_reset=self.predictor.original_restored)
-        self.checks = WindowChecks()  # the window checks and their references across windows
+        self.checks = WindowJudge()  # the window checks and their references across windows
         self.metric = MetricScale()  # the steady metric factor of the accepted windows
         self.odometry = OdometryTrack()  # positions for metric.source odometry (the node's)
         self._stop = False
@@ -319,7 +319,7 @@ class SfmTTR:
                        should_stop: Callable[[], bool] | None = None) -> WindowResult:
         """Run the whole method on one window; every frame gets a depth in the result.
 
-        Fig. 2 of the paper, stage by stage; the window checks (:class:`WindowChecks`) judge
+        Fig. 2 of the paper, stage by stage; the window checks (:class:`WindowJudge`) judge
         the window before and after refining, the weight policy (:class:`WeightPolicy`) says
         where its refinement starts and what an accepted window leaves to the next."""
         check_window(frames, intrinsics)
