@@ -446,8 +446,8 @@ def make_ttr(cfg: RunConfig) -> SfmTTR:
     model = build_model(cfg.model)
     ttr = SfmTTR(model, copy.deepcopy(cfg.ttr))
     if not cfg.feature_cache:
-        ttr.reconstructor.close()
-        ttr.reconstructor = _FreshReconstructor(ttr.config.sfm)
+        ttr.sfm.reconstructor.close()
+        ttr.sfm.reconstructor = _FreshReconstructor(ttr.config.sfm)
     return ttr
 
 
@@ -462,7 +462,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
     pub = Publisher(cfg.published)
     model = ttr.model
     predict_t = [0.0]
-    real_predict = ttr.predict
+    real_predict = ttr.predictor.predict
 
     def timed_predict(images):
         t0 = time.perf_counter()
@@ -471,7 +471,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
         finally:
             predict_t[0] += time.perf_counter() - t0
 
-    ttr.predict = timed_predict  # every forward pass, inside windows or not
+    ttr.predictor.predict = timed_predict  # every forward pass, inside windows or not
     depths: dict[int, np.ndarray] = {}
     refined: dict[int, bool] = {}
     windows: list[dict[str, Any]] = []
@@ -529,7 +529,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
             for f, msg in zip(chunk, msgs, strict=True):
                 if pub_shape is None:
                     pub_shape = f.image.shape[:2]
-                    model.predict([f.image])  # not through ttr.predict: nothing cached
+                    model.predict([f.image])  # not through ttr.predictor.predict: nothing cached
                     pub.warm_up(pub_shape)
                     t_first_stamp = f.stamp
                 t0 = time.perf_counter()
@@ -563,7 +563,7 @@ def run_stream(cfg: RunConfig, frames: Iterator[tuple[Intrinsics, list[Frame]]] 
             window_push.append((n, dt))
         pending_windows.clear()
         counters = stream.counters()
-        frames_extracted = ttr.reconstructor.frames_extracted
+        frames_extracted = ttr.sfm.reconstructor.frames_extracted
     finally:
         ttr.close()
 
@@ -634,9 +634,9 @@ def run_no_ttr(drive: Drive, model_cfg: ModelConfig, batch: int = 8) -> dict[str
     """The network's own accuracy (original weights) on the drive, and its prediction time."""
     ttr = SfmTTR(build_model(model_cfg), TTRConfig(predict_batch=batch))
     try:
-        ttr.predict([drive.images[0]])
+        ttr.predictor.predict([drive.images[0]])
         t0 = time.perf_counter()
-        preds = ttr.predict(list(drive.images))
+        preds = ttr.predictor.predict(list(drive.images))
         dt = time.perf_counter() - t0
     finally:
         ttr.close()

@@ -160,9 +160,9 @@ def test_bad_window_rejected_before_sfm_or_network():
     model = EncoderDecoder(nn.Conv2d(3, 4, 3, padding=1),
                            nn.Sequential(nn.Conv2d(4, 1, 3, padding=1), nn.Sigmoid()), (32, 32))
     ttr = SfmTTR(model)
-    real = ttr.reconstructor
-    ttr.reconstructor = NeverCalled()
-    ttr.predict = _never  # the network must not run either
+    real = ttr.sfm.reconstructor
+    ttr.sfm.reconstructor = NeverCalled()
+    ttr.predictor.predict = _never  # the network must not run either
     try:
         with pytest.raises(InputError, match="empty window"):
             ttr.process_window([], INTR)
@@ -174,7 +174,7 @@ def test_bad_window_rejected_before_sfm_or_network():
         with pytest.raises(InputError, match="uint8"):
             ttr.process_window([Frame(0, image(0).astype(float)), Frame(1, image(1))], INTR)
     finally:
-        ttr.reconstructor = real
+        ttr.sfm.reconstructor = real
         ttr.close()
     with SfmReconstructor() as rec:
         with pytest.raises(InputError, match="one size"):

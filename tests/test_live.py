@@ -190,7 +190,7 @@ def window_run(lr: float, policy: str = "continue"):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
     from sfm_ttr_ros.core.frames import Intrinsics
 
     before = snapshot_encoder(ttr.model)
@@ -368,7 +368,7 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
                                                serve_every_steps=serve_every))
     start = online.serving.predict(IMAGE)[0]
@@ -413,7 +413,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
 
     online, previews, _ = online_window(lr=1e-3, serve_every=4, unsupported=1.0)  # U <= 1
     assert previews == [(1, 4), (1, 8)] and online.stream.last_window.refined
-    assert math.isfinite(online.ttr.interim_unsupported)
+    assert math.isfinite(online.ttr.checks.interim_unsupported)
     t = online.stream.last_window.timings  # the probes' time, spent inside the refinement
     assert 0 < t["interim_check"] < t["refine"] and t["check"] >= t["interim_check"]
     assert online.counters_live()["serving_interim_refused"] == 0
@@ -421,7 +421,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     online, previews, start = online_window(lr=1e-3, serve_every=4, unsupported=1e-9)
     c = online.counters_live()
     assert previews == [] and (c["serving_previews"], c["serving_interim_refused"]) == (0, 2)
-    assert online.ttr.interim_unsupported > 1e-9
+    assert online.ttr.checks.interim_unsupported > 1e-9
     assert online.stream.last_window.reason_key == "check_unsupported_change"
     assert (c["version"], c["serving_reverts"]) == (0, 0)
     assert np.array_equal(online.serving.predict(IMAGE)[0], start)
@@ -472,7 +472,7 @@ def test_the_window_warm_up_predicts_a_batch_and_refines_a_copy(monkeypatch):
         ttr.close()
     assert batches == [[(32, 48, 3)] * 3]
     assert refinements == [(ttr.model, ttr.config.refinement)]
-    assert ttr.predictions_computed == 0
+    assert ttr.predictor.computed == 0
 
 
 def test_live_and_worker_warm_ups_run_in_their_own_threads_before_start_returns():

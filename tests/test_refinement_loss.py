@@ -209,7 +209,7 @@ def process(window, monkeypatch, **refinement):
     cfg = TTRConfig(min_supervision_points=20)
     cfg.refinement = replace(cfg.refinement, steps=6, lr=1e-3, **refinement)
     ttr = SfmTTR(tiny_model(INPUT, batch_norm=1), cfg)
-    monkeypatch.setattr(ttr.reconstructor, "reconstruct", lambda *a, **k: sfm)
+    monkeypatch.setattr(ttr.sfm.reconstructor, "reconstruct", lambda *a, **k: sfm)
     monkeypatch.setattr(pipeline_module, "refine_encoder", spy)
     try:
         res = ttr.process_window(frames, sfm.intrinsics)

@@ -71,10 +71,10 @@ def main() -> int:
     def predict_with(state, frames):
         current = snapshot_encoder(model)
         restore_encoder(model, state)
-        ttr.clear_prediction_cache()
-        depths = ttr.predict([f.image for f in frames])
+        ttr.predictor.clear()
+        depths = ttr.predictor.predict([f.image for f in frames])
         restore_encoder(model, current)
-        ttr.clear_prediction_cache()
+        ttr.predictor.clear()
         return depths
 
     stop = len(seq) if args.max_frames <= 0 else min(len(seq), args.start + args.max_frames)

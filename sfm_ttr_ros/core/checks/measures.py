@@ -75,7 +75,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.outcomes import Unrefined
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 #: ρ and τ of :func:`unsupported_change` (module docstring, 2.)
 UNSUPPORTED_RADIUS = 0.05

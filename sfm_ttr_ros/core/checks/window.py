@@ -46,7 +46,7 @@ from sfm_ttr_ros.core.checks.measures import (
 )
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.refinement.encoder import finite_state
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 Depths = Mapping[str, np.ndarray]
 

@@ -472,7 +472,7 @@ class StreamProcessor:
                 "windows_rejected": self._windows_rejected,
                 "windows_remapped": self._windows_remapped,
                 "non_monotonic_stamps": self._non_monotonic,
-                "sfm_ahead": dict(getattr(self.ttr, "prefetch_counters", {})),
+                "sfm_ahead": self.ttr.sfm.counters(),
             }
 
     @property
@@ -619,7 +619,7 @@ class StreamProcessor:
         """While a window runs: once the frames of the window after it are all queued (its
         overlap with the running window plus ``window_stride`` new ones, every frame a
         keyframe, same intrinsics and image size, stamps rising), begin their SfM in the
-        background (:meth:`SfmTTR.prefetch_sfm`, which waits until the running window's own SfM
+        background (:meth:`SfmSource.prefetch`, which waits until the running window's own SfM
         has ended: asked again at every frame that arrives). Called by :meth:`submit`; cheap
         when there is nothing to do."""
         s = self.settings
@@ -642,7 +642,7 @@ class StreamProcessor:
                 or any(b.stamp <= a.stamp for a, b in itertools.pairwise(frames))):
             return
         try:
-            if self.ttr.prefetch_sfm(frames, intr):
+            if self.ttr.sfm.prefetch(frames, intr):
                 self._asked_ahead = names
         except Exception as exc:  # noqa: BLE001 - ahead of time only: the window does it itself
             self._warn("prefetch", f"SfM ahead of the next window not begun: {exc}")
@@ -713,7 +713,7 @@ class StreamProcessor:
             stats.cloud_frame = (None if cloud_frame is None
                                  else dataclasses.replace(cloud_frame, image=RELEASED_IMAGE))
             self.windows.append(stats)
-            k = getattr(self.ttr, "metres_per_unit", None)
+            k = self.ttr.metric_status().metres_per_unit
             outs = [FrameOutput(f, in_metres(res.depths[f.name], k), res.refined,
                                 None if res.refined else stats.reason_key,
                                 "" if res.refined else stats.reason, window=index,
@@ -797,7 +797,8 @@ class StreamProcessor:
         depths: dict[int, np.ndarray] = {}
         if todo:
             try:
-                depths = dict(zip(map(id, todo), self.ttr.predict([f.image for f in todo]),
+                depths = dict(zip(map(id, todo),
+                                  self.ttr.predictor.predict([f.image for f in todo]),
                                   strict=True))
             except Exception as exc:
                 msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
@@ -809,7 +810,7 @@ class StreamProcessor:
                     self._emit_drop(f, Dropped.PREDICTION_ERROR, msg)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
-        k = getattr(self.ttr, "metres_per_unit", None)
+        k = self.ttr.metric_status().metres_per_unit
         outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
                             metres_per_unit=k) for f in frames]
         self._account(outs)
