@@ -95,8 +95,8 @@ def test_overlapping_windows_predict_the_overlap_once_with_the_same_numbers(one_
     # the refinement did change the weights between the two predictions of a window
     assert not np.array_equal(res_on[0].depths["0000000005"], res_on[0].depths_before["0000000005"])
     # off: 4 passes of 10 frames; on: window 2's "before" of frames 5-9 = window 1's "after"
-    assert (off.predictions_computed, off.predictions_reused) == (40, 0)
-    assert (on.predictions_computed, on.predictions_reused) == (35, 5)
+    assert (off.predictor.computed, off.predictor.reused) == (40, 0)
+    assert (on.predictor.computed, on.predictor.reused) == (35, 5)
 
 
 def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
