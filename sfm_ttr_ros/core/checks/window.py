@@ -1,6 +1,6 @@
 """The window checks as one collaborator of the pipeline: when each runs, what it remembers.
 
-:class:`WindowJudge` judges each window with the measures of :mod:`core/verification
+:class:`WindowJudge` judges each window with the measures of :mod:`core/checks/measures
 <sfm_ttr_ros.core.checks.measures>` (whose docstring gives the checks and their formulas) and keeps
 what they compare with across windows: the last accepted window's camera path (the scale jump)
 and the unsupported change of the last accepted windows. In the order a window meets them:
