@@ -360,5 +360,7 @@ def test_no_parameter_reaches_a_pycolmap_option_that_ends_the_process():
     fields = {f.name for f in dataclasses.fields(sfm.SfmConfig)}
     assert not any("loop" in name or "vocab" in name for name in fields)
     assert not any("loop" in t or "vocab" in t for p in params.PARAMS for t in p.targets)
-    source = Path(sfm.__file__).read_text()
+    from sfm_ttr_ros.core.sfm import extraction
+
+    source = Path(extraction.__file__).read_text()
     assert "pairing.loop_detection = False" in source
