@@ -472,7 +472,7 @@ class StreamProcessor:
                 "windows_rejected": self._windows_rejected,
                 "windows_remapped": self._windows_remapped,
                 "non_monotonic_stamps": self._non_monotonic,
-                "sfm_ahead": self.ttr.sfm.counters(),
+                "sfm_ahead": self.ttr.sfm.counters() if self.ttr is not None else {},
             }
 
     @property
@@ -713,7 +713,7 @@ class StreamProcessor:
             stats.cloud_frame = (None if cloud_frame is None
                                  else dataclasses.replace(cloud_frame, image=RELEASED_IMAGE))
             self.windows.append(stats)
-            k = self.ttr.metric_status().metres_per_unit
+            k = None if self.ttr is None else self.ttr.metric_status().metres_per_unit
             outs = [FrameOutput(f, in_metres(res.depths[f.name], k), res.refined,
                                 None if res.refined else stats.reason_key,
                                 "" if res.refined else stats.reason, window=index,
@@ -810,7 +810,7 @@ class StreamProcessor:
                     self._emit_drop(f, Dropped.PREDICTION_ERROR, msg)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
-        k = self.ttr.metric_status().metres_per_unit
+        k = None if self.ttr is None else self.ttr.metric_status().metres_per_unit
         outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
                             metres_per_unit=k) for f in frames]
         self._account(outs)
