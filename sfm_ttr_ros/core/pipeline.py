@@ -72,10 +72,8 @@ class SfmTTR:
         self.metric = MetricScale()  # the steady metric factor of the accepted windows
         self.odometry = OdometryTrack()  # positions for metric.source odometry (the node's)
         self._stop = False
-        # called with the step count after each refinement step of a window whose current
-        # weights may be served before its end (the live server's interim weights,
-        # core/stream/refiner.py): no check after refinement, or one that
-        # checks.interim_refusal() re-runs
+        # called with the step count after each refinement step whose weights may be served
+        # before the window ends (core/stream/refiner.py; checks.interim_refusal() says)
         self.on_refine_step: Callable[[int], None] | None = None
 
     # -- one window (Fig. 2) -------------------------------------------------------------
@@ -286,9 +284,8 @@ class SfmTTR:
         return None
 
     def _predict_as_is(self, images: list[np.ndarray]) -> list[np.ndarray]:
-        """The network's depth of ``images`` mid-refinement (the interim gate): predict()
-        switches to eval mode; every module is put back as it was (bn_mode "train" keeps the
-        encoder's BatchNorm in training mode)."""
+        """The network's depth of ``images`` mid-refinement (the interim gate), every module's
+        mode put back after (bn_mode "train" keeps the encoder's BatchNorm training)."""
         modes = [(m, m.training) for m in self.model.modules()]
         try:
             return self.predictor.run(images)
@@ -297,11 +294,8 @@ class SfmTTR:
                 m.training = training
 
     def _photometric_frames(self, w: WindowState) -> list[PhotometricFrame]:
-        """The window's photometric terms, prepared once per window when the loss
-        needs them: network-size images, the SfM poses of each registered frame's registered
-        neighbours with their translations times the alignment scale ŝ (SfM units → network
-        depth units: Ph-TTR needs the SfM scale too), K at the network's size and the
-        auto-masking identity errors. [] for ``sfm`` (and ``hybrid`` with λ = 0)."""
+        """The window's photometric terms once per window (Ph-TTR, the hybrid): the SfM poses'
+        translations times ŝ (SfM units → network depth units); [] for ``sfm``."""
         r, res = self.config.refinement, w.result
         if not r.uses_photometric:
             return []
@@ -310,9 +304,7 @@ class SfmTTR:
 
     # -- options, warm-up, status, lifecycle ----------------------------------------------
     def _concrete(self, config: TTRConfig) -> TTRConfig:
-        """``config`` with its objective resolved for this model (``refinement.loss`` "auto":
-        :func:`~sfm_ttr_ros.core.refinement.config.resolve_loss`); the caller's object is not
-        changed."""
+        """``config`` with ``refinement.loss`` "auto" resolved for this model (a copy)."""
         refinement = resolve_loss(config.refinement, self.model)
         if refinement is config.refinement:
             return config
@@ -338,11 +330,9 @@ class SfmTTR:
         self.predictor.cuda_batch = config.predict_batch_cuda
 
     def warm_up(self) -> float:
-        """Pay a window's one-time costs now, in the calling thread (the window worker's, before
-        its first window; on CUDA kernels load at first use and each thread makes its own
-        cuDNN / cuBLAS handles): the network's forward pass on a batch of grey frames
-        (``predict_batch``, ``predict_batch_cuda`` on CUDA)
-        (nothing cached) and two refinement steps on a copy of the model
+        """Pay a window's one-time costs now, in the calling thread (on CUDA kernels load at
+        first use and each thread makes its own cuDNN / cuBLAS handles): a forward pass on a
+        batch of grey frames (nothing cached) and two refinement steps on a copy of the model
         (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_refinement`). Returns the seconds."""
         t0 = time.perf_counter()
         self.predictor.run([warm_up_image(self.model)] * self.predictor.effective_batch)
