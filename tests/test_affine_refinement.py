@@ -37,7 +37,7 @@ def runs(scene, biased_state):
     plain.close()
     wrapped = AffineInverse(street_model(biased_state), scene.seq.images)
     ttr = SfmTTR(wrapped, config())
-    ttr.reconstructor.reconstruct = lambda *a, **k: scale_only.sfm  # the same SfM result
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: scale_only.sfm  # the same SfM result
     affine = ttr.process_window(scene.frames, scene.seq.intrinsics)
     ttr.close()
     # The affine path's depth: the refined raw output through each frame's own fit (SfM units)

@@ -2,12 +2,11 @@
 
 import numpy as np
 import pytest
+from helpers import least_squares_scale, median_scale
 
 from sfm_ttr_ros.core.alignment.scale import (
     AlignmentConfig,
     align_scale,
-    least_squares_scale,
-    median_scale,
     weighted_ls_scale,
 )
 from sfm_ttr_ros.core.errors import InputError

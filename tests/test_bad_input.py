@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import load_frames, reconstruct_window
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import (
@@ -20,10 +21,9 @@ from sfm_ttr_ros.core.frames import (
     Intrinsics,
     check_window,
     list_images,
-    load_frames,
     load_rgb,
 )
-from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor, reconstruct_window
+from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.data.sequence import open_image_folder
 from sfm_ttr_ros.tools.cli import main
 
@@ -160,9 +160,9 @@ def test_bad_window_rejected_before_sfm_or_network():
     model = EncoderDecoder(nn.Conv2d(3, 4, 3, padding=1),
                            nn.Sequential(nn.Conv2d(4, 1, 3, padding=1), nn.Sigmoid()), (32, 32))
     ttr = SfmTTR(model)
-    real = ttr.reconstructor
-    ttr.reconstructor = NeverCalled()
-    ttr.predict = _never  # the network must not run either
+    real = ttr.sfm.reconstructor
+    ttr.sfm.reconstructor = NeverCalled()
+    ttr.predictor.predict = _never  # the network must not run either
     try:
         with pytest.raises(InputError, match="empty window"):
             ttr.process_window([], INTR)
@@ -174,12 +174,12 @@ def test_bad_window_rejected_before_sfm_or_network():
         with pytest.raises(InputError, match="uint8"):
             ttr.process_window([Frame(0, image(0).astype(float)), Frame(1, image(1))], INTR)
     finally:
-        ttr.reconstructor = real
+        ttr.sfm.reconstructor = real
         ttr.close()
     with SfmReconstructor() as rec:
         with pytest.raises(InputError, match="one size"):
             rec.reconstruct([Frame(0, image(0)), Frame(1, image(1, (W, H + 2)))], INTR)
-        assert not rec.database_path.exists()  # rejected before pycolmap saw anything
+        assert not rec.workspace.database_path.exists()  # rejected before pycolmap saw anything
 
 
 def _never(*args, **kwargs):
@@ -360,5 +360,7 @@ def test_no_parameter_reaches_a_pycolmap_option_that_ends_the_process():
     fields = {f.name for f in dataclasses.fields(sfm.SfmConfig)}
     assert not any("loop" in name or "vocab" in name for name in fields)
     assert not any("loop" in t or "vocab" in t for p in params.PARAMS for t in p.targets)
-    source = Path(sfm.__file__).read_text()
+    from sfm_ttr_ros.core.sfm import extraction
+
+    source = Path(extraction.__file__).read_text()
     assert "pairing.loop_detection = False" in source

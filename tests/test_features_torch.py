@@ -239,7 +239,7 @@ def test_a_window_extracted_as_one_batch_reconstructs(drive, monkeypatch):
     monkeypatch.setattr(database, "CPU_FEATURE_BATCH", 8)
     with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
         res = rec.reconstruct(frames, seq.intrinsics)
-        assert rec._torch_db.batch == 8
+        assert rec.features.torch_db.batch == 8
     assert res.ok and res.num_registered == 8 and res.num_points >= 150
 
 
@@ -282,10 +282,10 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
         # frames 0-4 first, their features then dropped from memory: the full window's new
         # pairs read them back from the database
         assert rec.reconstruct(frames[:5], seq.intrinsics).num_registered >= 4
-        rec._torch_db._cache.clear()
+        rec.features.torch_db._cache.clear()
         res = rec.reconstruct(frames, seq.intrinsics)
         assert rec.frames_extracted == 8
-        with pycolmap.Database.open(rec.database_path) as db:
+        with pycolmap.Database.open(rec.workspace.database_path) as db:
             images = db.read_all_images()
             nkp = [db.num_keypoints_for_image(i.image_id) for i in images]
             ndesc = [db.num_descriptors_for_image(i.image_id) for i in images]
@@ -298,7 +298,7 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
         rec.config = SfmConfig(features="colmap")
         rec.reconstruct(frames[:3], seq.intrinsics)
         assert rec.frames_extracted == extracted + 3
-        with pycolmap.Database.open(rec.database_path) as db:
+        with pycolmap.Database.open(rec.workspace.database_path) as db:
             assert db.num_images() == 3
     assert "extract.detect_describe" in res.timings  # the torch path ran, not COLMAP's SIFT
     assert len(images) == 8 and nkp == ndesc and min(nkp) >= 100

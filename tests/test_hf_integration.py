@@ -55,11 +55,11 @@ def test_lora_refinement_merges_and_serves_the_refined_weights(model_dirs, block
     assert not trainable.has_lora(model) and set(model.encoder.state_dict()) == keys
     refined = model.predict(FRAME)[0]
     assert not np.allclose(refined, before)
-    assert ttr.predict([FRAME])[0] is not None
-    np.testing.assert_allclose(ttr.predict([FRAME])[0], refined)  # cache saw the merge
+    assert ttr.predictor.predict([FRAME])[0] is not None
+    np.testing.assert_allclose(ttr.predictor.predict([FRAME])[0], refined)  # cache saw the merge
     serving.update(model.encoder.state_dict(), 1)
     np.testing.assert_allclose(serving.predict(FRAME)[0], refined, rtol=1e-5, atol=1e-6)
-    ttr.reset_model()  # the reset policy: back to the start-up weights
+    ttr.weights.reset()  # the reset policy: back to the start-up weights
     np.testing.assert_array_equal(model.predict(FRAME)[0], before)
     ttr.close()
 

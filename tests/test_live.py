@@ -178,7 +178,7 @@ class _FakeSfm:
     """A stand-in for one window's SfM: every frame registered with 300 observations."""
 
     def __init__(self, names, rng):
-        from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations
+        from sfm_ttr_ros.core.sfm.result import FrameObservations
 
         self.ok, self.reason, self.timings = True, "", {}
         self.frames = {}
@@ -204,7 +204,7 @@ def window_run(lr: float, policy: str = "continue"):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
     from sfm_ttr_ros.core.frames import Intrinsics
 
     before = snapshot_encoder(ttr.model)
@@ -228,15 +228,15 @@ def test_an_exploding_window_is_rolled_back(one_thread):
 
 
 def test_a_rollback_names_the_step_whose_loss_went_non_finite():
-    from sfm_ttr_ros.core.checks.window import WindowChecks
+    from sfm_ttr_ros.core.checks.window import WindowJudge
 
     enc = torch.nn.Linear(2, 2)
-    why = WindowChecks.rollback_reason(2.0, [1.0, 0.9, math.nan, math.nan], 1.0, 0.8, enc)
+    why = WindowJudge.rollback_reason(2.0, [1.0, 0.9, math.nan, math.nan], 1.0, 0.8, enc)
     assert why == "non-finite loss from step 3 of 4"
-    assert WindowChecks.rollback_reason(2.0, [1.0], 1.0, math.inf, enc) == \
+    assert WindowJudge.rollback_reason(2.0, [1.0], 1.0, math.inf, enc) == \
         "non-finite loss after refining"
-    assert WindowChecks.rollback_reason(2.0, [1.0, 0.9], 1.0, 0.8, enc) == ""
-    assert "max_loss_ratio" in WindowChecks.rollback_reason(2.0, [1.0, 5.0], 1.0, 3.0, enc)
+    assert WindowJudge.rollback_reason(2.0, [1.0, 0.9], 1.0, 0.8, enc) == ""
+    assert "max_loss_ratio" in WindowJudge.rollback_reason(2.0, [1.0, 5.0], 1.0, 3.0, enc)
 
 
 def test_live_latency_is_measured_from_arrival(one_thread):
@@ -382,7 +382,7 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
                                                serve_every_steps=serve_every))
     start = online.serving.predict(IMAGE)[0]
@@ -427,7 +427,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
 
     online, previews, _ = online_window(lr=1e-3, serve_every=4, unsupported=1.0)  # U <= 1
     assert previews == [(1, 4), (1, 8)] and online.stream.last_window.refined
-    assert math.isfinite(online.ttr.interim_unsupported)
+    assert math.isfinite(online.ttr.checks.interim_unsupported)
     t = online.stream.last_window.timings  # the probes' time, spent inside the refinement
     assert 0 < t["interim_check"] < t["refine"] and t["check"] >= t["interim_check"]
     assert online.counters_live()["serving_interim_refused"] == 0
@@ -435,7 +435,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     online, previews, start = online_window(lr=1e-3, serve_every=4, unsupported=1e-9)
     c = online.counters_live()
     assert previews == [] and (c["serving_previews"], c["serving_interim_refused"]) == (0, 2)
-    assert online.ttr.interim_unsupported > 1e-9
+    assert online.ttr.checks.interim_unsupported > 1e-9
     assert online.stream.last_window.reason_key == "check_unsupported_change"
     assert (c["version"], c["serving_reverts"]) == (0, 0)
     assert np.array_equal(online.serving.predict(IMAGE)[0], start)
@@ -486,7 +486,7 @@ def test_the_window_warm_up_predicts_a_batch_and_refines_a_copy(monkeypatch):
         ttr.close()
     assert batches == [[(32, 48, 3)] * 3]
     assert refinements == [(ttr.model, ttr.config.refinement)]
-    assert ttr.predictions_computed == 0
+    assert ttr.predictor.computed == 0
 
 
 def test_live_and_worker_warm_ups_run_in_their_own_threads_before_start_returns():

@@ -15,7 +15,7 @@ from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.ground import ground_plane
 from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
 from sfm_ttr_ros.core.metric.scale import MetricScale, WindowMetric, estimate
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
 
 def street(units: float = 0.5, height: float = 1.65, pitch_deg: float = 0.0, n: int = 10,

@@ -22,6 +22,7 @@ import sfm_ttr_ros.core.pipeline as pipeline_module
 from sfm_ttr_ros.core.evaluation import Evaluator
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.models.base import EncoderDecoder
+from sfm_ttr_ros.core.outcomes import Stop
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 
 W, H = 640, 192  # the SfM stage's reliable small size (see test_sfm.py)
@@ -143,8 +144,8 @@ def pinned(run, monkeypatch) -> SfmTTR:
 
     The refinement is deterministic; COLMAP's multi-threaded mapper is not promised to be
     (point counts vary between processes), so the checks below hold the SfM result fixed."""
-    run.ttr.reset_model()
-    monkeypatch.setattr(run.ttr.reconstructor, "reconstruct", lambda *a, **k: run.res.sfm)
+    run.ttr.weights.reset()
+    monkeypatch.setattr(run.ttr.sfm.reconstructor, "reconstruct", lambda *a, **k: run.res.sfm)
     return run.ttr
 
 
@@ -199,7 +200,7 @@ def test_deterministic_under_a_seed(run, monkeypatch):
         np.testing.assert_array_equal(again.depths[name], run.res.depths[name])
     assert again.refinement.loss_history == run.res.refinement.loss_history
     # Another seed shuffles the frames differently: other weights, other depths.
-    ttr.reset_model()
+    ttr.weights.reset()
     ttr.set_config(config(seed=1))
     other = ttr.process_window(run.window, run.intr)
     ttr.set_config(config())
@@ -224,7 +225,7 @@ def test_cancellation_between_steps(run, monkeypatch):
         np.testing.assert_array_equal(res.depths[name], res.depths_before[name])
 
     # SfmTTR.cancel() (what the node calls from another thread) stops at the next step too.
-    ttr.reset_model()
+    ttr.weights.reset()
     calls.clear()
 
     def cancel_at_third() -> bool:
@@ -242,7 +243,7 @@ def test_cancellation_between_steps(run, monkeypatch):
 def test_window_summary_is_plain_numbers(run):
     res = run.res
     s = res.summary()
-    assert s == {"frames": len(res.names), "refined": True, "reason": "",
+    assert s == {"frames": len(res.names), "refined": True, "reason": "", "reason_key": None,
                  "registered": res.sfm.num_registered, "points": res.sfm.num_points,
                  "scale": res.scale, "loss_before": res.loss_before,
                  "loss_after": res.loss_after, "check": res.check.summary(),
@@ -277,7 +278,7 @@ def test_a_window_that_moves_depth_far_from_its_points_is_rejected(run, monkeypa
               if n in measured.sfm.frames}
     assert u == pytest.approx(verification.unsupported_change(
         measured.depths_before, measured.depths, pixels))
-    ttr.reset_model()
+    ttr.weights.reset()
     monkeypatch.setattr(verification, "UNSUPPORTED_FACTOR", 1.0 + 1e-6)
     monkeypatch.setattr(ttr.config.check, "max_unsupported_change", 1e-6)
     res = ttr.process_window(run.window, run.intr)
@@ -306,6 +307,11 @@ def test_a_failed_sanity_check_refuses_the_window_before_refining(run, monkeypat
     assert res.reason.startswith("check: mean reprojection error")
     assert res.check.reprojection_error > 1e-6 and _encoder_equals(ttr.model, original)
     assert 1.0 <= res.check.scale_spread < 2.0 and res.check.track_length >= 2.0
+    # the summary carries the key beside the text; the refinement's inputs stop at the check too
+    assert res.summary()["reason_key"] == "check_reprojection" == res.reason_key
+    assert json.loads(json.dumps(res.summary()))["reason_key"] == "check_reprojection"
+    stop = ttr.refinement_inputs(run.window, run.intr)
+    assert isinstance(stop, Stop) and stop.key == "check_reprojection"
 
 
 @pytest.mark.slow
@@ -319,11 +325,11 @@ def test_a_reconstruction_whose_frames_disagree_in_scale_shows_it_in_its_statist
     ttr = pinned(run, monkeypatch)
     intact = ttr.process_window(run.window, run.intr)
     assert intact.refined and intact.check.scale_spread < 1.5
-    ttr.reset_model()
+    ttr.weights.reset()
     bent = copy.deepcopy(run.res.sfm)
     for name in sorted(bent.frames)[::2]:
         bent.frames[name].depths = bent.frames[name].depths * 2.0
-    monkeypatch.setattr(ttr.reconstructor, "reconstruct", lambda *a, **k: bent)
+    monkeypatch.setattr(ttr.sfm.reconstructor, "reconstruct", lambda *a, **k: bent)
     res = ttr.process_window(run.window, run.intr)
     assert res.check.scale_spread > 1.5
 

@@ -21,7 +21,7 @@ from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.prediction import PREDICTION_CACHE_FRAMES
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import sample_at
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
 W, H = 160, 64
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)
@@ -71,8 +71,8 @@ def make_ttr(reuse: bool, weight_policy: str = "continue", batch: int = 1) -> Sf
                     predict_batch=batch)
     cfg.check.min_parallax = 0.0  # the fake SfM's cameras do not move: no parallax to check
     ttr = SfmTTR(bn_model(), cfg)
-    ttr.reconstructor.close()
-    ttr.reconstructor = FakeReconstructor()
+    ttr.sfm.reconstructor.close()
+    ttr.sfm.reconstructor = FakeReconstructor()
     return ttr
 
 
@@ -95,8 +95,8 @@ def test_overlapping_windows_predict_the_overlap_once_with_the_same_numbers(one_
     # the refinement did change the weights between the two predictions of a window
     assert not np.array_equal(res_on[0].depths["0000000005"], res_on[0].depths_before["0000000005"])
     # off: 4 passes of 10 frames; on: window 2's "before" of frames 5-9 = window 1's "after"
-    assert (off.predictions_computed, off.predictions_reused) == (40, 0)
-    assert (on.predictions_computed, on.predictions_reused) == (35, 5)
+    assert (off.predictor.computed, off.predictor.reused) == (40, 0)
+    assert (on.predictor.computed, on.predictor.reused) == (35, 5)
 
 
 def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
@@ -105,7 +105,7 @@ def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
     assert all(r.refined for r in res)
     # window 2 starts from the original weights again: the "before" of its overlap frames 5-9
     # is window 1's "before" (original weights), not its refined "after"
-    assert (ttr.predictions_computed, ttr.predictions_reused) == (35, 5)
+    assert (ttr.predictor.computed, ttr.predictor.reused) == (35, 5)
     for name in ("0000000005", "0000000009"):
         assert np.array_equal(res[1].depths_before[name], res[0].depths_before[name])
         assert not np.array_equal(res[1].depths_before[name], res[0].depths[name])
@@ -119,57 +119,59 @@ def test_reset_each_window_reuses_the_original_weights_predictions(one_thread):
 def test_cache_follows_the_pixels_and_the_weights(one_thread):
     ttr = make_ttr(True)
     imgs = images(3)
-    first = ttr.predict(imgs)
-    assert ttr.predictions_computed == 3
-    again = ttr.predict([im.copy() for im in imgs])  # same pixels, other arrays: reused
-    assert (ttr.predictions_computed, ttr.predictions_reused) == (3, 3)
+    first = ttr.predictor.predict(imgs)
+    assert ttr.predictor.computed == 3
+    again = ttr.predictor.predict([im.copy() for im in imgs])  # same pixels, other arrays: reused
+    assert (ttr.predictor.computed, ttr.predictor.reused) == (3, 3)
     assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
     again[0][:] = -1.0  # callers get their own arrays
-    assert np.array_equal(ttr.predict(imgs[:1])[0], first[0])
-    assert ttr.predictions_computed == 3
+    assert np.array_equal(ttr.predictor.predict(imgs[:1])[0], first[0])
+    assert ttr.predictor.computed == 3
 
     changed = imgs[1].copy()
     changed[0, 0] ^= 1  # one pixel
-    ttr.predict([changed])
-    assert ttr.predictions_computed == 4
+    ttr.predictor.predict([changed])
+    assert ttr.predictor.computed == 4
 
     with torch.no_grad():  # any in-place change of the weights
         next(ttr.model.encoder.parameters()).add_(0.5)
-    moved = ttr.predict(imgs[:1])[0]
-    assert ttr.predictions_computed == 5 and not np.array_equal(moved, first[0])
-    ttr.reset_model()  # back to the original weights: their predictions are still known
-    assert np.array_equal(ttr.predict(imgs[:1])[0], first[0]) and ttr.predictions_computed == 5
-    ttr.clear_prediction_cache()
-    assert np.array_equal(ttr.predict(imgs[:1])[0], first[0]) and ttr.predictions_computed == 6
+    moved = ttr.predictor.predict(imgs[:1])[0]
+    assert ttr.predictor.computed == 5 and not np.array_equal(moved, first[0])
+    ttr.weights.reset()  # back to the original weights: their predictions are still known
+    assert np.array_equal(ttr.predictor.predict(imgs[:1])[0], first[0])
+    assert ttr.predictor.computed == 5
+    ttr.predictor.clear()
+    assert np.array_equal(ttr.predictor.predict(imgs[:1])[0], first[0])
+    assert ttr.predictor.computed == 6
 
     ttr.model.encoder.train()  # a BatchNorm statistics update (bn_mode "train" refinement)
     ttr.model.encoder(ttr.model.preprocess(imgs[2]))
     ttr.model.eval()
-    ttr.predict(imgs[:1])
-    assert ttr.predictions_computed == 7
+    ttr.predictor.predict(imgs[:1])
+    assert ttr.predictor.computed == 7
 
 
 def test_cache_is_bounded_and_can_be_off(one_thread):
     ttr = make_ttr(True)
     imgs = images(40)
     # untouched weights are the original ones: their predictions live in the original cache
-    ttr.predict(imgs[:30])  # one large call keeps all of its frames
+    ttr.predictor.predict(imgs[:30])  # one large call keeps all of its frames
     assert len(ttr.predictor._original_cache) == 30
-    ttr.predict(imgs[30:31])  # later small calls trim it to the latest PREDICTION_CACHE_FRAMES
+    ttr.predictor.predict(imgs[30:31])  # later small calls trim it to the latest ones
     assert len(ttr.predictor._original_cache) == PREDICTION_CACHE_FRAMES
-    computed = ttr.predictions_computed
-    ttr.predict(imgs[30:31] + imgs[29:30])  # the most recent frames are the ones kept
-    assert ttr.predictions_computed == computed
+    computed = ttr.predictor.computed
+    ttr.predictor.predict(imgs[30:31] + imgs[29:30])  # the most recent frames are the ones kept
+    assert ttr.predictor.computed == computed
     for im in imgs[31:]:
-        ttr.predict([im])
+        ttr.predictor.predict([im])
     assert len(ttr.predictor._original_cache) == PREDICTION_CACHE_FRAMES
     off = copy.deepcopy(ttr.config)
     off.reuse_predictions = False
     ttr.set_config(off)
-    before = ttr.predictions_computed
-    ttr.predict(imgs[:2])
-    ttr.predict(imgs[:2])
-    assert ttr.predictions_computed == before + 4 and len(ttr.predictor._original_cache) == 0
+    before = ttr.predictor.computed
+    ttr.predictor.predict(imgs[:2])
+    ttr.predictor.predict(imgs[:2])
+    assert ttr.predictor.computed == before + 4 and len(ttr.predictor._original_cache) == 0
 
 
 def test_frames_per_pass_depend_on_the_device(one_thread, monkeypatch):

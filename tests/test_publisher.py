@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.metric.scale import MetricStatus
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.stream.admission import Verdict
@@ -25,6 +26,10 @@ class Net:
     def __init__(self, fail: bool = False):
         self.fail = fail
         self.predicted: list[int] = []
+        self.predictor = self  # the stand-in is its own predictor (SfmTTR.predictor)
+
+    def metric_status(self):
+        return MetricStatus("fixed", "metric", self.metres_per_unit, float("nan"), 0, 0, 0)
 
     def predict(self, images):
         if self.fail:

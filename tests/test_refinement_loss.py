@@ -25,7 +25,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     scale_outputs,
 )
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
 W, H = 256, 80
@@ -209,7 +209,7 @@ def process(window, monkeypatch, **refinement):
     cfg = TTRConfig(min_supervision_points=20)
     cfg.refinement = replace(cfg.refinement, steps=6, lr=1e-3, **refinement)
     ttr = SfmTTR(tiny_model(INPUT, batch_norm=1), cfg)
-    monkeypatch.setattr(ttr.reconstructor, "reconstruct", lambda *a, **k: sfm)
+    monkeypatch.setattr(ttr.sfm.reconstructor, "reconstruct", lambda *a, **k: sfm)
     monkeypatch.setattr(pipeline_module, "refine_encoder", spy)
     try:
         res = ttr.process_window(frames, sfm.intrinsics)

@@ -15,13 +15,13 @@ import numpy as np
 import pycolmap
 import pytest
 from conftest import open_hololens
+from helpers import reconstruct_window
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.sfm.reconstruction import (
     SfmConfig,
     SfmReconstructor,
     SfmResult,
-    reconstruct_window,
 )
 
 # 640 x 192 is the smallest size that registered every window we tried: at 416 x 128 seed 1
@@ -257,12 +257,17 @@ def test_every_mapping_attempt_is_recorded_and_the_best_one_kept(street):
 
 
 def fake_result(registered: int, error: float, ok: bool = True) -> SfmResult:
-    from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations
+    from sfm_ttr_ros.core.sfm.result import FrameObservations
 
     obs = {str(i): FrameObservations(str(i), np.zeros((4, 2), np.float32), np.ones(4),
                                      np.full(4, error), np.full(4, error),
                                      np.arange(4), np.eye(4)) for i in range(registered)}
     return SfmResult(ok, "" if ok else "failed", 5, frames=obs)
+
+
+def map_best(rec: SfmReconstructor) -> SfmResult:
+    """The reconstructor's mapper runs on an empty window (its runs monkeypatched)."""
+    return rec.mapper.map_best(rec.config, [], {}, pycolmap.CancellationToken(), lambda: None)
 
 
 @pytest.mark.parametrize("runs, threshold, seeds, kept_seed", [
@@ -280,9 +285,9 @@ def test_the_mapper_runs_again_only_while_the_best_error_is_high(monkeypatch, ru
     rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=threshold, seed=7))
     results = iter([fake_result(*r) for r in runs])
     calls = []
-    monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
-    monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: next(results))
-    res = rec._map_best([], {}, pycolmap.CancellationToken())
+    monkeypatch.setattr(rec.mapper, "_map", lambda cfg, names, token, seed: calls.append(seed))
+    monkeypatch.setattr(rec.mapper, "_collect", lambda cfg, recs, names, timings: next(results))
+    res = map_best(rec)
     rec.close()
     assert calls == seeds == [a["seed"] for a in res.attempts]
     assert [a["seed"] for a in res.attempts if a["kept"]] == [kept_seed]
@@ -295,17 +300,17 @@ def test_the_mapper_runs_again_above_the_streams_usual_error(monkeypatch, ratio,
     rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_ratio=ratio))
     results = iter([fake_result(5, e) for e in (0.3, 0.31, 0.29, 0.5, 0.32, 0.3)])
     calls = []
-    monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
-    monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: next(results))
+    monkeypatch.setattr(rec.mapper, "_map", lambda cfg, names, token, seed: calls.append(seed))
+    monkeypatch.setattr(rec.mapper, "_collect", lambda cfg, recs, names, timings: next(results))
     for _ in range(3):  # the stream's first windows: one run each (no history, then < 1.3x)
-        rec._map_best([], {}, pycolmap.CancellationToken())
+        map_best(rec)
     assert calls == [0, 0, 0]
     calls.clear()
-    res = rec._map_best([], {}, pycolmap.CancellationToken())
+    res = map_best(rec)
     assert calls == seeds and res.reprojection_error == pytest.approx(0.32 if ratio else 0.5)
     rec.reset()  # a new stream forgets the errors: 0.5 px is no reason to map again
     calls.clear()
-    rec._map_best([], {}, pycolmap.CancellationToken())
+    map_best(rec)
     assert calls == [0]
     rec.close()
 
@@ -313,9 +318,10 @@ def test_the_mapper_runs_again_above_the_streams_usual_error(monkeypatch, ratio,
 def test_a_mapping_without_a_model_is_not_repeated(monkeypatch):
     rec = SfmReconstructor(SfmConfig(mapping_attempts=3, retry_above_error=0.0))
     calls = []
-    monkeypatch.setattr(rec, "_map", lambda names, token, seed: calls.append(seed))
-    monkeypatch.setattr(rec, "_collect", lambda recs, names, timings: fake_result(0, 0, False))
-    res = rec._map_best([], {}, pycolmap.CancellationToken())
+    monkeypatch.setattr(rec.mapper, "_map", lambda cfg, names, token, seed: calls.append(seed))
+    monkeypatch.setattr(rec.mapper, "_collect",
+                        lambda cfg, recs, names, timings: fake_result(0, 0, False))
+    res = map_best(rec)
     rec.close()
     assert calls == [0] and not res.ok and res.attempts[0]["kept"]
 
@@ -369,10 +375,10 @@ def test_sfm_begun_ahead_is_the_windows_own_reconstruction(street):
         assert float(np.median(errors)) < 0.05
         assert ahead.take(window, street.intr) is None  # handed over once
         assert ahead.counters() == {"started": 1, "used": 1, "discarded": 0}
-        assert ahead.reconstructor.workspace.exists()
+        assert ahead.reconstructor.workspace.path.exists()
     finally:
         ahead.close()
-    assert not ahead.reconstructor.workspace.exists()
+    assert not ahead.reconstructor.workspace.path.exists()
 
 
 def test_sfm_begun_ahead_waits_for_its_window_while_the_next_one_starts(street, monkeypatch):

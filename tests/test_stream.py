@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from conftest import tiny_model
 
-from sfm_ttr_ros.core.checks.measures import WindowCheck
+from sfm_ttr_ros.core.checks.measures import CheckReport
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.metric.scale import MetricStatus
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
 from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
@@ -40,19 +41,23 @@ class ScriptedTTR:
         self.delay = delay
         self.cancelled = False
         self.prefetched: list[list[str]] = []  # windows whose SfM the stream asked ahead
+        self.predictor = self.sfm = self  # the stand-in is its own predictor and SfM source
+        self.metres_per_unit = None  # the outputs' metric factor (None: not metric)
 
     def set_config(self, config):
         self.config = config
 
-    def prefetch_sfm(self, frames, intrinsics):  # as SfmPrefetch.start: the same frames once
+    def prefetch(self, frames, intrinsics):  # as SfmPrefetch.start: the same frames once
         if self.prefetched and self.prefetched[-1] == [f.name for f in frames]:
             return False
         self.prefetched.append([f.name for f in frames])
         return True
 
-    @property
-    def prefetch_counters(self):
+    def counters(self):
         return {"started": len(self.prefetched), "used": 0, "discarded": 0}
+
+    def metric_status(self):
+        return MetricStatus("fixed", "metric", self.metres_per_unit, float("nan"), 0, 0, 0)
 
     def cancel(self):
         self.cancelled = True
@@ -83,7 +88,7 @@ class ScriptedTTR:
         elif outcome == "rejected":
             key = Unrefined.CHECK_UNSUPPORTED_CHANGE
             res.reason_key, res.reason = key, "rejected by check: 0.03 of the pixels moved"
-            res.check = WindowCheck(unsupported_change=0.03, reason_key=key)
+            res.check = CheckReport(unsupported_change=0.03, reason_key=key)
         else:
             res.reason_key = Unrefined.TOO_FEW_POINTS
             res.reason = "too few supervision points: 3 selected of 10 (< 50)"

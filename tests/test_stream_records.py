@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
-from sfm_ttr_ros.core.checks.measures import WindowCheck
+from sfm_ttr_ros.core.checks.measures import CheckReport
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.metric.scale import WindowMetric
@@ -50,7 +50,7 @@ def full_result(refined: bool) -> WindowResult:
                     point_ids=np.arange(7), attempts=[{}, {}])
     return WindowResult(
         names, dict(depth), dict(depth), refined, "" if refined else "rolled back",
-        None if refined else Unrefined.ROLLED_BACK, check=WindowCheck(unsupported_change=0.1),
+        None if refined else Unrefined.ROLLED_BACK, check=CheckReport(unsupported_change=0.1),
         depths_candidate=dict(depth), sfm=sfm,
         alignment=AlignmentResult(2.0, np.array([True, True, False, True]),
                                   np.array([True, False, False, True])),

@@ -12,8 +12,8 @@ import pytest
 from sfm_ttr_ros.core.checks.measures import (
     UNSUPPORTED_MIN_HISTORY,
     CheckConfig,
+    CheckReport,
     PathReference,
-    WindowCheck,
     frame_scale_spread,
     frame_unsupported_change,
     probe_frames,
@@ -59,7 +59,7 @@ def test_scale_jump_compares_the_shared_path():
 
 def test_parallax_is_the_camera_span_over_the_median_depth():
     from sfm_ttr_ros.core.checks.measures import parallax
-    from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+    from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
     def frame(z: float, depths: np.ndarray) -> FrameObservations:
         T = np.eye(4)
@@ -74,7 +74,7 @@ def test_parallax_is_the_camera_span_over_the_median_depth():
     assert parallax(sfm, ["a", "b", "c"]) == pytest.approx(4.0 / 20.0)
     assert parallax(sfm, ["a", "b"]) == pytest.approx(1.0 / 20.0)
     assert math.isnan(parallax(sfm, ["a"]))
-    c = sanity_check(CheckConfig(min_parallax=0.1), WindowCheck(parallax=0.05))
+    c = sanity_check(CheckConfig(min_parallax=0.1), CheckReport(parallax=0.05))
     assert c.reason_key is Unrefined.CHECK_PARALLAX and "0.05" in c.reason
 
 
@@ -82,21 +82,21 @@ def test_sanity_check_names_the_first_failing_check_and_skips_what_is_off():
     stats = dict(reprojection_error=2.5, parallax=0.05, track_length=2.1, inlier_ratio=0.3,
                  scale_spread=1.9, scale_jump=1.5)
     off = sanity_check(CheckConfig(max_reprojection_error=0.0, min_parallax=0.0,
-                                   max_scale_jump=0.0), WindowCheck(**stats))
+                                   max_scale_jump=0.0), CheckReport(**stats))
     assert off.reason_key is None
     c = sanity_check(CheckConfig(max_reprojection_error=2.0, min_parallax=0.1,
-                                 max_scale_jump=1.2), WindowCheck(**stats))
+                                 max_scale_jump=1.2), CheckReport(**stats))
     assert c.reason_key is Unrefined.CHECK_REPROJECTION and "2.5 px > " in c.reason
     c = sanity_check(CheckConfig(max_reprojection_error=0.0, max_scale_jump=1.2),
-                     WindowCheck(**stats))
+                     CheckReport(**stats))
     assert c.reason_key is Unrefined.CHECK_PARALLAX
-    c = sanity_check(CheckConfig(min_parallax=0.0, max_scale_jump=1.2), WindowCheck(**{
+    c = sanity_check(CheckConfig(min_parallax=0.0, max_scale_jump=1.2), CheckReport(**{
         **stats, "reprojection_error": 0.5}))
     assert c.reason_key is Unrefined.CHECK_SCALE_JUMP and c.reason_key in CHECKS
-    c = sanity_check(CheckConfig(max_scale_jump=1.2), WindowCheck(scale_jump=float("nan")))
+    c = sanity_check(CheckConfig(max_scale_jump=1.2), CheckReport(scale_jump=float("nan")))
     assert c.reason_key is None  # NaN: no shared frames, nothing to judge
     # the statistics without a threshold are still measured and reported
-    assert {"track_length", "inlier_ratio", "scale_spread"} <= set(WindowCheck(**stats).summary())
+    assert {"track_length", "inlier_ratio", "scale_spread"} <= set(CheckReport(**stats).summary())
 
 
 def test_check_parameters_reach_the_config_and_bad_ones_are_refused():
@@ -204,14 +204,14 @@ def test_the_reprojection_ratio_judges_a_window_against_the_streams_accepted_one
 
 def test_a_window_is_judged_against_the_reprojection_errors_of_accepted_windows_only():
     from sfm_ttr_ros.core.alignment.scale import AlignmentResult
-    from sfm_ttr_ros.core.checks.window import WindowChecks
-    from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+    from sfm_ttr_ros.core.checks.window import WindowJudge
+    from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
-    checks, cfg = WindowChecks(), CheckConfig(max_reprojection_ratio=1.25)
+    checks, cfg = WindowJudge(), CheckConfig(max_reprojection_ratio=1.25)
     empty = np.zeros(0)
     align = AlignmentResult(1.0, empty.astype(bool), empty.astype(bool))
 
-    def window(error: float) -> WindowCheck:
+    def window(error: float) -> CheckReport:
         n = 5
         obs = FrameObservations("a", np.zeros((n, 2)), np.full(n, 10.0), np.full(n, error),
                                 np.full(n, error), np.arange(n), np.eye(4))

@@ -9,7 +9,7 @@ between consecutive windows).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -206,33 +206,3 @@ def list_images(folder: str | Path) -> list[Path]:
     if not files:
         raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
     return files
-
-
-def load_frames(paths: Iterable[str | Path], stamps: Sequence[float] | None = None) -> list[Frame]:
-    frames = []
-    for i, p in enumerate(paths):
-        p = Path(p)
-        stamp = float(stamps[i]) if stamps is not None else float(i)
-        frames.append(Frame(index=i, image=load_rgb(p), stamp=stamp, name=p.stem))
-    return frames
-
-
-def sliding_windows(num_frames: int, window_size: int, stride: int) -> Iterator[range]:
-    """Index ranges of overlapping windows covering ``0 .. num_frames-1``.
-
-    Every frame belongs to at least one window; the last window is shifted back so that it is
-    full whenever ``num_frames >= window_size``.
-    """
-    if window_size < 2 or stride < 1:
-        raise InputError(f"window_size must be >= 2 and stride >= 1 (got {window_size}, {stride})")
-    if num_frames <= window_size:
-        yield range(0, num_frames)
-        return
-    start = 0
-    while True:
-        end = start + window_size
-        if end >= num_frames:
-            yield range(num_frames - window_size, num_frames)
-            return
-        yield range(start, end)
-        start += stride

@@ -11,7 +11,7 @@ Izquierdo & Civera, CVPR 2023, Sec. 3.2 (and the authors' release):
    chooses the supervision points: it keeps points whose network depth is noisy on purpose,
    since those are the ones the refinement should correct.
 
-Baselines for the paper's ablation: :func:`median_scale`, :func:`least_squares_scale`.
+The ablation's baselines (median, unweighted least squares) live with the tests that compare them.
 """
 
 from __future__ import annotations
@@ -117,18 +117,3 @@ def align_scale(d_sfm: np.ndarray, d_nn: np.ndarray,
         "selected_ratio": float(selected.sum() / valid.sum()),
     }
     return AlignmentResult(scale, inliers, selected, ransac_scale=float(best_s), stats=stats)
-
-
-def median_scale(d_sfm: np.ndarray, d_nn: np.ndarray) -> float:
-    """Ablation baseline: s = median(D_nn / D_sfm) over valid pairs."""
-    d_sfm, d_nn = _check(d_sfm, d_nn)
-    v = _valid(d_sfm, d_nn)
-    return float(np.median(d_nn[v] / d_sfm[v])) if v.any() else float("nan")
-
-
-def least_squares_scale(d_sfm: np.ndarray, d_nn: np.ndarray) -> float:
-    """Ablation baseline: unweighted argmin_s Σ (s·D_sfm − D_nn)² over all valid pairs."""
-    d_sfm, d_nn = _check(d_sfm, d_nn)
-    v = _valid(d_sfm, d_nn)
-    den = float(np.sum(d_sfm[v] ** 2))
-    return float(np.sum(d_sfm[v] * d_nn[v]) / den) if den > 0 else float("nan")

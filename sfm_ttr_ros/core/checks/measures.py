@@ -75,7 +75,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.outcomes import Unrefined
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 #: ρ and τ of :func:`unsupported_change` (module docstring, 2.)
 UNSUPPORTED_RADIUS = 0.05
@@ -131,7 +131,7 @@ class CheckConfig:
 
 
 @dataclass
-class WindowCheck:
+class CheckReport:
     """What the checks measured on one window (NaN: not measured) and their verdict."""
 
     reprojection_error: float = float("nan")
@@ -225,7 +225,7 @@ def parallax(sfm: SfmResult, registered: Sequence[str]) -> float:
     return diameter / float(np.median(depths)) if depths.size else float("nan")
 
 
-def sanity_check(config: CheckConfig, check: WindowCheck) -> WindowCheck:
+def sanity_check(config: CheckConfig, check: CheckReport) -> CheckReport:
     """Fill ``check.reason_key`` / ``reason`` from the measured statistics (the first failing
     check, in this order); a NaN statistic passes (nothing to judge)."""
     tests = (

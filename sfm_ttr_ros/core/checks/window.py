@@ -1,18 +1,18 @@
 """The window checks as one collaborator of the pipeline: when each runs, what it remembers.
 
-:class:`WindowChecks` judges each window with the measures of :mod:`core/verification
+:class:`WindowJudge` judges each window with the measures of :mod:`core/checks/measures
 <sfm_ttr_ros.core.checks.measures>` (whose docstring gives the checks and their formulas) and keeps
 what they compare with across windows: the last accepted window's camera path (the scale jump)
 and the unsupported change of the last accepted windows. In the order a window meets them:
 
-1. before refining: the sanity statistics and their verdict (:meth:`WindowChecks.before_refining`);
+1. before refining: the sanity statistics and their verdict (:meth:`WindowJudge.before_refining`);
 2. while refining: the interim gate, the unsupported change of interim weights on
-   :func:`~sfm_ttr_ros.core.checks.measures.probe_frames` (:meth:`WindowChecks.arm_interim`,
-   :meth:`WindowChecks.interim_refusal`);
+   :func:`~sfm_ttr_ros.core.checks.measures.probe_frames` (:meth:`WindowJudge.arm_interim`,
+   :meth:`WindowJudge.interim_refusal`);
 3. after refining: the rollback reasons (non-finite loss or weights, ``max_loss_ratio``;
-   :meth:`WindowChecks.rollback_reason`), then the unsupported change
-   (:meth:`WindowChecks.after_refining`);
-4. an accepted window becomes the reference of the next (:meth:`WindowChecks.accept`).
+   :meth:`WindowJudge.rollback_reason`), then the unsupported change
+   (:meth:`WindowJudge.after_refining`);
+4. an accepted window becomes the reference of the next (:meth:`WindowJudge.accept`).
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ from sfm_ttr_ros.core.checks.measures import (
     REPROJECTION_HISTORY,
     UNSUPPORTED_HISTORY,
     CheckConfig,
+    CheckReport,
     PathReference,
-    WindowCheck,
     frame_scale_spread,
     parallax,
     path_reference,
@@ -46,12 +46,12 @@ from sfm_ttr_ros.core.checks.measures import (
 )
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.refinement.encoder import finite_state
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 Depths = Mapping[str, np.ndarray]
 
 
-class WindowChecks:
+class WindowJudge:
     """The checks of a stream's windows and the references they keep across windows."""
 
     def __init__(self) -> None:
@@ -74,12 +74,12 @@ class WindowChecks:
     # -- 1. before refining ------------------------------------------------------------------
     def before_refining(self, config: CheckConfig, sfm: SfmResult, registered: list[str],
                         d_sfm: np.ndarray, d_nn: np.ndarray, align: AlignmentResult,
-                        scaled: bool) -> WindowCheck:
+                        scaled: bool) -> CheckReport:
         """The window's statistics and the verdict of the cheap checks
         (:func:`~sfm_ttr_ros.core.checks.measures.sanity_check`); the scale checks only when
         ``scaled`` (depth up to scale)."""
         t0 = time.perf_counter()
-        c = WindowCheck(reprojection_error=sfm.reprojection_error,
+        c = CheckReport(reprojection_error=sfm.reprojection_error,
                         track_length=track_length(sfm, registered),
                         parallax=parallax(sfm, registered))
         if align.ransac_inliers.size:
@@ -162,9 +162,9 @@ class WindowChecks:
                     f"max_loss_ratio {max_loss_ratio:g}")
         return ""
 
-    def after_refining(self, config: CheckConfig, check: WindowCheck, before: Depths,
+    def after_refining(self, config: CheckConfig, check: CheckReport, before: Depths,
                        after: Depths, sfm: SfmResult, registered: list[str],
-                       rescale: bool) -> WindowCheck:
+                       rescale: bool) -> CheckReport:
         """The refined weights' unsupported change (depth up to scale only) and the verdict
         (``check.reason_key``: None = accepted)."""
         t0 = time.perf_counter()
@@ -178,7 +178,7 @@ class WindowChecks:
         return c
 
     # -- 4. the reference of the next window -------------------------------------------------
-    def accept(self, check: WindowCheck, sfm: SfmResult, registered: list[str], scale: float,
+    def accept(self, check: CheckReport, sfm: SfmResult, registered: list[str], scale: float,
                scaled: bool) -> None:
         """An accepted window: its camera path (``scaled`` only), its unsupported change and its
         mean reprojection error are what the next windows are compared with."""

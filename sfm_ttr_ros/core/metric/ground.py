@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.metric.config import MetricConfig
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 RANSAC_ITERATIONS = 200
 

@@ -31,7 +31,7 @@ import numpy as np
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.ground import cameras, ground_plane
 from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 
 def in_metres(depth: np.ndarray | None, metres_per_unit: float | None) -> np.ndarray | None:
@@ -101,6 +101,32 @@ def _odometry_scale(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str]
     return travel / sfm_path, travel, ""
 
 
+@dataclass
+class MetricStatus:
+    """What the outputs' units are now (for /diagnostics and the reports): ``state``
+    ``not_metric`` (metric.source none), ``waiting`` (no accepted estimate yet) or ``metric``;
+    ``metres_per_unit`` the outputs' factor (None = not metric); the relative ``spread`` of
+    the accepted windows' estimates, how many there are, and the odometry messages taken and
+    refused."""
+
+    source: str
+    state: str
+    metres_per_unit: float | None
+    spread: float
+    windows: int
+    odometry_received: int
+    odometry_rejected: int
+
+    def values(self) -> dict[str, object]:
+        """The status as flat values (``metres_per_unit`` NaN when not metric)."""
+        k = self.metres_per_unit
+        return {"source": self.source, "state": self.state,
+                "metres_per_unit": float("nan") if k is None else k,
+                "spread": self.spread, "windows": self.windows,
+                "odometry_received": self.odometry_received,
+                "odometry_rejected": self.odometry_rejected}
+
+
 class MetricScale:
     """The metres of a stream's outputs: from its accepted windows' estimates."""
 
@@ -118,6 +144,13 @@ class MetricScale:
         if cfg.source == "none" or not self.history:
             return None
         return float(np.median(self.history))
+
+    def status(self, cfg: MetricConfig, odometry: OdometryTrack) -> MetricStatus:
+        """The outputs' units now (:class:`MetricStatus`), with ``odometry``'s counts."""
+        k = self.factor(cfg)
+        state = "not_metric" if cfg.source == "none" else ("waiting" if k is None else "metric")
+        return MetricStatus(cfg.source, state, k, self.spread(), len(self.history),
+                            odometry.received, odometry.rejected)
 
     def reference(self, cfg: MetricConfig, weight_policy: str) -> float | None:
         """What a window's k should be: the metres per unit of the weights it starts from

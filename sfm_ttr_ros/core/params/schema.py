@@ -7,7 +7,7 @@ read from the target dataclass field, so they are written once, in the config. W
 what it is lives in docs/decisions.md, not here. Sections:
 
 =========== ====================================================================
-``sfm``       :class:`~sfm_ttr_ros.core.sfm.reconstruction.SfmConfig`
+``sfm``       :class:`~sfm_ttr_ros.core.sfm.config.SfmConfig`
 ``alignment`` :class:`~sfm_ttr_ros.core.alignment.scale.AlignmentConfig`
 ``refinement``:class:`~sfm_ttr_ros.core.refinement.config.RefinementConfig`
 ``ttr``       :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` (its own fields)
@@ -52,7 +52,7 @@ from sfm_ttr_ros.core.refinement.config import (
 )
 from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
 from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
-from sfm_ttr_ros.core.sfm.reconstruction import FEATURE_BACKENDS, SfmConfig
+from sfm_ttr_ros.core.sfm.config import FEATURE_BACKENDS, SfmConfig
 from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES
 from sfm_ttr_ros.core.stream.windows import StreamSettings
 

@@ -22,7 +22,7 @@ from sfm_ttr_ros.core.alignment.affine import (
     affine_targets,
 )
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 
 
 @dataclass

@@ -11,9 +11,7 @@
   frozen; the adapters start at zero (LoRA's B = 0), so the network is unchanged until the
   first step. Convolutional encoders (ResNet, MobileNet) have no attention projections:
   ``lora`` refuses them with an :class:`InputError` (use ``encoder`` or ``norm``).
-  :func:`merge_lora` folds the adapters into the base weights and removes them;
-  :func:`remove_lora` discards them (back to the original network); :func:`reset_lora` zeroes
-  them in place.
+  :func:`merge_lora` folds the adapters into the base weights and removes them.
 
 ``blocks = N > 0`` (``refinement.trainable_blocks``, not in the paper) restricts any mode to
 the last N transformer blocks of the encoder (:func:`encoder_blocks`): the backward pass then
@@ -59,7 +57,7 @@ def select_trainable(model: DepthModel, mode: str = "encoder", rank: int = 8,
     ``frozen_stages``: leading stages of a staged encoder (``stage_modules(i)``) kept fixed in
     every mode. ``mode == "lora"`` first adds adapters of rank ``rank`` (scaling
     ``alpha / rank``, alpha defaults to ``rank``) when the encoder has none: the model's module
-    tree changes until :func:`merge_lora` or :func:`remove_lora`. ``blocks`` > 0: only what
+    tree changes until :func:`merge_lora`. ``blocks`` > 0: only what
     ``mode`` selects inside the encoder's last ``blocks`` transformer blocks (LoRA adapters are
     added there only)."""
     if mode not in TRAINABLE_MODES:
@@ -190,8 +188,7 @@ def add_lora(model: DepthModel, rank: int = 8, alpha: float | None = None,
         raise InputError(f"lora rank must be >= 1, got {rank}")
     encoder = model.encoder
     if has_lora(model):
-        raise InputError("the encoder already has LoRA adapters: merge_lora or remove_lora "
-                         "first")
+        raise InputError("the encoder already has LoRA adapters: merge_lora first")
     names = [n for n in lora_target_names(encoder, targets)
              if not within or any(n.startswith(w + ".") for w in within)]
     if not names:
@@ -212,25 +209,11 @@ def add_lora(model: DepthModel, rank: int = 8, alpha: float | None = None,
     return names
 
 
-def reset_lora(model: DepthModel) -> int:
-    """Re-initialise every adapter (B = 0: the network is the original again); returns the
-    number of adapted layers."""
-    layers = _lora_layers(model.encoder)
-    for _, layer in layers:
-        layer.reset_lora_parameters(LORA_ADAPTER, True)
-    return len(layers)
-
-
 def merge_lora(model: DepthModel) -> int:
     """Fold every adapter into its base weight and put the plain layers back; returns the
     number of layers merged. The refined network keeps its output, the encoder its original
     module tree and state_dict keys."""
     return _unwrap(model.encoder, merge=True)
-
-
-def remove_lora(model: DepthModel) -> int:
-    """Put the plain layers back, discarding the adapters (the original network)."""
-    return _unwrap(model.encoder, merge=False)
 
 
 def _unwrap(encoder: nn.Module, merge: bool) -> int:

@@ -33,12 +33,13 @@ class WeightPolicy:
         if self._on_reset is not None:
             self._on_reset()
 
-    def begin_window(self, weight_policy: str) -> None:
-        """A window begins: under ``reset`` from the start-up weights."""
+    def load_start(self, weight_policy: str) -> None:
+        """A window begins: load the weights it starts from (under ``reset`` the start-up
+        weights; under ``continue`` the model keeps the weights it has)."""
         if weight_policy == "reset":
             self.reset()
 
-    def begin(self, weight_policy: str) -> dict:
+    def rollback_point(self, weight_policy: str) -> dict:
         """The weights before the window (what :meth:`refuse` restores), taken just before its
         first step; under ``reset`` the start-up weights."""
         return self.original if weight_policy == "reset" else snapshot_encoder(self.model)

@@ -14,7 +14,7 @@ reconstruction of exactly those frames (waiting for it if it is still running); 
 
 The stream (:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`) begins it from its input
 callback, at the first frame that finds the next window's frames all queued once the running
-window's own SfM has ended (:meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.prefetch_sfm`); the thread
+window's own SfM has ended (:meth:`~sfm_ttr_ros.core.sfm.source.SfmSource.prefetch`); the thread
 lowers its own OS priority to the worker's
 (:func:`~sfm_ttr_ros.core.threads.lower_thread_priority`), so live serving keeps the cores
 first.

@@ -149,7 +149,7 @@ class StreamDiagnostics:
         v.update(self._keyframe_values())
         metric = getattr(self.stream.ttr, "metric_status", None)
         if metric is not None:  # the outputs' units (core/metric/)
-            v.update({f"metric.{k}": x for k, x in metric().items()})
+            v.update({f"metric.{k}": x for k, x in metric().values().items()})
         v.update(self._last_window_values())
         return v
 

@@ -44,7 +44,7 @@ class FramePublisher:
         the window ``ran``, else unrefined with its reason."""
         if not ran:
             return self.unrefined(new, stats.reason_key, stats.reason, window=stats.index)
-        k = getattr(self.ttr, "metres_per_unit", None)
+        k = None if self.ttr is None else self.ttr.metric_status().metres_per_unit
         outs = [FrameOutput(f, in_metres(res.depths[f.name], k), res.refined, stats.reason_key,
                             stats.reason, window=stats.index, metres_per_unit=k) for f in new]
         self._account(outs)
@@ -65,7 +65,8 @@ class FramePublisher:
         depths: dict[int, np.ndarray] = {}
         if todo:
             try:
-                depths = dict(zip(map(id, todo), self.ttr.predict([f.image for f in todo]),
+                depths = dict(zip(map(id, todo),
+                                  self.ttr.predictor.predict([f.image for f in todo]),
                                   strict=True))
             except Exception as exc:
                 msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
@@ -75,7 +76,7 @@ class FramePublisher:
                     self.drop(f, Dropped.PREDICTION_ERROR, msg)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
-        k = getattr(self.ttr, "metres_per_unit", None)
+        k = None if self.ttr is None else self.ttr.metric_status().metres_per_unit
         outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
                             metres_per_unit=k) for f in frames]
         self._account(outs)

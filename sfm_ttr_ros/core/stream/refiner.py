@@ -74,11 +74,12 @@ class StreamRefiner:
                                       on_output=on_refined, on_window=self._window_done,
                                       on_drop=on_drop, logger=self.log)
         self.serving = ServingModel(ttr.model)
-        self.serving.set_metres_per_unit(ttr.metres_per_unit)  # metric.source fixed: at once
+        # metric.source fixed: at once
+        self.serving.set_metres_per_unit(ttr.metric_status().metres_per_unit)
         self.live = LiveServer(self.serving, on_live or (lambda out: None),
                                max_queue=settings.live_max_queue, logger=self.log)
         self._nice = settings.worker_nice
-        ttr.prefetch_nice = settings.worker_nice  # SfM ahead runs at the worker's priority
+        ttr.sfm.nice = settings.worker_nice  # SfM ahead runs at the worker's priority
         self._threads = settings.worker_threads
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
@@ -166,11 +167,11 @@ class StreamRefiner:
     def _refine_step(self, step: int) -> None:
         """After each refinement step (worker thread): every ``serve_every_steps`` steps, serve
         the window's weights as they are (non-finite ones are not served), once the window
-        check can vouch for them (:meth:`SfmTTR.interim_refusal`)."""
+        check can vouch for them (:meth:`WindowJudge.interim_refusal`)."""
         every = self.stream.settings.serve_every_steps
         if every <= 0 or step % every:
             return
-        why = self.ttr.interim_refusal()
+        why = self.ttr.checks.interim_refusal()
         if why:
             self.serving_interim_refused += 1
             self.log.info(f"interim weights after step {step} not served: {why}")
@@ -187,7 +188,7 @@ class StreamRefiner:
         if stats.refined:
             try:
                 self.serving.update(self.ttr.model.encoder.state_dict(), stats.index + 1,
-                                    self.ttr.metres_per_unit)
+                                    self.ttr.metric_status().metres_per_unit)
                 self.serving_updates += 1
                 self._mark(stats.index, "final")
             except Exception as exc:  # noqa: BLE001 - keep serving the previous weights
@@ -198,7 +199,7 @@ class StreamRefiner:
         else:
             self._revert(stats)
             # the weights before the window stay; a parameter may have changed the factor
-            self.serving.set_metres_per_unit(self.ttr.metres_per_unit)
+            self.serving.set_metres_per_unit(self.ttr.metric_status().metres_per_unit)
         if self.on_window is not None:
             self.on_window(stats)
 

@@ -165,7 +165,7 @@ class StreamProcessor:
     def counters(self) -> dict[str, object]:
         """Snapshot of the accounting (:meth:`FrameQueue.counters`) and of the SfM begun ahead."""
         return self._queue.counters() | {
-            "sfm_ahead": dict(getattr(self.ttr, "prefetch_counters", {}))}
+            "sfm_ahead": self.ttr.sfm.counters() if self.ttr is not None else {}}
 
     @property
     def last_window(self) -> WindowStats | None:
@@ -258,7 +258,7 @@ class StreamProcessor:
     def _prefetch_next(self) -> None:
         """While a window runs, once the frames of the window after it are all queued
         (:meth:`FrameQueue.next_window`; every frame a keyframe), begin their SfM in the
-        background (:meth:`SfmTTR.prefetch_sfm`, which waits for the running window's own SfM:
+        background (:meth:`SfmSource.prefetch`, which waits for the running window's own SfM:
         asked again at every frame that arrives). Called by :meth:`submit`; cheap."""
         s = self.settings
         if (not s.prefetch_sfm or s.keyframe_policy != "all" or s.min_keyframe_interval_s > 0
@@ -269,7 +269,7 @@ class StreamProcessor:
             return  # nothing to begin, or begun already (every later frame finds the same ones)
         frames, intr = ahead
         try:
-            if self.ttr.prefetch_sfm(frames, intr):
+            if self.ttr.sfm.prefetch(frames, intr):
                 self._asked_ahead = tuple(f.name for f in frames)
         except Exception as exc:  # noqa: BLE001 - ahead of time only: the window does it itself
             self._out.warn("prefetch", f"SfM ahead of the next window not begun: {exc}")

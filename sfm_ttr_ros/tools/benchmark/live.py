@@ -73,7 +73,7 @@ def run_live(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     live.add_cut_short_windows()
     run.seconds = fed_s
     _record(live, ttr.config.refinement.loss, cfg.weight_policy, rate, forward)
-    run.extra["metric"] = ttr.metric_status()
+    run.extra["metric"] = ttr.metric_status().values()
 
 
 class _LiveRun:

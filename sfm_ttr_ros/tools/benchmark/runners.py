@@ -164,7 +164,7 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         for k in range(0, len(indices), b):
             frames = [seq.frame(i) for i in indices[k:k + b]]
             t0 = time.perf_counter()
-            depths = ttr.predict([f.image for f in frames])
+            depths = ttr.predictor.predict([f.image for f in frames])
             dt = time.perf_counter() - t0
             run.seconds += dt
             run.timings["predict"] += dt
@@ -249,7 +249,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         for o in outs:
             depth = o.depth
             if depth is None:  # served live only (virtual time): evaluated with the weights now
-                depth = in_metres(ttr.predict([seq.frame(o.frame.index).image])[0],
+                depth = in_metres(ttr.predictor.predict([seq.frame(o.frame.index).image])[0],
                                   o.metres_per_unit)
             run.add(o.frame.index, depth, o.refined, o.reason_key)
 
@@ -278,13 +278,14 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             if frame is not None and frame.index not in run.seen:
                 log.warning("%s: frame %d dropped by the stream (%s): evaluated with an "
                             "unrefined prediction", run.mode, frame.index, key)
-                run.add(frame.index, ttr.predict([frame.image])[0], False, f"dropped:{key}")
+                run.add(frame.index, ttr.predictor.predict([frame.image])[0], False,
+                        f"dropped:{key}")
     finally:
         ttr.close()
     counters = stream.counters()
     run.extra.update(windows)
     run.extra["stream_counters"] = counters
-    run.extra["metric"] = ttr.metric_status()
+    run.extra["metric"] = ttr.metric_status().values()
 
 
 def _push_in_order(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int], take,
@@ -343,7 +344,7 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     try:
         for c, chunk in enumerate(chunks):
             if c:
-                ttr.reset_model()  # every chunk is a sequence of its own: original weights
+                ttr.weights.reset()  # every chunk is a sequence of its own: original weights
             frames = [seq.frame(i) for i in chunk]
             if progress:
                 progress(f"{run.mode}: window {c + 1}/{len(chunks)} over {len(frames)} "
@@ -356,8 +357,8 @@ def run_offline(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             except Exception as exc:  # as the stream does: the frames go out unrefined
                 msg = f"window failed: {type(exc).__name__}: {exc}"
                 log.error("%s: %s", run.mode, msg)
-                ttr.reset_model()
-                depths = ttr.predict([f.image for f in frames])
+                ttr.weights.reset()
+                depths = ttr.predictor.predict([f.image for f in frames])
                 run.seconds += time.perf_counter() - t0
                 for f, d in zip(frames, depths, strict=True):
                     run.add(f.index, d, False, Unrefined.WINDOW_ERROR)

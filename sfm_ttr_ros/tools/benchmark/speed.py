@@ -172,9 +172,9 @@ class SpeedTaps:
     def make_ttr(self, model, cfg) -> SfmTTR:
         ttr = SfmTTR(model, cfg)
         if not self.cfg.feature_cache:
-            ttr.reconstructor.close()
-            ttr.reconstructor = _FreshReconstructor(ttr.config.sfm)
-        real_predict = ttr.predict
+            ttr.sfm.reconstructor.close()
+            ttr.sfm.reconstructor = _FreshReconstructor(ttr.config.sfm)
+        real_predict = ttr.predictor.predict
 
         def timed_predict(images):
             t0 = time.perf_counter()
@@ -183,7 +183,7 @@ class SpeedTaps:
             finally:
                 self.predict_s += time.perf_counter() - t0
 
-        ttr.predict = timed_predict  # every forward pass, inside windows or not
+        ttr.predictor.predict = timed_predict  # every forward pass, inside windows or not
         self.ttr = ttr
         return ttr
 
@@ -230,7 +230,7 @@ class SpeedTaps:
             rec["push"] = "flush" if flush else k
             self.window_push.append((k, dt))
         self.pending.clear()
-        self.frames_extracted = self.ttr.reconstructor.frames_extracted
+        self.frames_extracted = self.ttr.sfm.reconstructor.frames_extracted
         if not flush and self.on_frame is not None:
             self.on_frame(k + 1)
 
@@ -298,8 +298,8 @@ def run_config(cfg: SpeedConfig, drive, progress: Callable[[str], None] | None =
         "refinement_steps": sum(int(w["steps_done"]) for w in taps.windows),
         "refined_frames": run.refined, "published_frames": len(run.seen),
         "frames_extracted": taps.frames_extracted,
-        "predictions_computed": getattr(taps.ttr, "predictions_computed", None),
-        "predictions_reused": getattr(taps.ttr, "predictions_reused", None),
+        "predictions_computed": taps.ttr.predictor.computed,
+        "predictions_reused": taps.ttr.predictor.reused,
         "stream_counters": run.extra.get("stream_counters"), "model": describe_model(model),
         "per_window": taps.windows, "accuracy": _accuracy(run), "settings": cfg.describe(),
     }

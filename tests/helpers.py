@@ -1,0 +1,66 @@
+"""Helpers only the tests use: one-shot calls and baselines the package itself does not need.
+
+Each was once in the package beside the code it wraps; the package keeps only what it runs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from sfm_ttr_ros.core.alignment.scale import _check, _valid
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, load_rgb
+from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.refinement import trainable
+from sfm_ttr_ros.core.sfm.config import SfmConfig
+from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
+from sfm_ttr_ros.core.sfm.result import SfmResult
+
+
+def load_frames(paths: Iterable[str | Path], stamps: Sequence[float] | None = None) -> list[Frame]:
+    """Image files as frames (index = position, name = file stem, stamp = index unless given)."""
+    frames = []
+    for i, p in enumerate(paths):
+        p = Path(p)
+        stamp = float(stamps[i]) if stamps is not None else float(i)
+        frames.append(Frame(index=i, image=load_rgb(p), stamp=stamp, name=p.stem))
+    return frames
+
+
+def reconstruct_window(frames: Sequence[Frame], intrinsics: Intrinsics,
+                       config: SfmConfig | None = None) -> SfmResult:
+    """One-shot reconstruction of a window in a temporary workspace."""
+    with SfmReconstructor(config) as rec:
+        return rec.reconstruct(frames, intrinsics)
+
+
+def median_scale(d_sfm: np.ndarray, d_nn: np.ndarray) -> float:
+    """Ablation baseline of Sec. 3.2: s = median(D_nn / D_sfm) over valid pairs."""
+    d_sfm, d_nn = _check(d_sfm, d_nn)
+    v = _valid(d_sfm, d_nn)
+    return float(np.median(d_nn[v] / d_sfm[v])) if v.any() else float("nan")
+
+
+def least_squares_scale(d_sfm: np.ndarray, d_nn: np.ndarray) -> float:
+    """Ablation baseline of Sec. 3.2: unweighted argmin_s Σ (s·D_sfm − D_nn)² over all valid
+    pairs."""
+    d_sfm, d_nn = _check(d_sfm, d_nn)
+    v = _valid(d_sfm, d_nn)
+    den = float(np.sum(d_sfm[v] ** 2))
+    return float(np.sum(d_sfm[v] * d_nn[v]) / den) if den > 0 else float("nan")
+
+
+def reset_lora(model: DepthModel) -> int:
+    """Re-initialise every LoRA adapter (B = 0: the network is the original again); returns
+    the number of adapted layers."""
+    layers = trainable._lora_layers(model.encoder)
+    for _, layer in layers:
+        layer.reset_lora_parameters(trainable.LORA_ADAPTER, True)
+    return len(layers)
+
+
+def remove_lora(model: DepthModel) -> int:
+    """Put the plain layers back, discarding the adapters (the original network)."""
+    return trainable._unwrap(model.encoder, merge=False)
