@@ -26,8 +26,6 @@ ALLOWED: set[str] = set()
 # StreamProcessor, the window pipeline's SfmTTR, the SfM stage's SfmReconstructor and the
 # node's RefinerNode): temporary, removed once the splits are merged; nothing else may join.
 ALLOWED_CLASSES: set[str] = {
-    "core/pipeline.py:SfmTTR",
-    "core/sfm/reconstruction.py:SfmReconstructor",
     "ros/node.py:RefinerNode",
 }
 

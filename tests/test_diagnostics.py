@@ -9,7 +9,7 @@ import pytest
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
 from sfm_ttr_ros.core.stream.records import WindowStats
 from sfm_ttr_ros.core.stream.windows import StreamProcessor

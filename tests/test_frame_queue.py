@@ -13,7 +13,7 @@ import pytest
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.stream.frame_queue import IDLE_INTERVALS, RELEASED_IMAGE, FrameQueue
 from sfm_ttr_ros.core.stream.ledger import Ledger
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats, unrefined_result

@@ -17,7 +17,7 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.metric.scale import MetricStatus
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig, WindowResult
-from sfm_ttr_ros.core.sfm.reconstruction import SfmResult
+from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE
 from sfm_ttr_ros.core.stream.records import FrameOutput
 from sfm_ttr_ros.core.stream.settings import StreamSettings

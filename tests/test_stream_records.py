@@ -14,7 +14,7 @@ from sfm_ttr_ros.core.metric.scale import WindowMetric
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.refinement.encoder import RefinementResult
-from sfm_ttr_ros.core.sfm.reconstruction import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats, unrefined_result
 from sfm_ttr_ros.core.stream.settings import StreamSettings
 

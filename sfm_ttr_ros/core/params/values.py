@@ -34,7 +34,7 @@ from sfm_ttr_ros.core.params.schema import (
 )
 from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
-from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig
+from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.stream.windows import StreamSettings
 
 BUILTIN_MODELS = ("default", "monodepth2", "mobilenet", "hf")
