@@ -78,16 +78,26 @@ def test_the_demo_tells_skipped_from_lost_live_frames():
         "30/30 live frames recorded"
 
 
-def test_the_demo_reads_the_nodes_live_count_from_its_shutdown_line(tmp_path):
-    log = tmp_path / "refiner.log"
-    from sfm_ttr_ros.ros.node import _live_summary
+def test_the_demo_reads_the_nodes_live_count_from_its_accounting_file(tmp_path):
+    from sfm_ttr_ros.ros.accounting import write_accounting
 
-    line = _live_summary({"live.received": 30, "live.published": 27, "live.skipped": 3,
-                          "live.skipped.overflow": 3})
-    log.write_text(f"[INFO] [1.0] [refiner]: stopped: 30 received, 30 refined{line}\n")
-    assert _live_accounting(log) == {"live_published": 27, "live_skipped": 3}
-    log.write_text("no shutdown line\n")
-    assert _live_accounting(log) == {"live_published": None, "live_skipped": None}
+    path = tmp_path / "refiner_accounting.json"
+    write_accounting(path, {"frames_received": 30, "live.received": 30, "live.published": 27,
+                            "live.skipped": 3, "live.skipped.overflow": 3})
+    assert _live_accounting(path) == {"live_published": 27, "live_skipped": 3}
+    path.write_text("not json, as a node killed while writing would leave it")
+    assert _live_accounting(path) == {"live_published": None, "live_skipped": None}
+    assert _live_accounting(tmp_path / "absent.json") == {"live_published": None,
+                                                          "live_skipped": None}
+
+
+def test_the_demo_starts_the_node_with_its_accounting_file():
+    from sfm_ttr_ros.ros.accounting import accounting_path
+    from sfm_ttr_ros.tools.demo import refiner_command
+
+    cmd = refiner_command(Path("kitti.yaml"), ["window_size=8"], accounting=Path("a.json"))
+    assert accounting_path(cmd[2:]) == Path("a.json")  # as the node reads its sys.argv
+    assert accounting_path(refiner_command(Path("kitti.yaml"), [])[2:]) is None
 
 
 def test_the_demo_takes_set_as_every_command_does():

@@ -52,6 +52,7 @@ DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/d
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
 LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
 NODE_START_TIMEOUT_S = 120.0  # from starting the refiner to its publishers being discovered
+ACCOUNTING_FILE = "refiner_accounting.json"  # the node's final accounting, written as it stops
 
 
 def _say(msg: str) -> None:
@@ -199,15 +200,20 @@ def _ros_env() -> dict[str, str]:
     return env
 
 
-def refiner_command(params_file: Path, overrides: list[str],
-                    compressed: bool = False) -> list[str]:
+def refiner_command(params_file: Path, overrides: list[str], compressed: bool = False,
+                    accounting: Path | None = None) -> list[str]:
     """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag
-    (``compressed``: ``image_transport:=compressed``, it then reads ``<image>/compressed``)."""
+    (``compressed``: ``image_transport:=compressed``, it then reads ``<image>/compressed``;
+    ``accounting``: the file it writes its final accounting to as it stops)."""
+    from sfm_ttr_ros.ros.accounting import ACCOUNTING_ARG
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 
-    cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args", "--params-file",
-           str(params_file), "-r", f"{names.IMAGE_TOPIC}:={IMAGE_TOPIC}", "-r",
-           f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
+    cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node"]
+    if accounting is not None:
+        cmd += [ACCOUNTING_ARG, str(accounting)]
+    cmd += ["--ros-args", "--params-file", str(params_file), "-r",
+            f"{names.IMAGE_TOPIC}:={IMAGE_TOPIC}", "-r",
+            f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
     if compressed:
         cmd += ["-p", "image_transport:=compressed"]
     # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
@@ -243,7 +249,8 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
         raise InputError(f"params file not found: {params}")
     env = _ros_env()
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
-    cmd = refiner_command(params, opts.overrides, opts.compressed)
+    accounting_path = out / ACCOUNTING_FILE
+    cmd = refiner_command(params, opts.overrides, opts.compressed, accounting_path)
     log_path = out / "refiner.log"
     _say(f"4/5 starting refiner ({params.name}; log {log_path}) and playing the bag into it")
     t0 = time.perf_counter()
@@ -297,23 +304,18 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
                          f"within {opts.timeout_s:.0f} s; see {log_path}")
     return {"received": received, "live_received": live_received, "seconds": seconds,
             "exit_code": proc.returncode, "command": " ".join(cmd),
-            **_live_accounting(log_path)}
+            **_live_accounting(accounting_path)}
 
 
-def _live_accounting(log_path: Path) -> dict:
-    """The node's own count of its live output, from its shutdown line in ``log_path``
-    (``live_published`` / ``live_skipped``; None where the line is absent: live off, or the
+def _live_accounting(path: Path) -> dict:
+    """The node's own count of its live output, from the accounting it wrote at ``path`` as it
+    stopped (``live_published`` / ``live_skipped``; None where it has none: live off, or the
     node did not stop cleanly)."""
-    from sfm_ttr_ros.ros.node import LIVE_SUMMARY_RE
+    from sfm_ttr_ros.ros.accounting import read_accounting
 
-    try:
-        found = LIVE_SUMMARY_RE.findall(log_path.read_text(errors="replace"))
-    except OSError:
-        found = []
-    if not found:
-        return {"live_published": None, "live_skipped": None}
-    _, published, skipped = (int(x) for x in found[-1])
-    return {"live_published": published, "live_skipped": skipped}
+    values = read_accounting(path) or {}
+    return {"live_published": values.get("live.published"),
+            "live_skipped": values.get("live.skipped")}
 
 
 def _live_line(node: dict, expected: int) -> str:
@@ -324,7 +326,7 @@ def _live_line(node: dict, expected: int) -> str:
     if published is None:
         return text + ("" if got == expected else "; the node's count is in refiner.log")
     if skipped:
-        text += f"; the node skipped {skipped} under load (the 'stopped:' line of refiner.log)"
+        text += f"; the node skipped {skipped} under load ({ACCOUNTING_FILE})"
     if published > got:
         text += f"; {published - got} published by the node but not recorded (lost in transport)"
     return text
