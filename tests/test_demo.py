@@ -100,6 +100,31 @@ def test_the_demo_starts_the_node_with_its_accounting_file():
     assert accounting_path(refiner_command(Path("kitti.yaml"), [])[2:]) is None
 
 
+def test_the_figure_shows_the_frame_of_median_gain_and_says_so():
+    from sfm_ttr_ros.tools.demo_figure import choose_frame
+
+    # abs rel before -> after; relative change (+ = lower error): a +50%, b -15.5% (worse,
+    # e.g. a close-by box), c +10%, d +20%, e 0%; f only before: not scored after
+    before = {"1.000000000": 0.2, "2.000000000": 0.252, "3.000000000": 0.1,
+              "4.000000000": 0.1, "5.000000000": 0.3, "6.000000000": 0.3}
+    after = {"1.000000000": 0.1, "2.000000000": 0.291, "3.000000000": 0.09,
+             "4.000000000": 0.08, "5.000000000": 0.3}
+    rows = lambda d: [{"name": n, "abs_rel": v} for n, v in d.items()]  # noqa: E731
+    shown = choose_frame(rows(before), rows(after))
+    assert (shown.name, shown.rank, shown.count) == ("3.000000000", 3, 5)  # the median: +10%
+    assert shown.change == pytest.approx(0.1)
+    assert shown.worst == pytest.approx((0.252 - 0.291) / 0.252) and shown.best == 0.5
+    assert shown.stamp_ns == 3_000_000_000
+    text = "\n".join(shown.caption())
+    assert "median frame" in text and "0.100 -> 0.090 (+10.0%" in text
+    assert "-15.5% (worst) to +50.0% (best)" in text
+    assert all(len(line) <= 80 for line in shown.caption())  # the legend's width
+    # an even count: the lower middle (less gain), never the best frame
+    del after["5.000000000"]
+    assert choose_frame(rows(before), rows(after)).name == "3.000000000"
+    assert choose_frame(rows(before), []) is None
+
+
 def test_the_demo_takes_set_as_every_command_does():
     """``--set NAME=VALUE`` is checked by the schema before the node starts and reaches the
     node as a typed ``-p`` (a float keeps its dot, a string its quotes)."""

@@ -20,7 +20,8 @@ Steps (each printed as it runs):
    (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json`` /
    ``per_frame.csv``, by the benchmark's writer, :mod:`sfm_ttr_ros.tools.report`) with a
-   qualitative figure (``figure.png``).
+   qualitative figure of the frame of median gain, saying so (``figure.png``,
+   :mod:`sfm_ttr_ros.tools.demo_figure`).
 
 ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) on a random
 ``ROS_DOMAIN_ID`` unless one is set.
@@ -40,12 +41,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.poses import POSES_FILE
 from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.tools.demo_figure import FigureFrame, choose_frame, draw_figure
 from sfm_ttr_ros.tools.process import interrupt
 
 DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
@@ -97,14 +97,6 @@ def bag_image_topic(compressed: bool) -> str:
     from sfm_ttr_ros.ros.kitti_bag import COMPRESSED_SUFFIX, IMAGE_TOPIC
 
     return IMAGE_TOPIC + COMPRESSED_SUFFIX if compressed else IMAGE_TOPIC
-
-
-def bag_rgb(msg) -> np.ndarray:
-    """The RGB pixels of a bag's Image or CompressedImage message."""
-    from msg_adapters.compressed import compressed_to_rgb8
-    from msg_adapters.image import image_to_rgb8
-
-    return compressed_to_rgb8(msg) if hasattr(msg, "format") else image_to_rgb8(msg)
 
 
 def _prepare_out(opts: DemoOptions) -> Path:
@@ -179,7 +171,7 @@ class _Lazy(Sequence):
 def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str,
                     compressed: bool = False) -> int:
     """The unrefined network's depth for every image of ``bag``, same stamps, into ``out_bag``."""
-    from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE, BagRecorder, depth_msg, read_bag
+    from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE, BagRecorder, bag_rgb, depth_msg, read_bag
 
     n = 0
     with BagRecorder(out_bag, storage) as rec:
@@ -345,7 +337,9 @@ def run_demo(opts: DemoOptions) -> dict:
     _say("5/5 evaluating against the ground truth topic (matched by stamp)")
     cfg = EvalConfig(eigen_crop=opts.eigen_crop)
     evals = _evaluate_outputs(out, bag, cfg)
-    fig_path = _draw_figure(out, bag, drive, cfg, bag_image_topic(opts.compressed))
+    shown = choose_frame(evals["no_ttr"]["per_frame"], evals["sfm_ttr"]["per_frame"])
+    fig_path = shown and draw_figure(out, bag, drive, cfg, bag_image_topic(opts.compressed),
+                                     _output_sources(out), shown)
     results = {
         "drive": drive, "frames": expected, "gt_frames": gt_frames,
         **_compare_outputs(evals),
@@ -354,6 +348,7 @@ def run_demo(opts: DemoOptions) -> dict:
         "refiner": node,
         "seconds_total": time.perf_counter() - t_start,
         "figure": str(fig_path) if fig_path else None,
+        "figure_frame": dataclasses.asdict(shown) if fig_path else None,
     }
     _write_reports(out, results, evals, _frame_indices(bag, opts.start))
     _print_summary(results, out)
@@ -470,31 +465,6 @@ def _compare_outputs(evals: dict[str, dict]) -> dict:
             "relative_gain_live_by_third": live_by_third}
 
 
-def _draw_figure(out: Path, bag: Path, drive: str, cfg, image_topic: str) -> Path | None:
-    """``out/figure.png``: the middle GT frame, its GT and each output's depth (a live frame
-    the node skipped under load has none: left out); None without a GT frame."""
-    import cv2
-
-    from msg_adapters.image import image_to_depth
-    from sfm_ttr_ros.ros.bag import read_bag
-    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
-    from sfm_ttr_ros.tools.benchmark import qualitative_figure
-
-    gts = {s: m for _, _, s, m in read_bag(bag, [DEPTH_GT_TOPIC])}
-    if not gts:
-        return None
-    stamp = sorted(gts)[len(gts) // 2]
-    image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic]) if s == stamp)
-    found = {k: next((m for _, _, s, m in read_bag(p, [topic]) if s == stamp), None)
-             for k, (p, topic) in _output_sources(out).items()}
-    preds = {k: image_to_depth(m) for k, m in found.items() if m is not None}
-    gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
-    fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
-    fig_path = out / "figure.png"
-    cv2.imwrite(str(fig_path), fig)
-    return fig_path
-
-
 def _frame_indices(bag: Path, start: int) -> dict[str, int]:
     """Frame name (``sec.nanosec``) -> its index in the drive, from the bag's CameraInfo
     stamps (one per image, in stamp order from frame ``start``)."""
@@ -534,7 +504,8 @@ def _results_markdown(results: dict) -> str:
     lines += [f"Relative change (positive = lower error than no TTR) of sfm_ttr_live by third "
               f"of the drive (abs rel / RMSE): {thirds_line}", ""]
     if results.get("figure"):
-        lines += ["![qualitative results](figure.png)", ""]
+        lines += ["![qualitative results](figure.png)", "",
+                  f"The figure's frame: {_figure_caption(results)}.", ""]
     return "\n".join(lines)
 
 
@@ -552,6 +523,12 @@ def _write_reports(out: Path, results: dict, evals: dict[str, dict],
                    key=lambda n: tuple(int(x) for x in n.split(".")))
     frames = [(indices.get(n, -1), n) for n in names]
     write_per_frame_csv(out / "per_frame.csv", frames, per_frame, columns=("abs_rel", "rmse"))
+
+
+def _figure_caption(results: dict) -> str:
+    """Which frame the figure shows and why, in one line."""
+    return " ".join(line.strip() for line in
+                    FigureFrame(**results["figure_frame"]).caption()).rstrip(":")
 
 
 def _print_summary(results: dict, out: Path) -> None:
@@ -575,7 +552,7 @@ def _print_summary(results: dict, out: Path) -> None:
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if results["figure"]:
-        print(f"figure: {results['figure']}")
+        print(f"figure: {results['figure']} ({_figure_caption(results)})")
     print(f"results: {out / 'results.md'}")
 
 
