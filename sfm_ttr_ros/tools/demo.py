@@ -70,10 +70,9 @@ class DemoOptions:
     gt_depth: str | None = None
     gt_scale: float = 256.0
     start: int = 0  # real drive or image folder: first frame
-    # The synthetic drive and how fast it is played: 45 frames at 0.15 x their 10 Hz (30 s) so
-    # that on 2 CPU cores the first window's weights reach ~/depth while the drive still
-    # plays (its 15 frames are in after 10 s, its first interim weights ~5 s later): the live
-    # output shows what a robot gets, not only the windowed one (~70 s in all).
+    # The synthetic drive and how fast it is played: slow enough that the first window's
+    # weights reach ~/depth while the drive still plays, so that the live output shows what a
+    # robot gets, not only the windowed one.
     frames: int = 45
     width: int = 1242
     height: int = 375
@@ -252,7 +251,7 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
             wanted = {DEPTH_TOPIC: IMAGE_MSGTYPE, REFINED_TOPIC: IMAGE_MSGTYPE}
             with TopicRecorder(out / "refined_bag", wanted, storage=opts.storage) as rec:
                 # the recorder's subscriptions are VOLATILE: what the node publishes before they
-                # match is never delivered (the first live frames were lost that way)
+                # match is never delivered: wait for the match before playing
                 missing = rec.wait_for_publishers(list(wanted), timeout=NODE_START_TIMEOUT_S,
                                                   alive=lambda: proc.poll() is None)
                 if proc.poll() is not None:
