@@ -65,6 +65,9 @@ def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     assert len(rows) == 14 and float(rows[0]["sfm_ttr_abs_rel"]) > 0
     assert list(rows[0])[:4] == ["index", "name", "no_ttr_abs_rel", "no_ttr_rmse"]
     assert (out / "figure.png").stat().st_size > 10_000
+    shown = res["figure_frame"]  # the frame of median gain, and the results say which
+    assert shown["count"] == 14 and shown["rank"] == 7 and shown["worst"] <= shown["best"]
+    assert "The figure's frame: median frame by abs rel change (7 of 14)" in md
     log = (out / "refiner.log").read_text()
     assert "Traceback" not in log
 

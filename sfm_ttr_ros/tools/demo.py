@@ -526,8 +526,8 @@ def _write_reports(out: Path, results: dict, evals: dict[str, dict],
 
 def _figure_caption(results: dict) -> str:
     """Which frame the figure shows and why, in one line."""
-    return " ".join(line.strip() for line in
-                    FigureFrame(**results["figure_frame"]).caption()).rstrip(":")
+    return "; ".join(line.strip().rstrip(":")
+                     for line in FigureFrame(**results["figure_frame"]).caption())
 
 
 def _print_summary(results: dict, out: Path) -> None:
