@@ -14,10 +14,10 @@ over-long data are both errors. Every refusal is an :class:`ImageConversionError
 
 The builders make rclpy messages by default, or those of a rosbags type store when given its
 :class:`~msg_adapters.classes.MessageClasses` (the bag tools): same fields, same CDR bytes.
-Filling ``msg.data``: assigning ``array.array('B', arr.tobytes())`` is ~0.3 ms for a KITTI-size
-float image, while assigning a numpy array or memoryview costs 100-200 ms (the rosidl setter
-checks element by element). Reading goes through ``np.frombuffer`` and always returns a copy,
-so the message can be reused or resized afterwards.
+Filling ``msg.data``: the builders assign ``array.array('B', arr.tobytes())``, which the
+rosidl setter takes as a whole, never a numpy array or memoryview (which it checks element by
+element, orders of magnitude slower). Reading goes through ``np.frombuffer`` and always
+returns a copy, so the message can be reused or resized afterwards.
 """
 
 from __future__ import annotations

@@ -65,6 +65,9 @@ def test_demo_replays_a_drive_through_refiner_and_refinement_helps(tmp_path):
     assert len(rows) == 14 and float(rows[0]["sfm_ttr_abs_rel"]) > 0
     assert list(rows[0])[:4] == ["index", "name", "no_ttr_abs_rel", "no_ttr_rmse"]
     assert (out / "figure.png").stat().st_size > 10_000
+    shown = res["figure_frame"]  # the frame of median gain, and the results say which
+    assert shown["count"] == 14 and shown["rank"] == 7 and shown["worst"] <= shown["best"]
+    assert "The figure's frame: median frame by abs rel change (7 of 14)" in md
     log = (out / "refiner.log").read_text()
     assert "Traceback" not in log
 
@@ -78,16 +81,51 @@ def test_the_demo_tells_skipped_from_lost_live_frames():
         "30/30 live frames recorded"
 
 
-def test_the_demo_reads_the_nodes_live_count_from_its_shutdown_line(tmp_path):
-    log = tmp_path / "refiner.log"
-    from sfm_ttr_ros.ros.node import _live_summary
+def test_the_demo_reads_the_nodes_live_count_from_its_accounting_file(tmp_path):
+    from sfm_ttr_ros.ros.accounting import write_accounting
 
-    line = _live_summary({"live.received": 30, "live.published": 27, "live.skipped": 3,
-                          "live.skipped.overflow": 3})
-    log.write_text(f"[INFO] [1.0] [refiner]: stopped: 30 received, 30 refined{line}\n")
-    assert _live_accounting(log) == {"live_published": 27, "live_skipped": 3}
-    log.write_text("no shutdown line\n")
-    assert _live_accounting(log) == {"live_published": None, "live_skipped": None}
+    path = tmp_path / "refiner_accounting.json"
+    write_accounting(path, {"frames_received": 30, "live.received": 30, "live.published": 27,
+                            "live.skipped": 3, "live.skipped.overflow": 3})
+    assert _live_accounting(path) == {"live_published": 27, "live_skipped": 3}
+    path.write_text("not json, as a node killed while writing would leave it")
+    assert _live_accounting(path) == {"live_published": None, "live_skipped": None}
+    assert _live_accounting(tmp_path / "absent.json") == {"live_published": None,
+                                                          "live_skipped": None}
+
+
+def test_the_demo_starts_the_node_with_its_accounting_file():
+    from sfm_ttr_ros.ros.accounting import accounting_path
+    from sfm_ttr_ros.tools.demo import refiner_command
+
+    cmd = refiner_command(Path("kitti.yaml"), ["window_size=8"], accounting=Path("a.json"))
+    assert accounting_path(cmd[2:]) == Path("a.json")  # as the node reads its sys.argv
+    assert accounting_path(refiner_command(Path("kitti.yaml"), [])[2:]) is None
+
+
+def test_the_figure_shows_the_frame_of_median_gain_and_says_so():
+    from sfm_ttr_ros.tools.demo_figure import choose_frame
+
+    # abs rel before -> after; relative change (+ = lower error): a +50%, b -15.5% (worse,
+    # e.g. a close-by box), c +10%, d +20%, e 0%; f only before: not scored after
+    before = {"1.000000000": 0.2, "2.000000000": 0.252, "3.000000000": 0.1,
+              "4.000000000": 0.1, "5.000000000": 0.3, "6.000000000": 0.3}
+    after = {"1.000000000": 0.1, "2.000000000": 0.291, "3.000000000": 0.09,
+             "4.000000000": 0.08, "5.000000000": 0.3}
+    rows = lambda d: [{"name": n, "abs_rel": v} for n, v in d.items()]  # noqa: E731
+    shown = choose_frame(rows(before), rows(after))
+    assert (shown.name, shown.rank, shown.count) == ("3.000000000", 3, 5)  # the median: +10%
+    assert shown.change == pytest.approx(0.1)
+    assert shown.worst == pytest.approx((0.252 - 0.291) / 0.252) and shown.best == 0.5
+    assert shown.stamp_ns == 3_000_000_000
+    text = "\n".join(shown.caption())
+    assert "median frame" in text and "0.100 -> 0.090 (+10.0%" in text
+    assert "-15.5% (worst) to +50.0% (best)" in text
+    assert all(len(line) <= 80 for line in shown.caption())  # the legend's width
+    # an even count: the lower middle (less gain), never the best frame
+    del after["5.000000000"]
+    assert choose_frame(rows(before), rows(after)).name == "3.000000000"
+    assert choose_frame(rows(before), []) is None
 
 
 def test_the_demo_takes_set_as_every_command_does():

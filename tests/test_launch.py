@@ -76,9 +76,11 @@ def test_the_node_action_matches_names_and_the_executable():
 
 
 def test_the_node_subscribes_to_the_names_the_launch_file_remaps():
-    tree = ast.parse((REPO / "sfm_ttr_ros" / "ros" / "node.py").read_text(encoding="utf-8"))
-    used = {_src(n) for n in ast.walk(tree) if isinstance(n, ast.Attribute)
-            and isinstance(n.value, ast.Name) and n.value.id == "names"}
+    used = set()
+    for module in ("node.py", "subscriptions.py"):  # the node and its inputs
+        tree = ast.parse((REPO / "sfm_ttr_ros" / "ros" / module).read_text(encoding="utf-8"))
+        used |= {_src(n) for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+                 and isinstance(n.value, ast.Name) and n.value.id == "names"}
     assert {"names.IMAGE_TOPIC", "names.CAMERA_INFO_TOPIC", "names.NODE_NAME"} <= used
 
 

@@ -11,6 +11,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
 
 import array  # noqa: E402
+import json  # noqa: E402
 import shutil  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
@@ -125,10 +126,11 @@ class Graph:
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
+        outputs = [self.refiner.pubs.by_topic[t]
+                   for t in (names.DEPTH_TOPIC, names.DEPTH_REFINED_TOPIC)]
         wait_for(lambda: self.pub_image.get_subscription_count() >= 1
                  and self.pub_info.get_subscription_count() >= 1
-                 and self.refiner.pub_depth.get_subscription_count() >= 1
-                 and self.refiner.pub_refined.get_subscription_count() >= 1, 20, "discovery")
+                 and all(p.get_subscription_count() >= 1 for p in outputs), 20, "discovery")
 
     def close(self) -> None:
         self.refiner.stop_worker()
@@ -260,7 +262,7 @@ def test_an_outside_client_pairs_every_depth_with_its_camera_info_and_the_cloud(
     g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0,
                       outputs="depth,depth_colored,depth_refined,cloud,diagnostics",
                       **{"cloud.stride": stride, "cloud.max_range": max_range})
-    pubs = [g.refiner._publishers_by_topic[t] for t in (
+    pubs = [g.refiner.pubs.by_topic[t] for t in (
         names.DEPTH_INFO_TOPIC, names.DEPTH_REFINED_INFO_TOPIC, names.CLOUD_TOPIC)]
     wait_for(lambda: all(p.get_subscription_count() >= 1 for p in pubs), 20, "discovery")
     # what a calibrated camera driver sends: rectified images (P = [K | 0], zero distortion)
@@ -543,7 +545,7 @@ def test_faults_in_callbacks_are_counted_never_fatal(graph_factory, sequence, mo
     monkeypatch.setattr(refiner.intrinsics, "release", boom)
     wait_for(lambda: refiner.diagnostics.faults.get("timer", 0) >= 1, 10, "timer fault")
     monkeypatch.undo()
-    monkeypatch.setattr(node_module.node_params, "validate", boom)
+    monkeypatch.setattr(node_params, "validate", boom)
     result = refiner.set_parameters([Parameter("refinement.steps", value=3)])[0]
     monkeypatch.undo()
     assert not result.successful and "ZeroDivisionError: injected" in result.reason
@@ -621,6 +623,44 @@ def test_a_pycolmap_too_old_for_sfm_stops_the_start_with_one_line(tmp_path):
     lines = [ln for ln in text.splitlines() if "cannot start" in ln]
     assert len(lines) == 1 and "pycolmap 4.1.1 is too old" in lines[0], text[-2000:]
     assert "Traceback" not in text and "refiner ready" not in text
+
+
+def test_the_final_accounting_is_kept_as_data_when_the_node_stops(context):
+    node = RefinerNode(model=tiny_model(), context=context)
+    assert node.final_accounting is None
+    node.destroy_node()
+    v = node.final_accounting
+    assert list(v) == list(node.diagnostics.values())  # every key of the 'stopped:' line
+    assert v["frames_received"] == 0 and v["live.received"] == v["live.skipped"] == 0
+
+
+def test_the_refiner_writes_its_accounting_file_on_sigint(tmp_path):
+    path = tmp_path / "out" / "accounting.json"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sfm_ttr_ros.ros.node", "--accounting", str(path), "--ros-args",
+         "-p", "model_type:=mobilenet", "-p", "window_size:=7"],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        seen = []
+        for line in proc.stdout:  # until the node is up (subscribed, warmed up)
+            seen.append(line)
+            if "refiner ready" in line:
+                break
+        time.sleep(1.0)  # out of the constructor, spinning: a SIGINT now stops the node
+        assert proc.poll() is None, "".join(seen)[-2000:]
+        proc.send_signal(signal.SIGINT)
+        text = "".join(seen) + proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0 and "Traceback" not in text, text[-2000:]
+    assert path.is_file(), text[-2000:]
+    v = json.loads(path.read_text())
+    assert v["frames_received"] == v["frames_pending"] == 0 and v["faults"] == 0
+    assert (v["live.received"], v["live.published"], v["live.skipped"]) == (0, 0, 0)
+    assert "live ~/depth: 0 received, 0 published, 0 skipped" in text  # the same, as a line
 
 
 @pytest.mark.slow

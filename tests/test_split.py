@@ -317,6 +317,7 @@ def test_bad_sequence_is_reported_with_its_reason(on_cluster):
     assert on_cluster["results"]["counts"]["failed"] == 1
     failed = json.loads((on_cluster["out"] / "failed" / f"{drive(4)}.json").read_text())
     assert failed["reason"] == bad["reason"]
+    assert bad["reason_key"] == failed["reason_key"] == "input_error"  # the key beside the text
     assert f"{drive(4)} | failed" in (on_cluster["out"] / "results.md").read_text()
 
 
@@ -449,6 +450,10 @@ def test_run_split_writes_before_and_after(data, tmp_path):
     assert res["modes"] == ["no_ttr", "sfm_ttr"] and res["counts"]["done"] == 1
     seq_dir = out / "sequences" / drive(2)
     assert (seq_dir / "summary.json").is_file()
+    summary = json.loads((seq_dir / "summary.json").read_text())
+    row = per_sequence(out)[drive(2)]
+    assert row["reason"] == summary["reason"]  # the window's outcome: the text and its key
+    assert "reason_key" in row and row["reason_key"] == summary.get("reason_key")
     assert len(list((seq_dir / "after").glob("*.npy"))) == N_FRAMES
     assert res["pooled"]["no_ttr"]["frames"] == N_FRAMES - 2 * GT_SKIP
     assert len(frame_rows(out)) == N_FRAMES - 2 * GT_SKIP

@@ -1,13 +1,10 @@
 """Which malloc the node runs on: mimalloc by default, glibc or another library on request.
 
 A window allocates and frees a few hundred MB. glibc's malloc keeps the freed pieces, fragmented,
-inside its arenas: in 2.5-min soaks of the node at 10 Hz (1500 KITTI-size frames) the peak RSS
-rose 29–34 % above its value at frame 100 on glibc, and still 10.5–16.3 % with the frames kept
-out of the heap, two arenas and ``malloc_trim`` after each window. mimalloc 3.4 (MIT, from PyPI:
-``cmeel-mimalloc``, installed with the package) gives freed pages back by itself: +4.4 and
-+4.7 % with nothing else, windows as fast as on glibc (BENCHMARKS.md "Memory"; docs/decisions.md
-"Memory"), with ``MIMALLOC_ALLOW_THP=0``: with transparent huge pages allowed the live p95 was
-0.15–0.17 s (faults of 2-MiB pages). Hence the default.
+inside its arenas, so the node's memory grows over a long run; mimalloc (MIT, from PyPI:
+``cmeel-mimalloc``, installed with the package) gives freed pages back by itself. It runs with
+``MIMALLOC_ALLOW_THP=0`` (no transparent huge pages: their page faults delay the live output).
+The measurements behind the default: BENCHMARKS.md "Memory", docs/decisions.md "Memory".
 
 ``SFM_TTR_MALLOC`` chooses: ``mimalloc`` (default; the wheel's library), ``glibc``, or the path
 of a malloc library. The allocator of a process is chosen when it starts (``LD_PRELOAD``), so

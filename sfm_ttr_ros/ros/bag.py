@@ -73,6 +73,14 @@ def storage_plugin(storage: str):
 # ---------------------------------------------------------------------------------------------
 
 
+def bag_rgb(msg) -> np.ndarray:
+    """The RGB pixels of a bag's Image or CompressedImage message."""
+    from msg_adapters.compressed import compressed_to_rgb8
+    from msg_adapters.image import image_to_rgb8
+
+    return compressed_to_rgb8(msg) if hasattr(msg, "format") else image_to_rgb8(msg)
+
+
 def stamp_str(ns: int) -> str:
     """Nanoseconds -> ``sec.nanosec`` (9 digits), used as the frame name of a stamp."""
     return f"{ns // NS_PER_S}.{ns % NS_PER_S:09d}"

@@ -128,6 +128,19 @@ class IntrinsicsResolver:
         with self._lock:
             return self._resolve(size, stamp_ns)
 
+    def window_camera(self, frame: Frame, stamp_ns: int | None) -> CameraSource | None:
+        """The camera of a frame out of its window: the CameraInfo its intrinsics were read
+        from; for a frame that had the fallback's, a CameraInfo received since (the camera's own
+        description: the stream takes the first one in place of the fallback too), else the
+        fallback it had."""
+        given = frame.camera if isinstance(frame.camera, CameraSource) else None
+        if given is not None and not given.fallback:
+            return given
+        now = self.camera_for(frame.size, stamp_ns)
+        if now is not None and (given is None or not now.fallback):
+            return now
+        return given
+
     def _resolve(self, size: tuple[int, int], stamp_ns: int | None) -> CameraSource | None:
         if stamp_ns is not None:
             source = self._by_stamp.get(int(stamp_ns))

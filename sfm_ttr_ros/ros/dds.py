@@ -4,10 +4,9 @@ Fast DDS (rmw_fastrtps_cpp, Jazzy's default) sends same-host samples through a s
 segment of 512 KB by default, a quarter of one 1242x375 depth image. On a loaded machine the
 fragments that do not fit are dropped; a reliable reader then holds every later sample back
 until the writer's next heartbeat (~3 s) repairs the hole, and a burst on ``~/depth_refined/image``
-(up to ``max_pending`` images at once after an overload) can lose samples outright. Measured
-through DDS on 2 cores (BENCHMARKS.md "Soak"): a live ``~/depth/image`` subscriber saw p95 2.1-2.8 s
-while the node published every depth within 0.13 s; with ``params/fastdds_large_images.xml``
-(a 64 MB segment, a 100 ms heartbeat) it saw 0.05 s.
+(up to ``max_pending`` images at once after an overload) can lose samples outright.
+``params/fastdds_large_images.xml`` gives the writer a 64 MB segment and a 100 ms heartbeat
+(the measured latencies with and without it: BENCHMARKS.md "Soak").
 
 The segment and the heartbeat belong to the WRITER, so the node's own profile fixes its outputs
 for every subscriber. :func:`apply_profile` points Fast DDS at it before ``rclpy.init`` unless

@@ -10,8 +10,7 @@ reverse: rclpy subscriptions with ``raw=True`` hand it the serialized bytes, whi
 QoS. Publishers are RELIABLE, VOLATILE, KEEP_LAST ``qos_depth`` (default 100, as deep as 10 s of
 KITTI at 10 Hz), like ``ros2 bag play`` on a bag without QoS metadata. A reliable DataWriter
 keeps a sample until every matched reader acknowledged it, and a reader acknowledges when the
-sample is in its history (measured here: publish + acknowledgement of a 1.4 MB image on this
-machine is well under 10 ms), so the writer's depth is not where frames get lost. Where they
+sample is in its history, so the writer's depth is not where frames get lost. Where they
 can get lost is the *subscriber's* KEEP_LAST history: a subscriber whose executor falls more
 than its depth behind the player overwrites its oldest unread samples. The ``refiner`` node's
 callbacks only convert and queue (its depth, ``qos_depth`` = 30, is a 3 s backlog at 10 Hz), so

@@ -20,7 +20,8 @@ Steps (each printed as it runs):
    (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json`` /
    ``per_frame.csv``, by the benchmark's writer, :mod:`sfm_ttr_ros.tools.report`) with a
-   qualitative figure (``figure.png``).
+   qualitative figure of the frame of median gain, saying so (``figure.png``,
+   :mod:`sfm_ttr_ros.tools.demo_figure`).
 
 ROS traffic stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) on a random
 ``ROS_DOMAIN_ID`` unless one is set.
@@ -40,18 +41,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.data.poses import POSES_FILE
 from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.tools.demo_figure import FigureFrame, choose_frame, draw_figure
 from sfm_ttr_ros.tools.process import interrupt
 
 DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
 LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
 NODE_START_TIMEOUT_S = 120.0  # from starting the refiner to its publishers being discovered
+ACCOUNTING_FILE = "refiner_accounting.json"  # the node's final accounting, written as it stops
 
 
 def _say(msg: str) -> None:
@@ -69,10 +70,9 @@ class DemoOptions:
     gt_depth: str | None = None
     gt_scale: float = 256.0
     start: int = 0  # real drive or image folder: first frame
-    # The synthetic drive and how fast it is played: 45 frames at 0.15 x their 10 Hz (30 s) so
-    # that on 2 CPU cores the first window's weights reach ~/depth while the drive still
-    # plays (its 15 frames are in after 10 s, its first interim weights ~5 s later): the live
-    # output shows what a robot gets, not only the windowed one (~70 s in all).
+    # The synthetic drive and how fast it is played: slow enough that the first window's
+    # weights reach ~/depth while the drive still plays, so that the live output shows what a
+    # robot gets, not only the windowed one.
     frames: int = 45
     width: int = 1242
     height: int = 375
@@ -96,14 +96,6 @@ def bag_image_topic(compressed: bool) -> str:
     from sfm_ttr_ros.ros.kitti_bag import COMPRESSED_SUFFIX, IMAGE_TOPIC
 
     return IMAGE_TOPIC + COMPRESSED_SUFFIX if compressed else IMAGE_TOPIC
-
-
-def bag_rgb(msg) -> np.ndarray:
-    """The RGB pixels of a bag's Image or CompressedImage message."""
-    from msg_adapters.compressed import compressed_to_rgb8
-    from msg_adapters.image import image_to_rgb8
-
-    return compressed_to_rgb8(msg) if hasattr(msg, "format") else image_to_rgb8(msg)
 
 
 def _prepare_out(opts: DemoOptions) -> Path:
@@ -178,7 +170,7 @@ class _Lazy(Sequence):
 def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str,
                     compressed: bool = False) -> int:
     """The unrefined network's depth for every image of ``bag``, same stamps, into ``out_bag``."""
-    from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE, BagRecorder, depth_msg, read_bag
+    from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE, BagRecorder, bag_rgb, depth_msg, read_bag
 
     n = 0
     with BagRecorder(out_bag, storage) as rec:
@@ -199,15 +191,20 @@ def _ros_env() -> dict[str, str]:
     return env
 
 
-def refiner_command(params_file: Path, overrides: list[str],
-                    compressed: bool = False) -> list[str]:
+def refiner_command(params_file: Path, overrides: list[str], compressed: bool = False,
+                    accounting: Path | None = None) -> list[str]:
     """The refiner as ``ros2 run sfm_ttr_ros refiner`` would start it, remapped to the bag
-    (``compressed``: ``image_transport:=compressed``, it then reads ``<image>/compressed``)."""
+    (``compressed``: ``image_transport:=compressed``, it then reads ``<image>/compressed``;
+    ``accounting``: the file it writes its final accounting to as it stops)."""
+    from sfm_ttr_ros.ros.accounting import ACCOUNTING_ARG
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC, IMAGE_TOPIC
 
-    cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node", "--ros-args", "--params-file",
-           str(params_file), "-r", f"{names.IMAGE_TOPIC}:={IMAGE_TOPIC}", "-r",
-           f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
+    cmd = [sys.executable, "-m", "sfm_ttr_ros.ros.node"]
+    if accounting is not None:
+        cmd += [ACCOUNTING_ARG, str(accounting)]
+    cmd += ["--ros-args", "--params-file", str(params_file), "-r",
+            f"{names.IMAGE_TOPIC}:={IMAGE_TOPIC}", "-r",
+            f"{names.CAMERA_INFO_TOPIC}:={CAMERA_INFO_TOPIC}"]
     if compressed:
         cmd += ["-p", "image_transport:=compressed"]
     # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
@@ -243,7 +240,8 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
         raise InputError(f"params file not found: {params}")
     env = _ros_env()
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
-    cmd = refiner_command(params, opts.overrides, opts.compressed)
+    accounting_path = out / ACCOUNTING_FILE
+    cmd = refiner_command(params, opts.overrides, opts.compressed, accounting_path)
     log_path = out / "refiner.log"
     _say(f"4/5 starting refiner ({params.name}; log {log_path}) and playing the bag into it")
     t0 = time.perf_counter()
@@ -253,7 +251,7 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
             wanted = {DEPTH_TOPIC: IMAGE_MSGTYPE, REFINED_TOPIC: IMAGE_MSGTYPE}
             with TopicRecorder(out / "refined_bag", wanted, storage=opts.storage) as rec:
                 # the recorder's subscriptions are VOLATILE: what the node publishes before they
-                # match is never delivered (the first live frames were lost that way)
+                # match is never delivered: wait for the match before playing
                 missing = rec.wait_for_publishers(list(wanted), timeout=NODE_START_TIMEOUT_S,
                                                   alive=lambda: proc.poll() is None)
                 if proc.poll() is not None:
@@ -297,23 +295,18 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
                          f"within {opts.timeout_s:.0f} s; see {log_path}")
     return {"received": received, "live_received": live_received, "seconds": seconds,
             "exit_code": proc.returncode, "command": " ".join(cmd),
-            **_live_accounting(log_path)}
+            **_live_accounting(accounting_path)}
 
 
-def _live_accounting(log_path: Path) -> dict:
-    """The node's own count of its live output, from its shutdown line in ``log_path``
-    (``live_published`` / ``live_skipped``; None where the line is absent: live off, or the
+def _live_accounting(path: Path) -> dict:
+    """The node's own count of its live output, from the accounting it wrote at ``path`` as it
+    stopped (``live_published`` / ``live_skipped``; None where it has none: live off, or the
     node did not stop cleanly)."""
-    from sfm_ttr_ros.ros.node import LIVE_SUMMARY_RE
+    from sfm_ttr_ros.ros.accounting import read_accounting
 
-    try:
-        found = LIVE_SUMMARY_RE.findall(log_path.read_text(errors="replace"))
-    except OSError:
-        found = []
-    if not found:
-        return {"live_published": None, "live_skipped": None}
-    _, published, skipped = (int(x) for x in found[-1])
-    return {"live_published": published, "live_skipped": skipped}
+    values = read_accounting(path) or {}
+    return {"live_published": values.get("live.published"),
+            "live_skipped": values.get("live.skipped")}
 
 
 def _live_line(node: dict, expected: int) -> str:
@@ -324,7 +317,7 @@ def _live_line(node: dict, expected: int) -> str:
     if published is None:
         return text + ("" if got == expected else "; the node's count is in refiner.log")
     if skipped:
-        text += f"; the node skipped {skipped} under load (the 'stopped:' line of refiner.log)"
+        text += f"; the node skipped {skipped} under load ({ACCOUNTING_FILE})"
     if published > got:
         text += f"; {published - got} published by the node but not recorded (lost in transport)"
     return text
@@ -343,7 +336,9 @@ def run_demo(opts: DemoOptions) -> dict:
     _say("5/5 evaluating against the ground truth topic (matched by stamp)")
     cfg = EvalConfig(eigen_crop=opts.eigen_crop)
     evals = _evaluate_outputs(out, bag, cfg)
-    fig_path = _draw_figure(out, bag, drive, cfg, bag_image_topic(opts.compressed))
+    shown = choose_frame(evals["no_ttr"]["per_frame"], evals["sfm_ttr"]["per_frame"])
+    fig_path = shown and draw_figure(out, bag, drive, cfg, bag_image_topic(opts.compressed),
+                                     _output_sources(out), shown)
     results = {
         "drive": drive, "frames": expected, "gt_frames": gt_frames,
         **_compare_outputs(evals),
@@ -352,6 +347,7 @@ def run_demo(opts: DemoOptions) -> dict:
         "refiner": node,
         "seconds_total": time.perf_counter() - t_start,
         "figure": str(fig_path) if fig_path else None,
+        "figure_frame": dataclasses.asdict(shown) if fig_path else None,
     }
     _write_reports(out, results, evals, _frame_indices(bag, opts.start))
     _print_summary(results, out)
@@ -468,31 +464,6 @@ def _compare_outputs(evals: dict[str, dict]) -> dict:
             "relative_gain_live_by_third": live_by_third}
 
 
-def _draw_figure(out: Path, bag: Path, drive: str, cfg, image_topic: str) -> Path | None:
-    """``out/figure.png``: the middle GT frame, its GT and each output's depth (a live frame
-    the node skipped under load has none: left out); None without a GT frame."""
-    import cv2
-
-    from msg_adapters.image import image_to_depth
-    from sfm_ttr_ros.ros.bag import read_bag
-    from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
-    from sfm_ttr_ros.tools.benchmark import qualitative_figure
-
-    gts = {s: m for _, _, s, m in read_bag(bag, [DEPTH_GT_TOPIC])}
-    if not gts:
-        return None
-    stamp = sorted(gts)[len(gts) // 2]
-    image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic]) if s == stamp)
-    found = {k: next((m for _, _, s, m in read_bag(p, [topic]) if s == stamp), None)
-             for k, (p, topic) in _output_sources(out).items()}
-    preds = {k: image_to_depth(m) for k, m in found.items() if m is not None}
-    gt = np.nan_to_num(image_to_depth(gts[stamp]), nan=0.0)
-    fig = qualitative_figure(image, gt, preds, cfg, title=f"{drive} frame at {stamp} ns")
-    fig_path = out / "figure.png"
-    cv2.imwrite(str(fig_path), fig)
-    return fig_path
-
-
 def _frame_indices(bag: Path, start: int) -> dict[str, int]:
     """Frame name (``sec.nanosec``) -> its index in the drive, from the bag's CameraInfo
     stamps (one per image, in stamp order from frame ``start``)."""
@@ -532,7 +503,8 @@ def _results_markdown(results: dict) -> str:
     lines += [f"Relative change (positive = lower error than no TTR) of sfm_ttr_live by third "
               f"of the drive (abs rel / RMSE): {thirds_line}", ""]
     if results.get("figure"):
-        lines += ["![qualitative results](figure.png)", ""]
+        lines += ["![qualitative results](figure.png)", "",
+                  f"The figure's frame: {_figure_caption(results)}.", ""]
     return "\n".join(lines)
 
 
@@ -550,6 +522,12 @@ def _write_reports(out: Path, results: dict, evals: dict[str, dict],
                    key=lambda n: tuple(int(x) for x in n.split(".")))
     frames = [(indices.get(n, -1), n) for n in names]
     write_per_frame_csv(out / "per_frame.csv", frames, per_frame, columns=("abs_rel", "rmse"))
+
+
+def _figure_caption(results: dict) -> str:
+    """Which frame the figure shows and why, in one line."""
+    return "; ".join(line.strip().rstrip(":")
+                     for line in FigureFrame(**results["figure_frame"]).caption())
 
 
 def _print_summary(results: dict, out: Path) -> None:
@@ -573,7 +551,7 @@ def _print_summary(results: dict, out: Path) -> None:
     print(f"refiner: {node['received']} frames in {node['seconds']:.0f} s; "
           f"total {results['seconds_total']:.0f} s")
     if results["figure"]:
-        print(f"figure: {results['figure']}")
+        print(f"figure: {results['figure']} ({_figure_caption(results)})")
     print(f"results: {out / 'results.md'}")
 
 

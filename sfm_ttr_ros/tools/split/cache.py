@@ -99,6 +99,7 @@ def store(out: Path, spec: SequenceSpec, outcome: SequenceOutcome, key: str,
     ``OUT/failed/<id>.json`` (its reason, and the traceback of an error of the method)."""
     out = Path(out)
     record = {"id": spec.id, "key": key, "status": outcome.status, "reason": outcome.reason,
+              "reason_key": outcome.reason_key,
               "row": outcome.row, "seconds": outcome.seconds, "host": outcome.host,
               "attempts": attempts, "lines": list(spec.lines), "source": spec.describe(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

@@ -23,7 +23,13 @@ from dataclasses import dataclass, field
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.tools.split.spec import SequenceSpec
-from sfm_ttr_ros.tools.split.task import SequenceOutcome, SplitJob, run_sequence
+from sfm_ttr_ros.tools.split.task import (
+    TASK_ERROR,
+    WORKER_LOST,
+    SequenceOutcome,
+    SplitJob,
+    run_sequence,
+)
 
 log = logging.getLogger("sfm_ttr_ros.tools.split")
 
@@ -186,7 +192,7 @@ def _run_ray(specs: Sequence[SequenceSpec], job: SplitJob, config: EngineConfig,
                 try:
                     outcome = ray.get(ref)
                 except rx.RayTaskError as exc:  # raised in the task, past run_sequence's net
-                    outcome = SequenceOutcome(spec.id, "failed",
+                    outcome = SequenceOutcome(spec.id, "failed", reason_key=TASK_ERROR,
                                               reason=f"task error: {exc.cause!r}")
                 except rx.TaskCancelledError:
                     continue
@@ -198,8 +204,9 @@ def _run_ray(specs: Sequence[SequenceSpec], job: SplitJob, config: EngineConfig,
                                     attempt + 1, config.retries + 1)
                         submit(spec, attempt + 1)
                         continue
-                    outcome = SequenceOutcome(spec.id, "failed", reason=(
-                        f"worker lost on each of {attempt} attempts (last: {what})"))
+                    outcome = SequenceOutcome(spec.id, "failed", reason_key=WORKER_LOST,
+                                              reason=f"worker lost on each of {attempt} "
+                                              f"attempts (last: {what})")
                 on_outcome(spec, outcome, attempt)
     except KeyboardInterrupt:
         for ref in pending:

@@ -102,11 +102,13 @@ def build_results(specs: Sequence[SequenceSpec], records: Mapping[str, dict[str,
         rec = records.get(s.id)
         base = {"id": s.id, "source": s.describe(), "lines": list(s.lines)}
         if rec is None:
-            sequences.append({**base, "status": "not_run", "reason": "interrupted"
-                              if interrupted else "not run"})
+            key = "interrupted" if interrupted else "not_run"
+            sequences.append({**base, "status": "not_run", "reason": key.replace("_", " "),
+                              "reason_key": key})
             continue
         row = rec.get("row") or {}
         sequences.append({**base, "status": rec["status"], "reason": rec.get("reason", ""),
+                          "reason_key": rec.get("reason_key", ""),
                           "reused": s.id in reused, "attempts": rec.get("attempts", 1),
                           "retries": int(retried.get(s.id, 0)), "host": rec.get("host", ""),
                           "seconds": rec.get("seconds", 0.0), **row})

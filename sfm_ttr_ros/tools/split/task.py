@@ -57,14 +57,23 @@ class SplitJob:
             raise InputError(f"threads per task must be >= 1, got {self.threads}")
 
 
+#: Why a sequence failed, as the key beside its ``reason`` text: its data was refused (an
+#: InputError), the method raised on it, the task raised past :func:`run_sequence`, or every
+#: worker it ran on was lost.
+INPUT_ERROR, METHOD_ERROR, TASK_ERROR, WORKER_LOST = (
+    "input_error", "method_error", "task_error", "worker_lost")
+
+
 @dataclass
 class SequenceOutcome:
     """A task's answer: ``status`` ``done`` (``row``: the sequence's numbers; ``files``: its
-    output files, path relative to its folder -> bytes) or ``failed`` (``reason``)."""
+    output files, path relative to its folder -> bytes) or ``failed`` (``reason`` and its key,
+    ``reason_key``)."""
 
     id: str
     status: str
     reason: str = ""
+    reason_key: str = ""
     row: dict[str, Any] = field(default_factory=dict)
     files: dict[str, bytes] = field(default_factory=dict)
     seconds: float = 0.0
@@ -103,7 +112,8 @@ def run_row(summary: dict[str, Any]) -> dict[str, Any]:
     modes["sfm_ttr"]["timings"] = {k: float(v) for k, v in summary.get("timings", {}).items()}
     return {"frames_total": n, "frames_with_gt": modes["no_ttr"]["frames"],
             "first_frame": summary.get("first_frame", 0), "modes": modes,
-            "refined": bool(summary.get("refined")), "reason": summary.get("reason", "")}
+            "refined": bool(summary.get("refined")), "reason": summary.get("reason", ""),
+            "reason_key": summary.get("reason_key")}
 
 
 def _collect(folder: Path) -> dict[str, bytes]:
@@ -159,9 +169,9 @@ def run_sequence(spec: SequenceSpec, job: SplitJob) -> SequenceOutcome:
         return SequenceOutcome(spec.id, "done", row=row, files=files, seconds=seconds,
                                host=host)
     except InputError as exc:
-        return SequenceOutcome(spec.id, "failed", reason=str(exc),
+        return SequenceOutcome(spec.id, "failed", reason=str(exc), reason_key=INPUT_ERROR,
                                seconds=time.perf_counter() - t0, host=host)
     except Exception as exc:  # the method failed on this sequence: reported, the others go on
         return SequenceOutcome(spec.id, "failed", reason=f"{type(exc).__name__}: {exc}",
-                               seconds=time.perf_counter() - t0, host=host,
+                               reason_key=METHOD_ERROR, seconds=time.perf_counter() - t0, host=host,
                                detail=traceback.format_exc())

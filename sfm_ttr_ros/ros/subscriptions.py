@@ -1,0 +1,65 @@
+"""The ``refiner`` node's inputs: the image (raw, or image_transport's ``<image>/compressed``),
+``camera_info`` and ``odom``, on one QoS (docs/node.md, "QoS").
+
+The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability`` (best_effort or reliable), which
+``--ros-args`` QoS overrides may change (``QoSOverridingOptions``); an incompatible QoS on an
+input calls the node's handler with the topic.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+from typing import NamedTuple
+
+from nav_msgs.msg import Odometry
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+from sfm_ttr_ros.core.params.node import NodeSettings
+from sfm_ttr_ros.ros import names
+
+
+class Input(NamedTuple):
+    """One subscription: its message type, topic and callback."""
+
+    msg_type: type
+    topic: str
+    callback: Callable
+
+
+def input_qos(settings: NodeSettings) -> QoSProfile:
+    """KEEP_LAST ``qos_depth``, best effort or reliable as ``qos_reliability`` says."""
+    reliability = (ReliabilityPolicy.BEST_EFFORT if settings.qos_reliability == "best_effort"
+                   else ReliabilityPolicy.RELIABLE)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(settings.qos_depth),
+                      reliability=reliability)
+
+
+def image_input(node, settings: NodeSettings, on_image: Callable,
+                on_compressed: Callable) -> Input:
+    """The image subscription: ``image`` (sensor_msgs/Image), or with ``image_transport:
+    compressed`` the CompressedImage on ``<resolved image>/compressed``."""
+    if settings.image_transport == "compressed":
+        return Input(CompressedImage, names.compressed_topic(
+            node.resolve_topic_name(names.IMAGE_TOPIC)), on_compressed)
+    return Input(Image, names.IMAGE_TOPIC, on_image)
+
+
+def subscribe(node, inputs: list[Input], qos: QoSProfile,
+              on_incompatible_qos: Callable[[str, object], None]) -> None:
+    """Create each input's subscription on ``qos`` (overridable by ``--ros-args``)."""
+    overrides = QoSOverridingOptions.with_default_policies()
+    for msg_type, topic, callback in inputs:
+        node.create_subscription(
+            msg_type, topic, callback, qos, qos_overriding_options=overrides,
+            event_callbacks=SubscriptionEventCallbacks(
+                incompatible_qos=partial(on_incompatible_qos, topic)))
+
+
+def camera_and_odometry(on_camera_info: Callable, on_odometry: Callable) -> list[Input]:
+    """The ``camera_info`` and ``odom`` subscriptions."""
+    return [Input(CameraInfo, names.CAMERA_INFO_TOPIC, on_camera_info),
+            Input(Odometry, names.ODOMETRY_TOPIC, on_odometry)]
