@@ -9,7 +9,7 @@ The OpenMP team size of one thread is the window worker's thread budget.
 torch runs its intra-op parallel regions on OpenMP (libgomp in the PyPI wheels), and every
 thread that opens a parallel region gets a team of its own. In the node two threads do: the
 live server and the window worker. Measured on 2 cores (BENCHMARKS.md "Live latency and the live
-share", ``scripts/studies/live_latency.py --mode main|windows``): a window's refinement takes
+share", the live-latency study, docs/decisions.md "Studies"): a window's refinement takes
 3.7-4.8 s with two threads in the main thread, 8.6-8.8 s with two threads in the background worker,
 and 5.6-5.9 s with ONE thread in the worker. Once the process holds more OpenMP threads than cores,
 libgomp stops spin-waiting and every parallel region pays a futex wake-up; the refinement's many
