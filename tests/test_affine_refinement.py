@@ -73,7 +73,7 @@ def test_affine_path_refines_as_well_as_the_scale_only_path(scene, runs):
     # 0.149-0.160, affine 0.144-0.159; the affine path's paired gap -5.7 % to +5.2 % (mean
     # -3.2 %): COLMAP's multi-threaded mapper makes each run's SfM (shared by both paths within
     # a run) differ, and the gap with it. An earlier stop measured 3-8 % behind. On the default
-    # network and a generated KITTI-size drive see the affine-equivalence study (docs/decisions.md, "Studies")
+    # network and a generated KITTI-size drive see the affine-equivalence study (docs/decisions.md)
     # (BENCHMARKS.md §10). The affine path must stay a real refinement and near the paper's.
     assert after_affine < 0.7 * before
     assert abs(after_affine - after_scale) <= 0.10 * after_scale
