@@ -33,6 +33,7 @@ from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, image_digest, quiet_p
 log = logging.getLogger(__name__)
 
 CAMERA_ID = 1  # the stream's one camera (and its trivial rig) in every map cache
+GREY_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])  # RGB -> grey as COLMAP reads images
 MIN_PAIR_INLIERS = 15  # a verified pair with fewer inliers is not kept (the mapper's min)
 
 
@@ -159,11 +160,13 @@ class StreamFrontend:
 
     # -- steps -------------------------------------------------------------------------------
     def _extract(self, frame: Frame, digest: bytes) -> FrameFeatures:
-        """SIFT on the grey image downscaled as COLMAP's image reader does (longest side
-        ``max_image_size``), keypoints scaled back to full resolution."""
+        """SIFT on the grey image (COLMAP's reader's BT.709 weights: OpenCV's 0.299 / 0.587 /
+        0.114 made the mapper settle on wrong reconstructions of the test drive) downscaled as
+        COLMAP's image reader does (longest side ``max_image_size``), keypoints scaled back to
+        full resolution."""
         import pycolmap
 
-        grey = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY)
+        grey = np.rint(frame.image @ GREY_WEIGHTS).astype(np.uint8)
         h, w = grey.shape
         size = self.config.max_image_size
         if 0 < size < max(h, w):

@@ -63,12 +63,13 @@ def compare_streaming_with_batch(frames: Sequence[Frame], intrinsics: Intrinsics
                                  depths: dict[str, np.ndarray] | None = None,
                                  config: StreamingSfmConfig | None = None) -> dict:
     """Stream ``frames`` through :class:`StreamingSfm` and the batch reconstructor, window by
-    window (windows side by side), and return both sides' figures (see the module doc)."""
+    window (windows side by side), and return both sides' figures (see the module doc) and the
+    streamed windows' results."""
     if window_size < 2 or len(frames) < window_size:
         raise InputError(f"need windows of >= 2 frames and at least one window: "
                          f"{len(frames)} frames, window_size {window_size}")
     config = config or StreamingSfmConfig()
-    report: dict = {"stream": [], "batch": [], "frontend": []}
+    report: dict = {"stream": [], "batch": [], "frontend": [], "stream_results": []}
     with StreamingSfm(config) as stream, SfmReconstructor(config.sfm) as batch:
         for start in range(0, len(frames) - window_size + 1, window_size):
             window = list(frames[start:start + window_size])
@@ -76,6 +77,7 @@ def compare_streaming_with_batch(frames: Sequence[Frame], intrinsics: Intrinsics
                 report["frontend"].append(stream.admit(f, intrinsics))
             t0 = time.perf_counter()
             result = stream.reconstruct(window, intrinsics)
+            report["stream_results"].append(result)
             figures = window_figures(result, time.perf_counter() - t0, depths)
             figures["map_on_admit"] = result.timings.get("map_on_admit", 0.0)
             figures["mapping"] = stream.last_mapping
