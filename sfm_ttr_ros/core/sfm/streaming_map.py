@@ -15,6 +15,7 @@ deregisters the rest.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -151,12 +152,39 @@ class StreamingSfm:
         self._spent[frame.name] = (timings.total, time.perf_counter() - t0)
         return timings
 
+    def retain(self, names: Sequence[str]) -> None:
+        """The stream's future windows hold only ``names`` among the frames admitted and not yet
+        reconstructed: the others (left a window without one: overload, a flush, a stamp that
+        went back) are forgotten, so the map neither registers nor pins them."""
+        keep = set(names)
+        gone = [n for n in self._open if n not in keep]
+        if not gone:
+            return
+        self._open = [n for n in self._open if n in keep]
+        for n in gone:
+            self._spent.pop(n, None)
+        self._pin()
+        self.frontend.prune()
+
+    def set_config(self, config: SfmConfig) -> None:
+        """New SfM options from the next frame on (the mapper's at once, the SIFT options for
+        the frames extracted from now)."""
+        self.config = dataclasses.replace(self.config, sfm=config)
+        self.frontend.config = config
+        self._fresh.config = config
+
+    def unmapped(self) -> int:
+        """Keyframes admitted but not registered into the map yet (the front end's lag)."""
+        registered = set(self._registered_names())
+        return sum(n not in registered for n in self._open)
+
     # -- per window --------------------------------------------------------------------------
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> SfmResult:
         """The window's :class:`SfmResult` from the shared map (frames not admitted yet are
         admitted first). Never raises for a window that cannot be reconstructed; raises
         :class:`InputError` for bad input."""
         check_window(frames, intrinsics)
+        self.last_mapping = ("", "")
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))

@@ -11,7 +11,9 @@ submit + process everything queued, for synchronous callers (benchmark, tests). 
 :mod:`.settings`, :mod:`.records` (what comes out), :mod:`.frame_queue` (the only part two
 threads share), :mod:`.ledger` (the counters), :mod:`.admission` (the per-frame rules),
 :mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.publisher` (outputs, counted); this module
-schedules the windows, skips them under overload and begins the next one's SfM ahead.
+schedules the windows, skips them under overload and begins the next one's SfM ahead (batch
+SfM) or admits each keyframe to the streaming SfM as the buffer takes it (``sfm.mode``
+streaming).
 """
 
 from __future__ import annotations
@@ -152,6 +154,7 @@ class StreamProcessor:
                                             Unrefined.END_OF_STREAM,
                                             "end of stream: a single frame cannot make a window")
         self._buffer = WindowBuffer()
+        self._retain()
         self.keyframes.reset()
         return outs
 
@@ -165,7 +168,8 @@ class StreamProcessor:
     def counters(self) -> dict[str, object]:
         """Snapshot of the accounting (:meth:`FrameQueue.counters`) and of the SfM begun ahead."""
         return self._queue.counters() | {
-            "sfm_ahead": self.ttr.sfm.counters() if self.ttr is not None else {}}
+            "sfm_ahead": self.ttr.sfm.counters() if self.ttr is not None else {},
+            "sfm_streaming": self.ttr.sfm.streaming_counters() if self._streaming() else {}}
 
     @property
     def last_window(self) -> WindowStats | None:
@@ -230,7 +234,30 @@ class StreamProcessor:
                                           s.min_keyframe_motion):
             return outs + self._out.unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
         self._buffer.add(frame)
+        self._admit(frame, intr)
         return outs + self._window_if_due()
+
+    def _streaming(self) -> bool:
+        return self.ttr is not None and self.ttr.config.sfm.mode == "streaming"
+
+    def _admit(self, frame: Frame, intr: Intrinsics) -> None:
+        """``sfm.mode`` streaming: the keyframe's SfM front end and its registration into the
+        carried map now, as the window buffer takes it (:meth:`SfmSource.admit`), so that the
+        window only maps what is left after its last frame. A failure is logged: the window
+        admits the frame again itself."""
+        if not self._streaming():
+            return
+        try:
+            self.ttr.sfm.admit(frame, intr)
+        except Exception as exc:  # noqa: BLE001 - the window's own SfM admits it again
+            self._out.warn("sfm_admit", f"keyframe {frame.name} not admitted to the streaming "
+                           f"SfM now: {type(exc).__name__}: {exc}")
+
+    def _retain(self) -> None:
+        """``sfm.mode`` streaming: the keyframes admitted that no future window takes (the
+        buffer let them go without a window of theirs) are forgotten by the carried map."""
+        if self._streaming():
+            self.ttr.sfm.retain([e.frame.name for e in self._buffer.entries])
 
     def _apply(self, frame: Frame, v: Verdict) -> list[FrameOutput]:
         """An admission verdict (:class:`~.admission.Verdict`): a stamp that went back
@@ -242,6 +269,8 @@ class StreamProcessor:
         flushed = self._buffer.take_unpublished() if v.flush is not None else []
         if v.reset:
             self.keyframes.reset()
+        if flushed:
+            self._retain()
         return self._out.verdict(frame, v, flushed)
 
     # -- windows ---------------------------------------------------------------------------------
@@ -253,6 +282,7 @@ class StreamProcessor:
             return []
         outs = self._run_window(entries)
         self._buffer.slide(self.settings)
+        self._retain()
         return outs
 
     def _prefetch_next(self) -> None:
