@@ -8,6 +8,7 @@ Depth error and scale as in tests/test_sfm.py: s = median(D_gt / D_sfm) per wind
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import cv2
@@ -156,3 +157,121 @@ def test_bad_input_is_an_input_error(street):
         with pytest.raises(InputError):
             compare_streaming_with_batch(street.frames[:3], street.intr, WINDOW)
         assert not sfm.reconstruct(street.frames[:1], street.intr).ok
+
+
+# -- sfm.mode streaming through the stream (StreamProcessor + SfmTTR) ------------------------
+def _stream_ttr(mode: str):
+    from conftest import tiny_model
+
+    from sfm_ttr_ros.core.pipeline import SfmTTR
+    from sfm_ttr_ros.core.refinement.config import RefinementConfig
+    from sfm_ttr_ros.core.window import TTRConfig
+
+    cfg = TTRConfig(sfm=dataclasses.replace(SFM, mode=mode),
+                    refinement=RefinementConfig(steps=4))
+    return SfmTTR(tiny_model(), cfg)
+
+
+def _run_stream(ttr, frames, intr, admitted: list | None = None):
+    """Every frame pushed through a StreamProcessor of 4-frame windows side by side; with
+    ``admitted``, the frames the streaming SfM held when each window began."""
+    from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
+    from sfm_ttr_ros.core.stream.windows import StreamProcessor, StreamSettings
+
+    stream = StreamProcessor(ttr, StreamSettings(window_size=WINDOW, window_stride=WINDOW,
+                                                 keyframe_policy="all", idle_flush_s=0.0))
+    if admitted is not None:
+        reconstruct = ttr.sfm.reconstruct
+
+        def spy(window, intrinsics):
+            admitted.append(set(ttr.sfm.streaming.frontend.features))
+            return reconstruct(window, intrinsics)
+        ttr.sfm.reconstruct = spy
+    outs = []
+    for f in frames:
+        outs += stream.push(f, intr)
+    outs += stream.flush()
+    return stream, outs, StreamDiagnostics(stream).values()
+
+
+@pytest.fixture(scope="module")
+def streamed(street):
+    """Two windows of the street, then a window of another scene (its stamps after them):
+    the third cannot continue the map."""
+    other = _frames(3, WINDOW, first_index=100)
+    last = street.frames[2 * WINDOW - 1].stamp
+    moved = [Frame(f.index, f.image, stamp=last + 0.1 * (k + 1))
+             for k, f in enumerate(other.frames)]
+    ttr, admitted = _stream_ttr("streaming"), []
+    try:
+        stream, outs, diag = _run_stream(ttr, street.frames[:2 * WINDOW] + moved, street.intr,
+                                         admitted)
+        return SimpleNamespace(windows=list(stream.windows), outs=outs, diag=diag,
+                               counters=stream.counters(), admitted=admitted,
+                               streaming=ttr.sfm.streaming, names=[f.name for f in moved])
+    finally:
+        ttr.close()
+
+
+def test_streaming_mode_windows_refine_on_the_carried_map(streamed):
+    """sfm.mode streaming through the stream: each keyframe admitted when the stream takes it
+    (a window's frames are all held before its SfM runs), windows refined, the second window
+    continues the first's map, frames registered as they arrived; counted on /diagnostics."""
+    w = streamed.windows
+    assert len(w) == 3 and len(streamed.outs) == 3 * WINDOW
+    assert [x.sfm_mapping for x in w] == ["fresh", "continued", "fresh"]
+    assert w[0].sfm_mapping_reason == "no map to continue" and w[1].sfm_mapping_reason == ""
+    assert w[0].refined and w[1].refined
+    assert w[1].registered == WINDOW
+    assert w[1].timings["sfm_map_on_admit"] > 0  # registered into the map as they came
+    for window, held in zip(w, streamed.admitted, strict=True):
+        assert set(window.names) <= held  # admitted before the window's SfM began
+    d = streamed.diag
+    assert (d["sfm.windows_continued"], d["sfm.windows_fresh"]) == (1, 2)
+    assert d["sfm.admitted_unmapped"] == 0 and d["sfm.waiting_for_features"] == 0
+    assert d["last_window.sfm_mapping"] == "fresh"
+    assert streamed.counters["sfm_ahead"]["started"] == 0  # nothing begun ahead
+
+
+def test_streaming_mode_a_bad_continuation_maps_afresh_with_its_reason(streamed):
+    """The other scene's window cannot continue the street's map: mapped afresh, the reason
+    in the window's record and on /diagnostics, and it is still reconstructed."""
+    third = streamed.windows[2]
+    assert third.names == streamed.names
+    assert "continuation" in third.sfm_mapping_reason
+    assert streamed.diag["last_window.sfm_mapping_reason"] == third.sfm_mapping_reason
+    assert third.registered >= 2
+    assert third.result.summary()["sfm_mapping"] == ["fresh", third.sfm_mapping_reason]
+
+
+def test_batch_mode_is_the_batch_reconstructors(street):
+    """sfm.mode batch (the default): no streaming SfM, nothing admitted, and each window's
+    reconstruction is the batch reconstructor's own, called once per window with exactly the
+    window's frames after its last frame (today's path)."""
+    ttr = _stream_ttr("batch")
+    calls, results = [], []
+    reconstruct = ttr.sfm.reconstructor.reconstruct
+
+    def spy(window, intrinsics):
+        calls.append([f.name for f in window])
+        results.append(reconstruct(window, intrinsics))
+        return results[-1]
+    ttr.sfm.reconstructor.reconstruct = spy
+    try:
+        assert ttr.sfm.streaming is None and not ttr.sfm.admit(street.frames[0], street.intr)
+        stream, _, diag = _run_stream(ttr, street.frames[:2 * WINDOW], street.intr)
+    finally:
+        ttr.close()
+    assert calls == [w.names for w in stream.windows]
+    assert all(w.result.sfm is r for w, r in zip(stream.windows, results, strict=True))
+    assert all(w.sfm_mapping == "" == w.sfm_mapping_reason for w in stream.windows)
+    assert stream.counters()["sfm_streaming"] == {}
+    assert not any(k.startswith("sfm.") for k in diag)
+    assert all(w.refined for w in stream.windows)
+
+
+def test_sfm_mode_is_validated():
+    with pytest.raises(InputError, match="sfm.mode"):
+        SfmConfig(mode="online")
+    with pytest.raises(InputError, match="sfm.features colmap"):
+        SfmConfig(mode="streaming", features="torch")
