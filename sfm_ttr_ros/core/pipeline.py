@@ -159,9 +159,8 @@ class SfmTTR:
                        WindowResult(names, dict(before), before, refined=False, timings=t))
 
     def _reconstruct(self, w: WindowState) -> Stop | None:
-        """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj), the reconstruction begun ahead of
-        it, or (``sfm.mode`` streaming) the carried map's, continued or fresh with the reason;
-        why the window stops here (None = it goes on)."""
+        """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj): its own, begun ahead, or the carried
+        map's (``sfm.mode``); why the window stops here (None = it goes on)."""
         t = w.timings
         t0 = time.perf_counter()
         sfm, ahead = self.sfm.reconstruct(w.frames, w.intrinsics)
