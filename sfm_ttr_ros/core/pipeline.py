@@ -159,8 +159,8 @@ class SfmTTR:
                        WindowResult(names, dict(before), before, refined=False, timings=t))
 
     def _reconstruct(self, w: WindowState) -> Stop | None:
-        """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj), or the reconstruction begun ahead
-        of it; why the window stops here (None = it goes on)."""
+        """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj): its own, begun ahead, or the carried
+        map's (``sfm.mode``); why the window stops here (None = it goes on)."""
         t = w.timings
         t0 = time.perf_counter()
         sfm, ahead = self.sfm.reconstruct(w.frames, w.intrinsics)
@@ -169,6 +169,7 @@ class SfmTTR:
         t["sfm"] = time.perf_counter() - t0
         t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
         w.result.sfm = sfm
+        w.result.sfm_mapping, w.result.sfm_mapping_reason = self.sfm.last_mapping
         return None if sfm.ok else Stop(Unrefined.SFM_FAILED, f"SfM failed: {sfm.reason}")
 
     def _align(self, w: WindowState) -> Stop | None:

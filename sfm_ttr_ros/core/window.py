@@ -81,6 +81,10 @@ class WindowResult:
     # the refined weights' depths of a window a check refused after refining (for evaluation)
     depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
     sfm: SfmResult | None = None
+    # sfm.mode streaming: "continued" (the carried map) or "fresh" (mapped anew), and why a
+    # fresh mapping replaced the continuation; "" in batch mode or before SfM ran
+    sfm_mapping: str = ""
+    sfm_mapping_reason: str = ""
     alignment: AlignmentResult | None = None
     refinement: RefinementResult | None = None
     metric: WindowMetric | None = None  # the window's metric estimate (core/metric/)
@@ -103,6 +107,7 @@ class WindowResult:
             "reason_key": None if self.reason_key is None else str(self.reason_key),
             "registered": self.sfm.num_registered if self.sfm else 0,
             "points": self.sfm.num_points if self.sfm else 0,
+            "sfm_mapping": [self.sfm_mapping, self.sfm_mapping_reason],
             "scale": self.scale,
             "loss_before": self.loss_before,
             "loss_after": self.loss_after,

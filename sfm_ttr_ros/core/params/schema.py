@@ -52,7 +52,7 @@ from sfm_ttr_ros.core.refinement.config import (
 )
 from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
 from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
-from sfm_ttr_ros.core.sfm.config import FEATURE_BACKENDS, SfmConfig
+from sfm_ttr_ros.core.sfm.config import FEATURE_BACKENDS, SFM_MODES, SfmConfig
 from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES
 from sfm_ttr_ros.core.stream.windows import StreamSettings
 
@@ -167,6 +167,12 @@ PARAMS: tuple[Param, ...] = (
        "matcher on the CPU; torch = SIFT and mutual nearest-neighbour matching in torch (on the "
        "GPU when there is one), verified and mapped by pycolmap.", choices=FEATURE_BACKENDS,
        **_START_UP),
+    _p("sfm.mode", "sfm.mode", "Where a window's SfM comes from: batch = features, matching "
+       "and a fresh mapping of the window after its last frame; streaming = each keyframe's "
+       "features, matches and registration into one map carried across windows as the stream "
+       "takes it (the window then maps what is left; a fresh mapping, with its reason, when "
+       "the continuation fits badly). streaming needs sfm.features colmap.",
+       choices=SFM_MODES, **_START_UP),
     _p("sfm.max_image_size", "sfm.max_image_size", "SIFT runs on images downscaled to this "
        "longest side; 0 = full resolution.", 0, 100_000,
        constraints="0 or >= 16 (1 crashes pycolmap)"),

@@ -9,6 +9,7 @@ from sfm_ttr_ros.core.errors import InputError
 
 MIN_MAX_IMAGE_SIZE = 16  # smallest SIFT downscale accepted (1 crashes pycolmap 4.2.1)
 FEATURE_BACKENDS = ("colmap", "torch")  # sfm.features
+SFM_MODES = ("batch", "streaming")  # sfm.mode
 RETRY_HISTORY = 10  # reconstructions of the stream whose median error sfm.retry_above_ratio scales
 
 
@@ -44,6 +45,11 @@ class SfmConfig:
     # weight-free torch SIFT of core/sfm/features/sift_torch.py and mutual nearest-neighbour + ratio
     # matching on the accelerator when there is one, the matches verified by pycolmap
     features: str = "colmap"
+    # "batch": each window's SfM after its last frame (features, matching, a fresh mapping of
+    # the window: core/sfm/reconstruction.py); "streaming": each keyframe's features, matches
+    # and registration into one map carried across windows as the stream takes it, a window
+    # then only maps what is left (core/sfm/streaming_map.py; pycolmap's SIFT only)
+    mode: str = "batch"
 
     def __post_init__(self) -> None:
         # Values that reach pycolmap options known to end the process or to fail every window
@@ -59,6 +65,11 @@ class SfmConfig:
         if self.features not in FEATURE_BACKENDS:
             raise InputError(f"sfm.features must be one of {list(FEATURE_BACKENDS)}, got "
                              f"{self.features!r}")
+        if self.mode not in SFM_MODES:
+            raise InputError(f"sfm.mode must be one of {list(SFM_MODES)}, got {self.mode!r}")
+        if self.mode == "streaming" and self.features != "colmap":
+            raise InputError("sfm.mode streaming extracts pycolmap's SIFT as each keyframe "
+                             f"arrives: it needs sfm.features colmap, got {self.features!r}")
         if int(self.mapping_attempts) < 1:
             raise InputError(f"sfm.mapping_attempts must be >= 1, got {self.mapping_attempts}")
         for name in ("retry_above_error", "retry_above_ratio"):

@@ -17,13 +17,18 @@ from sfm_ttr_ros.core.sfm.config import RETRY_HISTORY, SfmConfig
 from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result
 from sfm_ttr_ros.core.sfm.workspace import SfmWorkspace
 
+MapperRun = Callable[[SfmConfig, list[str], object, int], dict]
+
 
 class Mapper:
     """The mapper of one workspace and the stream's last reconstruction errors (the
     reference of ``sfm.retry_above_ratio``)."""
 
-    def __init__(self, workspace: SfmWorkspace):
+    def __init__(self, workspace: SfmWorkspace | None, runner: MapperRun | None = None):
         self.workspace = workspace
+        # one mapper run over other data than the workspace's database (the streaming SfM's
+        # map cache): (config, names, token, seed) -> {index: pycolmap.Reconstruction}
+        self.runner = runner
         # mean reprojection errors of the stream's last reconstructions (sfm.retry_above_ratio)
         self.errors: deque[float] = deque(maxlen=RETRY_HISTORY)
 
@@ -44,9 +49,7 @@ class Mapper:
         against 0.60-0.65 px, refinement then made them worse), or on a few frames and points
         (BENCHMARKS.md "Window checks"). A run that found no model at all is not repeated (it
         can take seconds). ``check`` raises when the reconstruction is cancelled."""
-        limit = float(config.retry_above_error)
-        if config.retry_above_ratio > 0 and self.errors:
-            limit = min(limit, config.retry_above_ratio * float(np.median(self.errors)))
+        limit = self.retry_limit(config)
         best: SfmResult | None = None
         best_key: tuple = ()
         attempts: list[dict] = []
@@ -69,6 +72,14 @@ class Mapper:
         if best.ok:
             self.errors.append(kept["reprojection_error"])
         return best
+
+    def retry_limit(self, config: SfmConfig) -> float:
+        """The mean reprojection error above which the mapper runs again: ``retry_above_error``,
+        or ``retry_above_ratio`` times the median of the stream's last reconstructions."""
+        limit = float(config.retry_above_error)
+        if config.retry_above_ratio > 0 and self.errors:
+            limit = min(limit, config.retry_above_ratio * float(np.median(self.errors)))
+        return limit
 
     def precheck(self, config: SfmConfig, names: Sequence[str]) -> str:
         """Cheap reasons a window cannot be reconstructed, before the (slow) mapper runs."""
@@ -103,6 +114,9 @@ class Mapper:
 
     def _map(self, config: SfmConfig, names: list[str], token, seed: int):
         import pycolmap
+
+        if self.runner is not None:
+            return self.runner(config, names, token, seed)
 
         out = self.workspace.path / "sparse"
         shutil.rmtree(out, ignore_errors=True)

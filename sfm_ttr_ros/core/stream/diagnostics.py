@@ -147,6 +147,7 @@ class StreamDiagnostics:
         if self._live is not None:  # ~/depth: received = published + skipped + pending
             v.update(self._live_values())
         v.update(self._keyframe_values())
+        v.update(self._streaming_sfm_values(c.get("sfm_streaming") or {}))
         metric = getattr(self.stream.ttr, "metric_status", None)
         if metric is not None:  # the outputs' units (core/metric/)
             v.update({f"metric.{k}": x for k, x in metric().values().items()})
@@ -179,6 +180,16 @@ class StreamDiagnostics:
                 "keyframes.reason": reason, "keyframes.stale": kf.stale,
                 "keyframes.behind_s": self.stream.behind_s()}
 
+    def _streaming_sfm_values(self, st: dict[str, int]) -> dict[str, object]:
+        """``sfm.mode`` streaming (none in batch mode): windows whose map was continued
+        against those mapped afresh, and the front end's lag: keyframes admitted but not
+        registered into the map yet, frames queued for the worker (waiting for features)."""
+        if not st:
+            return {}
+        return {"sfm.windows_continued": st["continued"], "sfm.windows_fresh": st["fresh"],
+                "sfm.admitted_unmapped": st["admitted_unmapped"],
+                "sfm.waiting_for_features": self.stream.queued()}
+
     def _last_window_values(self) -> dict[str, object]:
         """The last window's outcome and timings (none before the first)."""
         w = self.stream.last_window
@@ -192,6 +203,8 @@ class StreamDiagnostics:
             "last_window.registered_frames": w.registered,
             "last_window.points_3d": w.points,
             "last_window.mapping_attempts": w.mapping_attempts,
+            "last_window.sfm_mapping": w.sfm_mapping,
+            "last_window.sfm_mapping_reason": w.sfm_mapping_reason,
             "last_window.reprojection_error_px": w.reprojection_error,
             "last_window.inlier_ratio": w.inlier_ratio,
             "last_window.scale": w.scale,

@@ -122,6 +122,8 @@ class WindowStats:
     timings = _read("timings")
     cloud_xyz = _read("cloud_xyz", "The sparse cloud in cloud_frame's optical frame.")
     cloud_error = _read("cloud_error")
+    sfm_mapping = _read("sfm_mapping", "sfm.mode streaming: continued or fresh ('' batch).")
+    sfm_mapping_reason = _read("sfm_mapping_reason", "Why the window was mapped afresh.")
     registered = _stage("sfm", lambda sfm: sfm.num_registered, 0)
     points = _stage("sfm", lambda sfm: sfm.num_points, 0)
     mapping_attempts = _stage("sfm", lambda sfm: len(sfm.attempts), 0,

@@ -10,8 +10,9 @@ stream) and the accounting of every frame are written once, in docs/node.md, "Ho
 submit + process everything queued, for synchronous callers (benchmark, tests). The parts:
 :mod:`.settings`, :mod:`.records` (what comes out), :mod:`.frame_queue` (the only part two
 threads share), :mod:`.ledger` (the counters), :mod:`.admission` (the per-frame rules),
-:mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.publisher` (outputs, counted); this module
-schedules the windows, skips them under overload and begins the next one's SfM ahead.
+:mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.publisher` (outputs, counted), :mod:`.sfm_feed`
+(the next window's SfM begun ahead, or each keyframe admitted to the streaming SfM as the
+buffer takes it); this module schedules the windows and skips them under overload.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector
 from sfm_ttr_ros.core.stream.publisher import FramePublisher
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats, unrefined_result
 from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.stream.sfm_feed import SfmFeed
 from sfm_ttr_ros.core.stream.window_buffer import Entry, WindowBuffer
 
 # the names the node, the benchmark and the parameter schema import from here
@@ -86,13 +88,14 @@ class StreamProcessor:
         self._last_stamp: float | None = None
         self.keyframes = KeyframeSelector()  # which frames are keyframes (keyframes.py)
         self._window_index = 0
-        self._asked_ahead: tuple[str, ...] = ()  # the frames whose SfM was begun ahead last
+        # the next window's SfM begun ahead (batch), each keyframe admitted (streaming)
+        self._sfm = SfmFeed(ttr, self._queue, self._out.warn)
 
     # -- input (any thread) ----------------------------------------------------------------------
     def submit(self, frame: Frame, intrinsics: Intrinsics) -> None:
         """Queue a frame (thread-safe, never blocks on heavy work)."""
         dropped = self._queue.put(frame, intrinsics, self.settings)
-        self._prefetch_next()
+        self._sfm.prefetch_next(self.settings)
         if dropped is not None:
             self._out.overflow(dropped, self.settings.max_pending)
 
@@ -152,6 +155,7 @@ class StreamProcessor:
                                             Unrefined.END_OF_STREAM,
                                             "end of stream: a single frame cannot make a window")
         self._buffer = WindowBuffer()
+        self._sfm.retain([])
         self.keyframes.reset()
         return outs
 
@@ -164,8 +168,7 @@ class StreamProcessor:
 
     def counters(self) -> dict[str, object]:
         """Snapshot of the accounting (:meth:`FrameQueue.counters`) and of the SfM begun ahead."""
-        return self._queue.counters() | {
-            "sfm_ahead": self.ttr.sfm.counters() if self.ttr is not None else {}}
+        return self._queue.counters() | self._sfm.counters()
 
     @property
     def last_window(self) -> WindowStats | None:
@@ -230,6 +233,7 @@ class StreamProcessor:
                                           s.min_keyframe_motion):
             return outs + self._out.unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
         self._buffer.add(frame)
+        self._sfm.admit(frame, intr)
         return outs + self._window_if_due()
 
     def _apply(self, frame: Frame, v: Verdict) -> list[FrameOutput]:
@@ -242,6 +246,8 @@ class StreamProcessor:
         flushed = self._buffer.take_unpublished() if v.flush is not None else []
         if v.reset:
             self.keyframes.reset()
+        if flushed:
+            self._sfm.retain([])
         return self._out.verdict(frame, v, flushed)
 
     # -- windows ---------------------------------------------------------------------------------
@@ -253,26 +259,8 @@ class StreamProcessor:
             return []
         outs = self._run_window(entries)
         self._buffer.slide(self.settings)
+        self._sfm.retain([e.frame.name for e in self._buffer.entries])
         return outs
-
-    def _prefetch_next(self) -> None:
-        """While a window runs, once the frames of the window after it are all queued
-        (:meth:`FrameQueue.next_window`; every frame a keyframe), begin their SfM in the
-        background (:meth:`SfmSource.prefetch`, which waits for the running window's own SfM:
-        asked again at every frame that arrives). Called by :meth:`submit`; cheap."""
-        s = self.settings
-        if (not s.prefetch_sfm or s.keyframe_policy != "all" or s.min_keyframe_interval_s > 0
-                or s.min_keyframe_motion > 0):
-            return
-        ahead = self._queue.next_window(s.window_stride, s.window_size - s.window_stride)
-        if ahead is None or tuple(f.name for f in ahead[0]) == self._asked_ahead:
-            return  # nothing to begin, or begun already (every later frame finds the same ones)
-        frames, intr = ahead
-        try:
-            if self.ttr.sfm.prefetch(frames, intr):
-                self._asked_ahead = tuple(f.name for f in frames)
-        except Exception as exc:  # noqa: BLE001 - ahead of time only: the window does it itself
-            self._out.warn("prefetch", f"SfM ahead of the next window not begun: {exc}")
 
     def _overloaded(self) -> int:
         """Frames queued beyond ``overload_pending`` when a window is due (0: not overloaded).

@@ -193,6 +193,8 @@ def window_timeline(ws: WindowStats, arrivals: Sequence[float], served: dict) ->
     (``sfm_done``), the refinement ended (``refined``), its first interim weights or else its
     accepted weights were swapped into serving (``first_served``), its accepted weights were
     (``served``), its outputs were ready (``finished``); None for what did not happen.
+    ``first_served`` is the window's "last frame -> first weights"; ``sfm_mapping`` how its
+    SfM was mapped under ``sfm.mode`` streaming ("continued" / "fresh"; "" batch).
     ``served``: the window's marks of :attr:`StreamRefiner.served_at`.
     ``since_feed_start`` = ``first_served`` counted from the first frame of the feed."""
     last = arrivals[int(ws.names[-1])] if ws.names else float("nan")
@@ -205,6 +207,7 @@ def window_timeline(ws: WindowStats, arrivals: Sequence[float], served: dict) ->
         return None if v is None or not np.isfinite(v) else float(v - origin)
 
     return {"window": ws.index, "accepted": ws.refined, "reason_key": ws.reason_key or "",
+            "sfm_mapping": ws.sfm_mapping,
             "first_frame_arrival": since(arrivals[int(ws.names[0])], last) if ws.names else None,
             "closed": since(ws.started_at, last),
             "sfm_done": since(sfm_done, last) if "sfm" in t else None,
@@ -220,7 +223,7 @@ def interim_timeline(index: int, marks: dict, arrivals: Sequence[float]) -> dict
     names = marks["names"]
     last = arrivals[int(names[-1])]
     first = marks.get("interim")
-    return {"window": index, "accepted": None, "reason_key": "cut_short",
+    return {"window": index, "accepted": None, "reason_key": "cut_short", "sfm_mapping": "",
             "first_frame_arrival": float(arrivals[int(names[0])] - last), "closed": None,
             "sfm_done": None, "refined": None,
             "first_served": None if first is None else float(first - last), "served": None,

@@ -179,7 +179,8 @@ def run_no_ttr(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
 def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[str, Any]:
     """One window of a windowed mode for results.json: its frames (sequence
     indices), outcome and reason key, what the window checks measured, and how its refinement
-    steps ran (``step_mode``: graph, or eager / static with the reason)."""
+    steps ran (``step_mode``: graph, or eager / static with the reason); ``sfm_mapping``:
+    under ``sfm.mode`` streaming "continued" or "fresh" with the reason (["", ""] batch)."""
     res = ws.result
     check = res.check.summary() if res is not None and res.check is not None else None
     return {"index": ws.index, "frames": [frame_index(n) for n in ws.names],
@@ -189,7 +190,8 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
             "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check,
             "metric_estimate": ws.metric_estimate, "metric_reason": ws.metric_reason,
-            "step_mode": ws.step_mode}
+            "step_mode": ws.step_mode,
+            "sfm_mapping": [ws.sfm_mapping, ws.sfm_mapping_reason]}
 
 
 def feed_stamp(seq: ImageSequence, indices: Sequence[int], k: int, rate: float | None) -> float:
