@@ -32,6 +32,9 @@ from sfm_ttr_ros.core.sfm.reconstruction import image_digest
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16
+#: What :meth:`LiveDepths.figures` counts.
+HANDOVER_COUNTS = ("recorded", "handed", "replaced", "dropped_stale_weights",
+                   "dropped_released", "dropped_overflow", "binds", "binds_refused")
 
 
 class Predictor:
@@ -214,7 +217,8 @@ class LiveDepths:
         digest = image_digest(np.asarray(image))
         with self._lock:
             self._drop_older(generation)
-            self._entries.pop(digest, None)
+            if self._entries.pop(digest, None) is not None:  # the same pixels again
+                self.counts["replaced"] += 1
             self._entries[digest] = (generation, np.array(depth, np.float32, copy=True),
                                      weakref.ref(image, self._freed(digest)))
             self.counts["recorded"] += 1
@@ -256,10 +260,10 @@ class LiveDepths:
             return entry[1]
 
     def figures(self) -> dict[str, int]:
-        """Depths held now and the counts: recorded, handed, dropped (stale weights, released
-        images, overflow), binds (refused)."""
+        """Depths held now and the counts: recorded, handed, replaced (the same pixels again),
+        dropped (stale weights, released images, overflow), binds (refused)."""
         with self._lock:
-            return {"held": len(self._entries), **self.counts}
+            return {"held": len(self._entries), **{k: self.counts[k] for k in HANDOVER_COUNTS}}
 
     def __len__(self) -> int:
         with self._lock:
