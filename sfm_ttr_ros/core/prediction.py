@@ -211,12 +211,18 @@ class LiveDepths:
 
     def record(self, image: np.ndarray, generation: int, depth: np.ndarray) -> None:
         """The live server served ``image`` with the weights of ``generation``; ``depth``: the
-        network's depth (a copy is kept)."""
-        if self._bound is None:  # nothing could take it: no weights bound
+        network's depth (a copy is kept when ``generation`` is the bound one: nothing else
+        could be handed over)."""
+        bound = self._bound
+        if bound is None or generation != bound[0]:  # nothing could take it
+            with self._lock:
+                self._drop_older(generation)
             return
         digest = image_digest(np.asarray(image))
         with self._lock:
             self._drop_older(generation)
+            if self._bound is None or generation != self._bound[0]:
+                return
             if self._entries.pop(digest, None) is not None:  # the same pixels again
                 self.counts["replaced"] += 1
             self._entries[digest] = (generation, np.array(depth, np.float32, copy=True),
