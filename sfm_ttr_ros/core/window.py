@@ -59,9 +59,9 @@ class TTRConfig:
     reuse_predictions: bool = True
     # Take a window's "before" depths from the live server where it served the frame with the
     # very weights the window starts from (under weight_policy continue, after the window
-    # before was accepted): core/prediction.py LiveDepths. Agrees to ~1e-6 relative (the live
-    # thread's OpenMP team differs from the worker's); windowed accuracy unchanged
-    # (docs/decisions.md). False: the window predicts them itself.
+    # before was accepted): core/prediction.py LiveDepths. Bit for bit with equal OpenMP teams
+    # and predict_batch 1; ~1e-6 relative with the default teams (the live thread's is torch's,
+    # the worker's worker_threads). False: the window predicts them itself.
     reuse_live_predictions: bool = True
 
     def __post_init__(self) -> None:
