@@ -542,3 +542,52 @@ def test_a_failed_warm_up_is_logged_and_serving_goes_on(caplog):
     assert len(got) == 1 and server.published == 1
     assert any("warm-up failed" in r.getMessage() and "no device" in r.getMessage()
                for r in caplog.records)
+
+
+def two_windows_served_live(reuse_live: bool):
+    """Six frames, each served live first (as the node does), then two 3-frame windows through
+    StreamRefiner's stream under weight_policy continue (the fake SfM of window_run)."""
+    from sfm_ttr_ros.core.frames import Intrinsics
+    from sfm_ttr_ros.core.stream.refiner import StreamRefiner
+    from sfm_ttr_ros.core.stream.settings import StreamSettings
+
+    cfg = TTRConfig(min_supervision_points=10, predict_batch=1,
+                    reuse_live_predictions=reuse_live)
+    cfg.refinement.steps, cfg.refinement.lr = 5, 1e-3
+    cfg.check.min_parallax = 0.0
+    ttr = SfmTTR(small_model(), cfg)
+    rng = np.random.default_rng(3)
+    ttr.sfm.reconstructor.reconstruct = lambda fs, *a, **k: _FakeSfm([f.name for f in fs], rng)
+    online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3))
+    frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i)
+              for i in range(6)]
+    windows = []
+    try:
+        for f in frames:
+            online.live.serve_one(f, time.monotonic())
+            online.stream.push(f, Intrinsics(40.0, 40.0, 24.0, 16.0, 48, 32))
+            if online.stream.last_window is not None and \
+                    (not windows or windows[-1] is not online.stream.last_window):
+                windows.append(online.stream.last_window)
+    finally:
+        ttr.close()
+    return online, windows
+
+
+def test_a_window_reuses_the_live_depths_of_its_starting_weights(one_thread):
+    """Window 1 starts from window 0's accepted weights, which serving has swapped in: its
+    frames, served live after that, are not predicted again (counted), and the window refines
+    to exactly what it gives when it predicts them itself."""
+    with_reuse, w = two_windows_served_live(True)
+    without, w_off = two_windows_served_live(False)
+    assert [x.refined for x in w] == [True, True] == [x.refined for x in w_off]
+    assert w[0].result.predictions == {"computed": 3, "reused": 0, "reused_live": 0}
+    assert w[1].result.predictions == {"computed": 0, "reused": 0, "reused_live": 3}
+    assert w_off[1].result.predictions["reused_live"] == 0
+    assert w_off[1].result.predictions["computed"] == 3
+    assert with_reuse.counters_live()["live_depths"]["handed"] == 3
+    assert without.counters_live()["live_depths"]["binds_refused"] == 2  # both windows
+    assert w[1].loss_before == w_off[1].loss_before and w[1].loss_after == w_off[1].loss_after
+    for k, v in snapshot_encoder(with_reuse.ttr.model).items():
+        assert torch.equal(v, snapshot_encoder(without.ttr.model)[k]), k
+    assert w[1].result.summary()["predictions"]["reused_live"] == 3

@@ -65,7 +65,8 @@ class SfmTTR:
         self.sfm = SfmSource(self.config.sfm, workspace)  # stage 1, and SfM begun ahead
         # D_nn = h(g(I)) with a cache of the latest predictions (core/prediction.py)
         self.predictor = Predictor(self.model, self.config.predict_batch,
-                                   self.config.reuse_predictions, self.config.predict_batch_cuda)
+                                   self.config.reuse_predictions, self.config.predict_batch_cuda,
+                                   self.config.reuse_live_predictions)
         # where each window starts and what an accepted one leaves to the next (weight policy)
         self.weights = WeightPolicy(self.model, on_reset=self.predictor.original_restored)
         self.checks = WindowJudge()  # the window checks and their references across windows
@@ -150,13 +151,12 @@ class SfmTTR:
     def _predict_before(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> WindowState:
         """The network's depth of every frame with the weights before the window: the
         published depth unless the window is refined, and D_nn of the alignment."""
-        names = [f.name for f in frames]
-        t: dict[str, float] = {}
-        t0 = time.perf_counter()
-        before = dict(zip(names, self.predictor.predict([f.image for f in frames]), strict=True))
-        t["predict_before"] = time.perf_counter() - t0
-        return WindowState(frames, intrinsics,
-                       WindowResult(names, dict(before), before, refined=False, timings=t))
+        names, t0, counts = [f.name for f in frames], time.perf_counter(), {}
+        depths = self.predictor.predict([f.image for f in frames], counts)  # computed or reused
+        before = dict(zip(names, depths, strict=True))
+        t = {"predict_before": time.perf_counter() - t0}
+        return WindowState(frames, intrinsics, WindowResult(
+            names, dict(before), before, refined=False, timings=t, predictions=counts))
 
     def _reconstruct(self, w: WindowState) -> Stop | None:
         """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj): its own, begun ahead, or the carried
@@ -328,7 +328,8 @@ class SfmTTR:
         self.config = config
         self.sfm.set_config(config.sfm)
         self.predictor.batch, self.predictor.reuse = config.predict_batch, config.reuse_predictions
-        self.predictor.cuda_batch = config.predict_batch_cuda
+        self.predictor.cuda_batch, self.predictor.reuse_live = (config.predict_batch_cuda,
+                                                                config.reuse_live_predictions)
 
     def warm_up(self) -> float:
         """Pay a window's one-time costs now, in the calling thread (on CUDA kernels load at

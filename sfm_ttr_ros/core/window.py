@@ -57,6 +57,12 @@ class TTRConfig:
     # the last bits a different batch composition gives; bit for bit with predict_batch 1).
     # False: always recompute.
     reuse_predictions: bool = True
+    # Take a window's "before" depths from the live server where it served the frame with the
+    # very weights the window starts from (under weight_policy continue, after the window
+    # before was accepted): core/prediction.py LiveDepths. Bit for bit with equal OpenMP teams
+    # and predict_batch 1; ~1e-6 relative with the default teams (the live thread's is torch's,
+    # the worker's worker_threads). False: the window predicts them itself.
+    reuse_live_predictions: bool = True
 
     def __post_init__(self) -> None:
         check_choice("weight_policy", self.weight_policy, WEIGHT_POLICIES)
@@ -95,6 +101,8 @@ class WindowResult:
     cloud_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     cloud_error: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     timings: dict[str, float] = field(default_factory=dict)
+    # the predictions before refining: computed, reused (the cache), reused_live (served live)
+    predictions: dict[str, int] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The window's outcome as plain numbers (for JSON reports): ``reason_key`` the
@@ -114,6 +122,7 @@ class WindowResult:
             "step_mode": ([self.refinement.step_mode, self.refinement.step_mode_reason]
                           if self.refinement is not None else None),
             "check": self.check.summary() if self.check else None,
+            "predictions": dict(self.predictions),
         }
 
 

@@ -233,6 +233,11 @@ PARAMS: tuple[Param, ...] = (
     _p("max_loss_ratio", "ttr.max_loss_ratio", "Roll a window back to the weights before it "
        "when its loss after refinement exceeds this many times the loss before ('rolled_back'; "
        "non-finite losses always roll back); 0 = only the non-finite check.", 0.0, 1e6),
+    _p("reuse_live_predictions", "ttr.reuse_live_predictions", "A window takes the network "
+       "depth of a frame the live output served with the very weights the window starts from "
+       "(weight_policy continue, once the window before was accepted) instead of predicting "
+       "it again; frames served with interim or older weights are predicted again. Equal to "
+       "~1e-6 relative (the live thread's thread team)."),
     # -- window checks (live) -----------------------------------------------------------------
     _p("check.max_reprojection_error", "check.max_reprojection_error", "Refuse a window whose "
        "mean SfM reprojection error exceeds this, px ('check_reprojection'); 0 = off.",

@@ -217,6 +217,7 @@ class StreamDiagnostics:
             "last_window.metric_estimate": w.metric_estimate,
             "last_window.metric_reason": w.metric_reason,
         }
+        out.update({f"last_window.predictions.{k}": n for k, n in w.predictions.items()})
         out.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
         return out
 

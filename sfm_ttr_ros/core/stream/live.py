@@ -12,6 +12,11 @@ is bounded (``max_queue``): when it is full the OLDEST waiting frame is skipped 
 (``skipped["overflow"]``), so a slow machine serves the newest images. A prediction that raises
 skips that frame (``skipped["prediction_error"]``, logged, throttled) and the server goes on.
 
+Hand-over: with ``live_depths`` (:class:`~sfm_ttr_ros.core.prediction.LiveDepths`) each served
+frame's network depth (before any metres factor) is recorded with the generation of the weights
+that made it, after it was published (the frame's latency does not include it), so that the
+window that takes the frame need not predict it again with the same weights.
+
 Accounting, as for the windowed stream: ``received == published + sum(skipped) + pending``.
 Timing, over the last :data:`LATENCY_WINDOW` published frames: the latency from a frame's
 arrival to its published depth (p50, p95, max) and the time ``on_depth`` took to publish it, so
@@ -38,7 +43,8 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.outcomes import LiveSkipped
-from sfm_ttr_ros.core.stream.serving import ServingModel
+from sfm_ttr_ros.core.prediction import LiveDepths
+from sfm_ttr_ros.core.stream.serving import Served, ServingModel
 from sfm_ttr_ros.core.stream.throttle import Throttle
 
 #: How long :meth:`LiveServer.start` (and the window worker's start) waits for a warm-up, s.
@@ -69,11 +75,13 @@ class LiveServer:
     """Serve each submitted frame from ``serving`` on a thread of its own."""
 
     def __init__(self, serving: ServingModel, on_depth: Callable[[LiveOutput], None],
-                 max_queue: int = 4, logger: logging.Logger | None = None) -> None:
+                 max_queue: int = 4, logger: logging.Logger | None = None,
+                 live_depths: LiveDepths | None = None) -> None:
         if max_queue < 1:
             raise ValueError(f"max_queue must be >= 1, got {max_queue}")
         self.serving = serving
         self.on_depth = on_depth
+        self.live_depths = live_depths  # the served depths handed to the windows (optional)
         self.max_queue = int(max_queue)
         self.log = logger or logging.getLogger(__name__)
         self._queue: deque[tuple[Frame, float]] = deque()
@@ -144,10 +152,11 @@ class LiveServer:
     def serve_one(self, frame: Frame, arrival: float) -> LiveOutput | None:
         """Predict one frame now (the serving thread's body; also for synchronous callers)."""
         try:
-            depth, version = self.serving.predict(frame.image)
+            served = self.serving.serve(frame.image)
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop serving
             return self._skip(LiveSkipped.PREDICTION_ERROR, frame, exc)
-        out = LiveOutput(frame, depth, version, self.serving.age_s, arrival, time.monotonic())
+        out = LiveOutput(frame, served.depth, served.version, self.serving.age_s, arrival,
+                         time.monotonic())
         try:
             self.on_depth(out)
         except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving
@@ -158,7 +167,19 @@ class LiveServer:
             self.published += 1
             self._latency.append(done - arrival)
             self._publish_s.append(done - out.served)
+        self._hand_over(frame, served)
         return out
+
+    def _hand_over(self, frame: Frame, served: Served) -> None:
+        """Record the served depth for the window that will take the frame; a failure costs
+        only the window's own prediction of it (logged, throttled)."""
+        if self.live_depths is None:
+            return
+        try:
+            self.live_depths.record(frame.image, served.generation, served.raw)
+        except Exception as exc:  # noqa: BLE001 - the hand-over must not stop serving
+            self._warn("hand_over", f"frame {frame.name}: live depth not handed over to its "
+                                    f"window: {type(exc).__name__}: {exc}")
 
     def _skip(self, key: LiveSkipped, frame: Frame, exc: Exception) -> None:
         """Count ``frame`` as skipped for ``key`` and log why (throttled)."""

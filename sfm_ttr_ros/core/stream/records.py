@@ -120,6 +120,8 @@ class WindowStats:
     loss_before = _read("loss_before")
     loss_after = _read("loss_after")
     timings = _read("timings")
+    predictions = _read("predictions", "The predictions before refining: computed, reused "
+                        "(the cache), reused_live (the live server's, core/prediction.py).")
     cloud_xyz = _read("cloud_xyz", "The sparse cloud in cloud_frame's optical frame.")
     cloud_error = _read("cloud_error")
     sfm_mapping = _read("sfm_mapping", "sfm.mode streaming: continued or fresh ('' batch).")

@@ -21,6 +21,13 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
   again (:meth:`~sfm_ttr_ros.core.stream.serving.ServingModel.revert`). The pipeline calls the step
   hook only when no check after refinement can still refuse the window.
 
+No prediction twice: under the ``continue`` weight policy the weights an accepted window leaves
+are the next window's starting weights, and the serving copy gets the same ones; from then on
+the live server's depth of each frame (network units) is handed to the window that takes it
+(:class:`~sfm_ttr_ros.core.prediction.LiveDepths`), so the window does not predict it again
+(``ttr.reuse_live_predictions``; counted in the window's ``predictions``). Frames served with
+interim, reverted or older weights are predicted again.
+
 Weights across windows follow ``TTRConfig.weight_policy`` (reset, continue, continual: see
 :mod:`sfm_ttr_ros.core.pipeline`); whatever the policy, the serving copy keeps only weights
 of a window that finished refined (interim ones are withdrawn when their window is not).
@@ -36,6 +43,7 @@ from collections.abc import Callable
 from sfm_ttr_ros.core import threads
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.prediction import LiveDepths
 from sfm_ttr_ros.core.refinement.encoder import warm_up_optimiser
 from sfm_ttr_ros.core.stream.live import WARM_UP_WAIT_S, LiveOutput, LiveServer
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats
@@ -76,8 +84,12 @@ class StreamRefiner:
         self.serving = ServingModel(ttr.model)
         # metric.source fixed: at once
         self.serving.set_metres_per_unit(ttr.metric_status().metres_per_unit)
+        # the live depths handed to the windows (at most the next window's frames)
+        self.live_depths = LiveDepths(settings.window_size)
+        ttr.predictor.live_depths = self.live_depths
         self.live = LiveServer(self.serving, on_live or (lambda out: None),
-                               max_queue=settings.live_max_queue, logger=self.log)
+                               max_queue=settings.live_max_queue, logger=self.log,
+                               live_depths=self.live_depths)
         self._nice = settings.worker_nice
         ttr.sfm.nice = settings.worker_nice  # SfM ahead runs at the worker's priority
         self._threads = settings.worker_threads
@@ -187,9 +199,11 @@ class StreamRefiner:
     def _window_done(self, stats: WindowStats) -> None:
         if stats.refined:
             try:
-                self.serving.update(self.ttr.model.encoder.state_dict(), stats.index + 1,
-                                    self.ttr.metric_status().metres_per_unit)
+                generation = self.serving.update(self.ttr.model.encoder.state_dict(),
+                                                 stats.index + 1,
+                                                 self.ttr.metric_status().metres_per_unit)
                 self.serving_updates += 1
+                self._hand_over_from(generation)
                 self._mark(stats.index, "final")
             except Exception as exc:  # noqa: BLE001 - keep serving the previous weights
                 self.serving_update_errors += 1
@@ -202,6 +216,15 @@ class StreamRefiner:
             self.serving.set_metres_per_unit(self.ttr.metric_status().metres_per_unit)
         if self.on_window is not None:
             self.on_window(stats)
+
+    def _hand_over_from(self, generation: int) -> None:
+        """The served weights are now the window model's: under ``continue`` (the next window
+        starts from them) the live depths of ``generation`` go to the next window."""
+        if self.ttr.config.weight_policy == "continue":
+            self.live_depths.bind(generation, self.ttr.predictor, self.serving.model,
+                                  self.stream.settings.window_size)
+        else:
+            self.live_depths.unbind()
 
     def _mark(self, window: int, what: str) -> None:
         """Note when ``window``'s weights were first swapped into serving (``what``: interim
@@ -229,7 +252,8 @@ class StreamRefiner:
                 "serving_previews": self.serving_previews,
                 "serving_reverts": self.serving_reverts,
                 "serving_interim_refused": self.serving_interim_refused,
-                "interim_step": self.serving.interim_step}
+                "interim_step": self.serving.interim_step,
+                "live_depths": self.live_depths.figures()}
 
     def counters(self) -> dict[str, object]:
         """The stream's counters plus the live server's under ``live``."""

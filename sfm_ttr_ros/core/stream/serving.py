@@ -14,7 +14,10 @@ its weights after every N steps; the first preview of a window keeps a copy of t
 replaces, :meth:`update` (the window was accepted) drops that copy and :meth:`revert` (it was
 not: cancelled, rolled back, refused) puts them back, so a window that fails leaves the served
 weights as they were before it. ``interim_step`` is the refinement step of the previewed
-weights (0: a finished window's, or the start-up weights).
+weights (0: a finished window's, or the start-up weights). ``generation`` counts every swap
+(update, preview, revert): two predictions with one generation ran on the same weights, which
+is what the hand-over of live depths to the windows checks (core/prediction.py,
+:class:`~sfm_ttr_ros.core.prediction.LiveDepths`).
 
 On CUDA the serving copy predicts on a stream of its own with a higher priority than the
 refinement's (:data:`LIVE_STREAM_PRIORITY`): its kernels are not queued behind a window's
@@ -29,6 +32,7 @@ import contextlib
 import copy
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -39,6 +43,19 @@ from sfm_ttr_ros.core.refinement.encoder import finite_state
 
 #: The live stream's priority (CUDA: lower is more urgent; the default stream's is 0)
 LIVE_STREAM_PRIORITY = -1
+
+
+@dataclass(frozen=True)
+class Served:
+    """One live prediction: ``depth`` in the outputs' units (metres when the served weights
+    have a factor), ``raw`` the network's depth (network units; the same array when there is no
+    factor), the weights' ``version`` (the window that made them) and ``generation`` (the
+    swap)."""
+
+    depth: np.ndarray
+    raw: np.ndarray
+    version: int
+    generation: int
 
 
 def live_stream(device: torch.device):
@@ -57,6 +74,7 @@ class ServingModel:
             p.requires_grad_(False)
         self._lock = threading.Lock()
         self._version = 0
+        self._generation = 0  # + 1 at every swap of the served weights
         self._updated = time.monotonic()
         self._interim_step = 0
         # metres per network unit of the served weights (core/metric/); None: network units
@@ -70,7 +88,9 @@ class ServingModel:
         self._weights_copied = None  # CUDA: an event after the last weights' copy
 
     def _weights_changed(self) -> None:
-        """Mark the end of a weights' copy on the caller's stream (CUDA; under the lock)."""
+        """A new generation of served weights; mark the end of their copy on the caller's
+        stream (CUDA; under the lock)."""
+        self._generation += 1
         if self.stream is not None:
             self._weights_copied = torch.cuda.Event()
             self._weights_copied.record()
@@ -93,6 +113,11 @@ class ServingModel:
         return self._version
 
     @property
+    def generation(self) -> int:
+        """Changes with every swap of the served weights (update, preview, revert)."""
+        return self._generation
+
+    @property
     def age_s(self) -> float:
         """Seconds since the served weights were swapped in (or since start-up)."""
         return time.monotonic() - self._updated
@@ -112,10 +137,10 @@ class ServingModel:
             self._metres_per_unit = factor
 
     def update(self, encoder_state: dict[str, torch.Tensor], version: int,
-               metres_per_unit: float | None = None) -> None:
-        """Serve these encoder weights (and their metric factor) from the next prediction on.
-        ``load_state_dict`` copies them into the serving copy's own tensors, so the caller may
-        go on changing its own."""
+               metres_per_unit: float | None = None) -> int:
+        """Serve these encoder weights (and their metric factor) from the next prediction on;
+        returns their :attr:`generation`. ``load_state_dict`` copies them into the serving
+        copy's own tensors, so the caller may go on changing its own."""
         if not finite_state(encoder_state):
             raise ValueError("refusing to serve non-finite encoder weights")
         with self._lock:
@@ -126,6 +151,7 @@ class ServingModel:
             self._updated = time.monotonic()
             self._interim_step = 0
             self._before_preview = None
+            return self._generation
 
     def preview(self, encoder_state: dict[str, torch.Tensor], version: int, step: int) -> None:
         """Serve a refining window's weights after its ``step``-th step, until :meth:`update`
@@ -163,7 +189,14 @@ class ServingModel:
     def predict(self, image: np.ndarray) -> tuple[np.ndarray, int]:
         """(depth H x W float32 at the image's size, version of the weights that made it);
         in metres when the served weights have a metric factor."""
+        served = self.serve(image)
+        return served.depth, served.version
+
+    def serve(self, image: np.ndarray) -> Served:
+        """The image's depth at its size (:class:`Served`: in the outputs' units and raw), with
+        the version and generation of the weights that made it."""
         with self._lock, torch.inference_mode(), self._on_live_stream():
-            depth = self._model.predict([image])[0]
+            raw = self._model.predict([image])[0]
             self.predictions += 1
-            return in_metres(depth, self._metres_per_unit), self._version
+            return Served(in_metres(raw, self._metres_per_unit), raw, self._version,
+                          self._generation)

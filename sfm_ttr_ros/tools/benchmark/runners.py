@@ -189,6 +189,7 @@ def window_record(ws: WindowStats, frame_index: Callable[[str], int]) -> dict[st
             "sfm_attempts": list(res.sfm.attempts) if res is not None and res.sfm else [],
             "seconds": sum(float(ws.timings.get(k, 0.0)) for k in STAGES),
             "timings": {k: float(v) for k, v in ws.timings.items()}, "check": check,
+            "predictions": dict(ws.predictions),
             "metric_estimate": ws.metric_estimate, "metric_reason": ws.metric_reason,
             "step_mode": ws.step_mode,
             "sfm_mapping": [ws.sfm_mapping, ws.sfm_mapping_reason]}
