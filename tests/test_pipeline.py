@@ -247,7 +247,8 @@ def test_window_summary_is_plain_numbers(run):
                  "registered": res.sfm.num_registered, "points": res.sfm.num_points,
                  "scale": res.scale, "loss_before": res.loss_before,
                  "loss_after": res.loss_after, "check": res.check.summary(),
-                 "step_mode": ["eager", "not on CUDA (cpu)"]}
+                 "step_mode": ["eager", "not on CUDA (cpu)"],
+                 "sfm_mapping": ["", ""], "predictions": dict(res.predictions)}
     assert s["loss_after"] < s["loss_before"]
     # the sanity checks ran and passed
     c = s["check"]

@@ -235,7 +235,7 @@ class SfmTTR:
             return self._stop or (should_stop is not None and should_stop())
 
         serve = self.checks.arm_interim(cfg.check, w.before, w.images, res.sfm, w.registered,
-                                        self._predict_as_is, w.scaled)
+                                        self.predictor.run_as_is, w.scaled)
         t0 = time.perf_counter()
         try:
             refinement = refine_encoder(
@@ -283,16 +283,6 @@ class SfmTTR:
         res.cloud_frame, res.cloud_xyz, res.cloud_error = window_cloud(res.sfm, w.registered,
                                                                        res.alignment)
         return None
-
-    def _predict_as_is(self, images: list[np.ndarray]) -> list[np.ndarray]:
-        """The network's depth of ``images`` mid-refinement (the interim gate), every module's
-        mode put back after (bn_mode "train" keeps the encoder's BatchNorm training)."""
-        modes = [(m, m.training) for m in self.model.modules()]
-        try:
-            return self.predictor.run(images)
-        finally:
-            for m, training in modes:
-                m.training = training
 
     def _photometric_frames(self, w: WindowState) -> list[PhotometricFrame]:
         """The window's photometric terms once per window (Ph-TTR, the hybrid): the SfM poses'

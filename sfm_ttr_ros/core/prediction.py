@@ -156,6 +156,16 @@ class Predictor:
             out.extend(self.model.predict(list(images[i:i + b])))
         return out
 
+    def run_as_is(self, images: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`run` mid-refinement (the interim gate): every module's train/eval mode put
+        back after (bn_mode "train" keeps the encoder's BatchNorm training)."""
+        modes = [(m, m.training) for m in self.model.modules()]
+        try:
+            return self.run(images)
+        finally:
+            for m, training in modes:
+                m.training = training
+
     def weights_key(self) -> tuple | None:
         """Changes whenever a tensor of the model is replaced or modified in place."""
         m = self.model
