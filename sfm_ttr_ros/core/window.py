@@ -42,10 +42,8 @@ class TTRConfig:
     # many times its loss before (or anything is non-finite); 0 = only the non-finite check.
     max_loss_ratio: float = 2.0
     min_supervision_points: int = 50  # fewer selected points in the window: do not refine
-    # Frames per forward pass of the window's predictions. 2 on CPU: a window's 15 KITTI-size
-    # frames in 0.44 s (1 thread) / 0.25 s (2 threads) against 0.45-0.60 / 0.31-0.34 s with 8,
-    # and +45 MiB of RSS at the peak against +220-237 MiB (scripts/studies/predict_batch.py,
-    # BENCHMARKS.md "Memory").
+    # Frames per forward pass of the window's predictions (why 2 on CPU: docs/decisions.md,
+    # "Memory", predictions two at a time).
     predict_batch: int = 2
     # Frames per forward pass when the model is on CUDA (0 = predict_batch): a window's
     # frames in one batched pass there (the GPU is launch-bound at small batches and has the
