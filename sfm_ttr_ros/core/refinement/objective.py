@@ -16,10 +16,11 @@ points); :func:`step_loss` then runs one forward pass and returns the frame's ob
 
 Precision (``refinement.precision``, not in the paper): with "bf16" the network's forward pass
 of a step (and the frozen leading stages' cached output) runs under bfloat16 autocast
-(:func:`network_precision`, the one place it is entered, in :func:`objective`, which the eager
-and the static / graph step share); the decoder's output is cast back to fp32 before it becomes
-depth, so the disparity-to-depth conversion, Eq. (5), the photometric warp and the loss are
-fp32, as are the master weights and Adam. A device without native bf16 runs fp32 instead
+(:func:`network_precision`: one context, entered by :func:`objective`, which the eager and the
+static / graph step share, and by the frozen stages' cache of :func:`step_input`); the
+decoder's output is cast back to fp32 before it becomes depth, so the disparity-to-depth
+conversion, Eq. (5), the photometric warp and the loss are fp32, as are the master weights and
+Adam. A device without native bf16 runs fp32 instead
 (:func:`resolve_precision`: the reason logged once and reported). "fp32" enters no autocast:
 the numbers of the step before the option, bit for bit.
 """
@@ -136,7 +137,8 @@ def objective(model: DepthModel, x, frozen_stages: int, cfg: RefinementConfig,
     ``sfm_term(depth)`` Eq. (5) of the frame's points, ``photometric_term(outputs)`` its
     Ph-TTR total (None: the term is absent); ``has_photometric`` (0 or 1, a tensor) gates the
     photometric term of the hybrid without a host value (the step captured as a graph,
-    core/refinement/graph_step.py). Shared by the eager and the captured step."""
+    core/refinement/graph_step.py). Shared by the eager and the captured step; the forward
+    pass in ``cfg.precision`` (:func:`network_precision`), the terms in fp32."""
     if photometric_term is None:
         with network_precision(model, cfg):
             depth = forward(model, x, frozen_stages)
