@@ -46,6 +46,7 @@ from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.refinement.config import (
     BN_MODES,
     LOSSES,
+    PRECISIONS,
     SFM_RESIDUALS,
     WEIGHTINGS,
     RefinementConfig,
@@ -227,6 +228,9 @@ PARAMS: tuple[Param, ...] = (
     _p("refinement.trainable_blocks", "refinement.trainable_blocks", "Transformer encoders: "
        "train only inside the last N blocks (the blocks before run once per frame); 0 = all.",
        0, 1000),
+    _p("refinement.precision", "refinement.precision", "A step's forward pass: fp32; bf16 = "
+       "under bfloat16 autocast (loss, weights and Adam in fp32) where the CPU (AVX-512 BF16 "
+       "or AMX) or GPU computes bf16, else fp32 with a logged reason.", choices=PRECISIONS),
     _p("weight_policy", "ttr.weight_policy", "Where each window's refinement starts: continue "
        "= the last accepted window's weights (a refused or failed window leaves them as they "
        "were); reset = the start-up weights (the paper).", choices=WEIGHT_POLICIES),

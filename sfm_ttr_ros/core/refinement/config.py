@@ -33,6 +33,10 @@ SFM_RESIDUALS = ("absolute", "relative")
 #: "static" = the step of the graph on static, padded buffers, run without capture (what a
 #: graph replays, on any device: the numbers of "eager" up to the order of a sum).
 STEP_MODES = ("auto", "eager", "static")
+#: The number format of a step's forward pass (core/refinement/objective.py): "fp32"; "bf16" =
+#: the network's forward under bfloat16 autocast (the loss, the weights and Adam stay fp32),
+#: where the device computes bf16 natively, else fp32 with the reason (``bf16_unsupported``).
+PRECISIONS = ("fp32", "bf16")
 MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32 stages train
 
 
@@ -73,6 +77,9 @@ class RefinementConfig:
     # graph per window on CUDA (the host launches ~1,000 kernels a step eagerly: measured
     # 35-60 ms a step on an H200 against 3.7 ms for the captured step), eager elsewhere.
     step_mode: str = "auto"
+    # The forward pass's number format (PRECISIONS): "bf16" runs the network under bfloat16
+    # autocast in the eager and the static / graph step alike; fp32 where the device lacks it.
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("bn_mode", self.bn_mode, BN_MODES),
@@ -81,6 +88,7 @@ class RefinementConfig:
                                      ("loss", self.loss, LOSSES),
                                      ("sfm_residual", self.sfm_residual, SFM_RESIDUALS),
                                      ("step_mode", self.step_mode, STEP_MODES),
+                                     ("precision", self.precision, PRECISIONS),
                                      ("trainable", self.trainable, TRAINABLE_MODES)):
             check_choice(name, value, allowed)
         if not (np.isfinite(self.photometric_weight) and self.photometric_weight >= 0):

@@ -46,7 +46,7 @@ from sfm_ttr_ros.core.refinement.graph_step import (
     StaticStepRunner,
     plan_step_mode,
 )
-from sfm_ttr_ros.core.refinement.objective import frame_terms, step_loss
+from sfm_ttr_ros.core.refinement.objective import frame_terms, resolve_precision, step_loss
 from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_frames
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.refinement.trainable import merge_lora, select_trainable
@@ -67,6 +67,10 @@ class RefinementResult:
     # graph: ~0) and whether the graph was an earlier window's (core/refinement/graph_cache.py)
     capture_s: float = 0.0
     graph_reused: bool = False
+    # the forward pass's number format that ran ("fp32" or "bf16", core/refinement/objective.py)
+    # and why it is not refinement.precision ("" = as asked; bf16 on a device without it)
+    precision: str = ""
+    precision_reason: str = ""
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -124,9 +128,12 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     polled between steps (cancellation); ``on_step(steps_done)`` is called after each step (the
     live server's interim weights). ``config.step_mode`` says how a step runs: eagerly, or on
     static buffers captured as one CUDA graph (:mod:`~sfm_ttr_ros.core.refinement.graph_step`;
-    ``result.step_mode`` says which ran). Deterministic for a seed on CPU."""
+    ``result.step_mode`` says which ran); ``config.precision`` the forward pass's number format
+    (``result.precision`` what ran, fp32 where the device lacks bf16). Deterministic for a seed
+    on CPU."""
     cfg = resolve_loss(config or RefinementConfig(), model, bool(photometric))
-    result = RefinementResult()
+    cfg, precision_reason = resolve_precision(cfg, model.device)
+    result = RefinementResult(precision=cfg.precision, precision_reason=precision_reason)
     usable = _training_frames(supervision, photometric, cfg)
     result.frames_used = len(usable)
     if not usable or cfg.steps == 0:
