@@ -275,3 +275,31 @@ def test_sfm_mode_is_validated():
         SfmConfig(mode="online")
     with pytest.raises(InputError, match="sfm.features colmap"):
         SfmConfig(mode="streaming", features="torch")
+
+
+def test_the_stream_admits_keyframes_only_while_no_frame_waits():
+    """A keyframe's front end costs more than a 10-Hz frame interval on 2 cores: admitted as
+    they arrive, the worker fell behind and the keyframe rule skipped every window's frames.
+    The feed admits buffered keyframes oldest first while the queue is empty, each once; the
+    window admits the rest itself."""
+    from sfm_ttr_ros.core.stream.sfm_feed import SfmFeed
+
+    admitted: list[str] = []
+    waiting = [0]
+    sfm = SimpleNamespace(admit=lambda f, intr: admitted.append(f.name),
+                          retain=lambda names: None)
+    ttr = SimpleNamespace(config=SimpleNamespace(sfm=SimpleNamespace(mode="streaming")), sfm=sfm)
+    feed = SfmFeed(ttr, SimpleNamespace(queued=lambda: waiting[0]), lambda k, m: None)
+    frames = [Frame(i, np.zeros((4, 4, 3), np.uint8)) for i in range(4)]
+    waiting[0] = 3
+    feed.admit_while_idle(frames[:2], None)
+    assert admitted == []  # frames wait: nothing admitted now
+    waiting[0] = 0
+    feed.admit_while_idle(frames[:3], None)
+    assert admitted == [f.name for f in frames[:3]]
+    feed.retain([frames[2].name])  # 0 and 1 left every future window
+    feed.admit_while_idle(frames[2:], None)
+    assert admitted == [f.name for f in frames]  # 2 not twice
+    ttr.config.sfm.mode = "batch"
+    feed.admit_while_idle([Frame(9, frames[0].image)], None)
+    assert len(admitted) == 4  # batch: the window does it all

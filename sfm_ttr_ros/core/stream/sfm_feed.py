@@ -23,6 +23,7 @@ class SfmFeed:
         self._queue = queue
         self._warn = warn
         self._asked_ahead: tuple[str, ...] = ()  # the frames whose SfM was begun ahead last
+        self._admitted: set[str] = set()  # keyframes handed to the streaming SfM
 
     @property
     def streaming(self) -> bool:
@@ -47,22 +48,33 @@ class SfmFeed:
         except Exception as exc:  # noqa: BLE001 - ahead of time only: the window does it itself
             self._warn("prefetch", f"SfM ahead of the next window not begun: {exc}")
 
-    def admit(self, frame: Frame, intr: Intrinsics) -> None:
-        """Streaming SfM: the keyframe's front end and its registration into the carried map
-        now, as the window buffer takes it (:meth:`SfmSource.admit`). A failure is logged: the
-        window admits the frame again itself."""
+    def admit_while_idle(self, buffered: Sequence[Frame], intr: Intrinsics) -> None:
+        """Streaming SfM: the buffered keyframes' front end and registration into the carried
+        map (:meth:`SfmSource.admit`), oldest first, while no frame waits in the queue. A
+        keyframe's front end costs more than a 10-Hz camera's frame interval on 2 cores:
+        admitted as it arrives, the worker fell behind the camera, the keyframe rule skipped its
+        frames as stale and no window filled (one keyframe admitted in a 30-s feed). What is
+        not admitted in idle time the window admits itself before it maps. A failure is logged:
+        the window admits the frame again itself."""
         if not self.streaming:
             return
-        try:
-            self.ttr.sfm.admit(frame, intr)
-        except Exception as exc:  # noqa: BLE001 - the window's own SfM admits it again
-            self._warn("sfm_admit", f"keyframe {frame.name} not admitted to the streaming SfM "
-                       f"now: {type(exc).__name__}: {exc}")
+        for frame in buffered:
+            if self._queue.queued() > 0:
+                return
+            if frame.name in self._admitted:
+                continue
+            self._admitted.add(frame.name)
+            try:
+                self.ttr.sfm.admit(frame, intr)
+            except Exception as exc:  # noqa: BLE001 - the window's own SfM admits it again
+                self._warn("sfm_admit", f"keyframe {frame.name} not admitted to the streaming "
+                           f"SfM now: {type(exc).__name__}: {exc}")
 
     def retain(self, names: Sequence[str]) -> None:
         """Streaming SfM: the keyframes admitted that no future window takes (the buffer let
         them go without a window of theirs: a flush, a stamp that went back, an overloaded
         window) are forgotten by the carried map; ``names``: the buffer's keyframes."""
+        self._admitted &= set(names)
         if self.streaming:
             self.ttr.sfm.retain(names)
 

@@ -233,7 +233,7 @@ class StreamProcessor:
                                           s.min_keyframe_motion):
             return outs + self._out.unrefined([frame], Unrefined.NOT_KEYFRAME, "not a keyframe")
         self._buffer.add(frame)
-        self._sfm.admit(frame, intr)
+        self._sfm.admit_while_idle([e.frame for e in self._buffer.entries], intr)
         return outs + self._window_if_due()
 
     def _apply(self, frame: Frame, v: Verdict) -> list[FrameOutput]:
