@@ -50,6 +50,11 @@ PYCOLMAP_API = (
     "IncrementalPipelineOptions", "SequentialPairingOptions", "extract_features",
     "geometric_verification", "import_images", "incremental_mapping", "logging",
     "match_sequential", "pair_id_to_image_pair",
+    # the streaming SfM (core/sfm/frontend.py, map_cache.py, streaming_map.py)
+    "Camera", "DatabaseCache", "FeatureExtractor.create", "FeatureMatcher", "Frame", "Image",
+    "IncrementalMapper", "IncrementalPipeline", "Reconstruction", "ReconstructionManager",
+    "Rig", "SensorType.CAMERA", "TwoViewGeometryOptions", "data_t", "estimate_two_view_geometry",
+    "keypoints_to_matrix", "sensor_t",
 )
 
 #: Every torch name the CUDA path calls (core/refinement/graph_step.py, graph_cache.py,

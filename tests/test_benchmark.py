@@ -605,13 +605,14 @@ def test_live_time_line_counts_from_each_windows_last_frame():
     from sfm_ttr_ros.tools.benchmark.live import timeline_summary, window_timeline
 
     arrivals = [100.0 + 0.1 * k for k in range(20)]  # 10 Hz
-    ws = SimpleNamespace(index=0, refined=True, reason_key="", names=[f"{k:010d}" for k in
-                                                                        range(10)],
+    ws = SimpleNamespace(index=0, refined=True, reason_key="", sfm_mapping="continued",
+                         names=[f"{k:010d}" for k in range(10)],
                          started_at=101.0, finished_at=104.5,
                          timings={"predict_before": 0.2, "sfm": 0.8, "align": 0.0,
                                   "refine": 2.0})
     row = window_timeline(ws, arrivals, {"interim": 102.5, "final": 104.0})
     assert row["first_frame_arrival"] == pytest.approx(-0.9)
+    assert row["sfm_mapping"] == "continued"
     assert row["closed"] == pytest.approx(0.1) and row["sfm_done"] == pytest.approx(1.1)
     assert row["refined"] == pytest.approx(3.1) and row["first_served"] == pytest.approx(1.6)
     assert row["served"] == pytest.approx(3.1) and row["since_feed_start"] == pytest.approx(2.5)

@@ -176,10 +176,10 @@ class SpeedTaps:
             ttr.sfm.reconstructor = _FreshReconstructor(ttr.config.sfm)
         real_predict = ttr.predictor.predict
 
-        def timed_predict(images):
+        def timed_predict(images, *args, **kwargs):
             t0 = time.perf_counter()
             try:
-                return real_predict(images)
+                return real_predict(images, *args, **kwargs)
             finally:
                 self.predict_s += time.perf_counter() - t0
 
