@@ -568,13 +568,13 @@ def test_live_frames_skipped_for_overflow_are_counted_not_lost(data, tmp_path, m
 
     from sfm_ttr_ros.core.stream.serving import ServingModel
 
-    real = ServingModel.predict
+    real = ServingModel.serve  # what the live server calls for every frame
 
     def slow(self, image):
         time.sleep(0.03)
         return real(self, image)
 
-    monkeypatch.setattr(ServingModel, "predict", slow)
+    monkeypatch.setattr(ServingModel, "serve", slow)
     out = tmp_path / "live"
     argv = kitti_args(data, out, "--params-file", str(data / "small.yaml"), "--steps", "2",
                       "--modes", "sfm_ttr_live", "--rate", "200",

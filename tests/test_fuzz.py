@@ -34,4 +34,7 @@ def test_fuzz_harness_ci_size(tmp_path):
     assert report["parameter_sets_refused"] >= 47
     assert report["kinds"]["fallback_pp_outside"] == 10  # the frames that once ended the node
     d = report["diagnostics"]
-    assert int(d["unrefined.intrinsics_mismatch"]) >= 13 and d["faults"] == "0"
+    # the frames after a mid-stream intrinsics change: refused for their intrinsics, or skipped
+    # as stale first when the worker is behind (how many of each depends on the machine's pace)
+    assert int(d["unrefined.intrinsics_mismatch"]) + int(d.get("unrefined.stale", 0)) >= 13
+    assert int(d["unrefined.intrinsics_mismatch"]) > 0 and d["faults"] == "0"
