@@ -81,9 +81,7 @@ class StreamFrontend:
     pinned: set[str] = field(default_factory=set)
     generation: int = 0
     intrinsics: Intrinsics | None = None
-    frames_admitted: int = 0
     frames_dropped: int = 0
-    history: list[AdmitTimings] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         import pycolmap
@@ -122,11 +120,9 @@ class StreamFrontend:
         timings.keypoints = len(new.xy)
         previous = list(self.features.values())[-self.config.overlap:]
         self.features[frame.name] = new
-        self.frames_admitted += 1
         for old in previous:
             self._match_pair(old, new, timings)
         self.prune()
-        self.history.append(timings)
         return timings
 
     def reset(self, intrinsics: Intrinsics) -> None:
