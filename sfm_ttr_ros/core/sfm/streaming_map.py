@@ -188,8 +188,10 @@ class StreamingSfm:
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))
-        for f in frames:
-            self.admit(f, intrinsics)
+        for f in frames:  # the stream admitted most of them already: not hashed again
+            if (f.name not in self._spent or f.name not in self.frontend.features
+                    or intrinsics != self.frontend.intrinsics):
+                self.admit(f, intrinsics)
         timings = {"frontend": sum(self._spent[n][0] for n in names),
                    "map_on_admit": sum(self._spent[n][1] for n in names)}
         t0 = time.perf_counter()
