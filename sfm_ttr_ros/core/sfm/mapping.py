@@ -6,6 +6,7 @@ with another seed while the reconstruction fits badly, the best kept
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 from collections import deque
@@ -62,7 +63,7 @@ class Mapper:
             attempts.append({"seed": config.seed + attempt, "registered": result.num_registered,
                              "points": result.num_points, "reprojection_error": error,
                              "seconds": time.perf_counter() - t0, "kept": False})
-            key = (result.ok, result.num_registered, -error)  # more is better
+            key = rank(result)
             if best is None or key > best_key:
                 best, best_key, kept = result, key, attempts[-1]
             if not (kept["reprojection_error"] > limit if best.ok else best.num_registered > 0):
@@ -160,3 +161,10 @@ def mapper_options(config: SfmConfig, names: list[str], seed: int):
     m.random_seed = seed
     opts.triangulation.min_angle = config.min_tri_angle
     return opts
+
+
+def rank(result: SfmResult) -> tuple:
+    """The order of reconstructions of one window (greater is better): ok, then more frames
+    registered, then a lower mean reprojection error (NaN: the worst)."""
+    error = result.reprojection_error
+    return (result.ok, result.num_registered, -error if error == error else -math.inf)

@@ -33,7 +33,7 @@ from sfm_ttr_ros.core.sfm.map_cache import (
     continue_reconstruction,
     image_name,
 )
-from sfm_ttr_ros.core.sfm.mapping import Mapper, mapper_options
+from sfm_ttr_ros.core.sfm.mapping import Mapper, mapper_options, rank
 from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result, point_colours
 
 log = logging.getLogger(__name__)
@@ -217,7 +217,7 @@ class StreamingSfm:
                 return self._keep_continued(continued, "")
         fresh = self._fresh.map_best(names, timings)
         fresh = _window_points(fresh)
-        if continued is not None and _rank(continued) >= _rank(fresh):
+        if continued is not None and rank(continued) >= rank(fresh):
             return self._keep_continued(continued, reason + "; a fresh mapping did no better")
         kept = next((a for a in fresh.attempts if a["kept"]), None)
         if fresh.ok and kept is not None:
@@ -303,12 +303,6 @@ class StreamingSfm:
         if self.rec is not None:
             log.info("streaming map dropped: %s", reason)
         self.rec = None
-
-
-def _rank(result: SfmResult) -> tuple:
-    """The batch mapper's order of results: ok, then more frames, then a lower error."""
-    error = result.reprojection_error
-    return (result.ok, result.num_registered, -error if error == error else -math.inf)
 
 
 def _window_points(result: SfmResult) -> SfmResult:
