@@ -331,6 +331,12 @@ class SfmTTR:
         warm_up_refinement(self.model, self.config.refinement)
         return time.perf_counter() - t0
 
+    @property
+    def metres_per_unit(self) -> float | None:
+        """The outputs' metres per network unit now (None: not metric); what every published
+        frame needs, without the status's statistics."""
+        return self.metric.factor(self.config.metric)
+
     def metric_status(self) -> MetricStatus:
         """The outputs' units now under the current ``metric`` options, with the odometry's
         counts (core/metric/scale.py)."""

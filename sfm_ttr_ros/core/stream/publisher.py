@@ -44,7 +44,7 @@ class FramePublisher:
         the window ``ran``, else unrefined with its reason."""
         if not ran:
             return self.unrefined(new, stats.reason_key, stats.reason, window=stats.index)
-        k = None if self.ttr is None else self.ttr.metric_status().metres_per_unit
+        k = None if self.ttr is None else self.ttr.metres_per_unit
         outs = [FrameOutput(f, in_metres(res.depths[f.name], k), res.refined, stats.reason_key,
                             stats.reason, window=stats.index, metres_per_unit=k) for f in new]
         self._account(outs)
@@ -76,7 +76,7 @@ class FramePublisher:
                     self.drop(f, Dropped.PREDICTION_ERROR, msg)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
-        k = None if self.ttr is None else self.ttr.metric_status().metres_per_unit
+        k = None if self.ttr is None else self.ttr.metres_per_unit
         outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
                             metres_per_unit=k) for f in frames]
         self._account(outs)

@@ -83,7 +83,7 @@ class StreamRefiner:
                                       on_drop=on_drop, logger=self.log)
         self.serving = ServingModel(ttr.model)
         # metric.source fixed: at once
-        self.serving.set_metres_per_unit(ttr.metric_status().metres_per_unit)
+        self.serving.set_metres_per_unit(ttr.metres_per_unit)
         # the live depths handed to the windows (at most the next window's frames)
         self.live_depths = LiveDepths(settings.window_size)
         ttr.predictor.live_depths = self.live_depths
@@ -201,7 +201,7 @@ class StreamRefiner:
             try:
                 generation = self.serving.update(self.ttr.model.encoder.state_dict(),
                                                  stats.index + 1,
-                                                 self.ttr.metric_status().metres_per_unit)
+                                                 self.ttr.metres_per_unit)
                 self.serving_updates += 1
                 self._hand_over_from(generation)
                 self._mark(stats.index, "final")
@@ -213,7 +213,7 @@ class StreamRefiner:
         else:
             self._revert(stats)
             # the weights before the window stay; a parameter may have changed the factor
-            self.serving.set_metres_per_unit(self.ttr.metric_status().metres_per_unit)
+            self.serving.set_metres_per_unit(self.ttr.metres_per_unit)
         if self.on_window is not None:
             self.on_window(stats)
 
