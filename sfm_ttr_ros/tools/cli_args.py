@@ -108,20 +108,14 @@ def build_model_for(settings: schema.Settings):
     import torch
 
     from sfm_ttr_ros.core.models import build_model
+    from sfm_ttr_ros.ros.encoder_file import load_encoder
 
     if settings.node.torch_num_threads > 0:
         torch.set_num_threads(settings.node.torch_num_threads)
     model = build_model(settings.model)
     path = settings.node.load_weights_path
-    if path:  # these become the "original" weights
-        if not Path(path).is_file():
-            raise InputError(f"load_weights_path: file not found: {path}")
-        try:
-            model.encoder.load_state_dict(torch.load(path, map_location=model.device,
-                                                     weights_only=True))
-        except Exception as exc:
-            raise InputError(f"load_weights_path: cannot load encoder weights from {path}: "
-                             f"{type(exc).__name__}: {exc}") from exc
+    if path:  # these become the "original" weights, read as the node reads them
+        load_encoder(model, path)
     return model
 
 
