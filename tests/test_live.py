@@ -575,18 +575,23 @@ def two_windows_served_live(reuse_live: bool):
 
 
 def test_a_window_reuses_the_live_depths_of_its_starting_weights(one_thread):
-    """Window 1 starts from window 0's accepted weights, which serving has swapped in: its
-    frames, served live after that, are not predicted again (counted), and the window refines
-    to exactly what it gives when it predicts them itself."""
+    """Window 0 starts from the start-up weights, window 1 from window 0's accepted weights,
+    which serving has swapped in: the frames served live with them are not predicted again
+    (counted), and the windows refine to exactly what they give when they predict them
+    themselves."""
     with_reuse, w = two_windows_served_live(True)
     without, w_off = two_windows_served_live(False)
     assert [x.refined for x in w] == [True, True] == [x.refined for x in w_off]
-    assert w[0].result.predictions == {"computed": 3, "reused": 0, "reused_live": 0}
+    # window 0 takes the start-up weights' live depths, window 1 its own accepted weights'
+    assert w[0].result.predictions == {"computed": 0, "reused": 0, "reused_live": 3}
     assert w[1].result.predictions == {"computed": 0, "reused": 0, "reused_live": 3}
+    assert w_off[0].result.predictions == {"computed": 3, "reused": 0, "reused_live": 0}
     assert w_off[1].result.predictions["reused_live"] == 0
     assert w_off[1].result.predictions["computed"] == 3
-    assert with_reuse.counters_live()["live_depths"]["handed"] == 3
-    assert without.counters_live()["live_depths"]["binds_refused"] == 2  # both windows
+    assert with_reuse.counters_live()["live_depths"]["handed"] == 6
+    # start-up and both windows
+    assert without.counters_live()["live_depths"]["binds_refused"] == 3
+    assert w[0].loss_before == w_off[0].loss_before
     assert w[1].loss_before == w_off[1].loss_before and w[1].loss_after == w_off[1].loss_after
     for k, v in snapshot_encoder(with_reuse.ttr.model).items():
         assert torch.equal(v, snapshot_encoder(without.ttr.model)[k]), k

@@ -224,14 +224,15 @@ def step_benchmark(model, steps: int = 200, points: int = 600, frames: int = 4,
 
 def sfm_features(frames, intrinsics, sfm_cfg, features: Sequence[str] = ("colmap", "torch"),
                  device: str | None = None) -> dict[str, Any]:
-    """A window's SfM with each feature kind (``sfm.features``), twice on fresh databases: the
-    first pays the one-time costs, the second is reported (seconds by stage, registered frames,
-    points, reprojection error)."""
+    """A window's batch SfM (``sfm.mode`` batch: the streaming front end takes pycolmap's SIFT
+    only) with each feature kind (``sfm.features``), twice on fresh databases: the first pays
+    the one-time costs, the second is reported (seconds by stage, registered frames, points,
+    reprojection error)."""
     from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 
     out = {}
     for kind in features:
-        cfg = dataclasses.replace(sfm_cfg, features=kind)
+        cfg = dataclasses.replace(sfm_cfg, features=kind, mode="batch")
         for _ in range(2):
             with SfmReconstructor(cfg, feature_device=device) as rec:
                 t0 = time.perf_counter()

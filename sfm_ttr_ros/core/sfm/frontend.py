@@ -82,6 +82,7 @@ class StreamFrontend:
     generation: int = 0
     intrinsics: Intrinsics | None = None
     frames_dropped: int = 0
+    frames_extracted: int = 0  # SIFT runs, a frame that came back with other pixels included
 
     def __post_init__(self) -> None:
         import pycolmap
@@ -116,6 +117,7 @@ class StreamFrontend:
         timings = AdmitTimings(frame.name)
         t0 = time.perf_counter()
         new = self._extract(frame, digest)
+        self.frames_extracted += 1
         timings.extract = time.perf_counter() - t0
         timings.keypoints = len(new.xy)
         previous = list(self.features.values())[-self.config.overlap:]

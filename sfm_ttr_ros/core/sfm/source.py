@@ -109,6 +109,15 @@ class SfmSource:
         return {"continued": st.continuations, "fresh": st.fresh_mappings,
                 "admitted_unmapped": st.unmapped()}
 
+    @property
+    def frames_extracted(self) -> int:
+        """Frames whose features were extracted, by the batch reconstructor and the streaming
+        front end."""
+        extracted = self.reconstructor.frames_extracted
+        if self.streaming is not None:
+            extracted += self.streaming.frontend.frames_extracted
+        return extracted
+
     def prefetch(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
         """Begin the SfM of a coming window now, in the background; :meth:`reconstruct` of
         exactly these frames then takes it. False when one is still running, or while the

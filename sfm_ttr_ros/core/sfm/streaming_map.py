@@ -119,7 +119,8 @@ class StreamingSfm:
         self.rec = None  # pycolmap.Reconstruction: the map
         self._generation = self.frontend.generation
         self._open: list[str] = []  # admitted, not yet reconstructed in a window
-        self._spent: dict[str, tuple[float, float]] = {}  # name -> (front end, mapping) s
+        # name -> (SIFT, matching and verification, mapping on admit) s
+        self._spent: dict[str, tuple[float, float, float]] = {}
         self.continuations = 0
         self.fresh_mappings = 0
         self.last_mapping: tuple[str, str] = ("", "")  # ("continued" | "fresh", why fresh)
@@ -149,7 +150,8 @@ class StreamingSfm:
         t0 = time.perf_counter()
         if self.config.map_on_admit and self.rec is not None:
             self._extend()
-        self._spent[frame.name] = (timings.total, time.perf_counter() - t0)
+        self._spent[frame.name] = (timings.extract, timings.match + timings.verify,
+                                   time.perf_counter() - t0)
         return timings
 
     def retain(self, names: Sequence[str]) -> None:
@@ -192,8 +194,10 @@ class StreamingSfm:
             if (f.name not in self._spent or f.name not in self.frontend.features
                     or intrinsics != self.frontend.intrinsics):
                 self.admit(f, intrinsics)
-        timings = {"frontend": sum(self._spent[n][0] for n in names),
-                   "map_on_admit": sum(self._spent[n][1] for n in names)}
+        # the batch's keys (extract, match: matching and verification) and the front end's sum
+        timings = {k: sum(self._spent[n][i] for n in names)
+                   for i, k in enumerate(("extract", "match", "map_on_admit"))}
+        timings["frontend"] = timings["extract"] + timings["match"]
         t0 = time.perf_counter()
         result = self._map_window(names, timings)
         timings["map"] = time.perf_counter() - t0

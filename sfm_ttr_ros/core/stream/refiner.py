@@ -87,6 +87,9 @@ class StreamRefiner:
         # the live depths handed to the windows (at most the next window's frames)
         self.live_depths = LiveDepths(settings.window_size)
         ttr.predictor.live_depths = self.live_depths
+        # the start-up weights serve the first frames: the first window may take their depths
+        self.live_depths.bind(self.serving.generation, ttr.predictor, self.serving.model,
+                              settings.window_size)
         self.live = LiveServer(self.serving, on_live or (lambda out: None),
                                max_queue=settings.live_max_queue, logger=self.log,
                                live_depths=self.live_depths)

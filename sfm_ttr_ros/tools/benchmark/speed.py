@@ -116,7 +116,9 @@ def build_configs(base: Mapping[str, Any], tuned_set: Sequence[str] = (),
             values = {**base, **schema.parse_overrides(tuned_set)}
             overrides = list(tuned_set)
         elif name == "naive":
-            forced = {"sfm.max_image_size": int(max(image_size)), "sfm.first_octave": -1,
+            # the naive way: each window's SfM from nothing after its last frame
+            forced = {"sfm.mode": "batch",
+                      "sfm.max_image_size": int(max(image_size)), "sfm.first_octave": -1,
                       "refinement.steps": NAIVE_STEPS, "refinement.lr": NAIVE_LR,
                       "refinement.frozen_encoder_levels": 0}
             values = {**base, **forced, **NAIVE_FIELDS, **schema.parse_overrides(naive_set)}
@@ -230,7 +232,7 @@ class SpeedTaps:
             rec["push"] = "flush" if flush else k
             self.window_push.append((k, dt))
         self.pending.clear()
-        self.frames_extracted = self.ttr.sfm.reconstructor.frames_extracted
+        self.frames_extracted = self.ttr.sfm.frames_extracted
         if not flush and self.on_frame is not None:
             self.on_frame(k + 1)
 
