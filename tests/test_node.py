@@ -383,7 +383,8 @@ def _raw_image(width, height, encoding, data, step) -> Image:
 
 @pytest.mark.slow
 def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
-    g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0)
+    g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0,
+                      qos_reliability="reliable")  # a best-effort publisher is refused below
     refiner = g.refiner
     ok_rgb, other_rgb = sequence.images[0], sequence.images[1]
 

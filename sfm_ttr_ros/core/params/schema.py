@@ -314,9 +314,10 @@ PARAMS: tuple[Param, ...] = (
     _p("image_transport", "node.image_transport", "Input: raw = sensor_msgs/Image on image; "
        "compressed = sensor_msgs/CompressedImage (JPEG / PNG) on <image>/compressed.",
        choices=IMAGE_TRANSPORTS, **_START_UP),
-    _p("qos_reliability", "node.qos_reliability", "Reliability of the image and camera_info "
-       "subscriptions (best_effort for sensor-data publishers).", choices=QOS_RELIABILITIES,
-       **_START_UP),
+    _p("qos_reliability", "node.qos_reliability", "Reliability of the image, camera_info and "
+       "odom subscriptions (best_effort matches reliable and best-effort publishers alike; "
+       "reliable refuses best-effort ones, but repairs what the transport loses).",
+       choices=QOS_RELIABILITIES, **_START_UP),
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),
     _p("outputs", "node.outputs", "The outputs published, comma-separated (cloud, the live "
