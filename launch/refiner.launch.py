@@ -1,59 +1,54 @@
-"""Start the ``refiner`` node with a parameter file and its input topics remapped.
+"""Start the ``refiner`` node with a parameter file, a namespace, sim time and its topics
+remapped (docs/node.md "Launch").
 
-    ros2 launch sfm_ttr_ros refiner.launch.py [params_file:=FILE] [image_topic:=TOPIC] \\
-        [camera_info_topic:=TOPIC] [namespace:=NS]
+    ros2 launch sfm_ttr_ros refiner.launch.py [params_file:=FILE] [namespace:=NS] \\
+        [use_sim_time:=true|false] [image_topic:=TOPIC] [camera_info_topic:=TOPIC] \\
+        [odom_topic:=TOPIC] [depth_topic:=TOPIC] ... (one ``<output>_topic`` per output)
 
-* ``params_file``: a ROS 2 parameter file (default: the installed ``params/kitti.yaml``);
-* ``image_topic`` / ``camera_info_topic``: what the node's ``image`` and ``camera_info``
-  subscriptions are remapped to (default: not remapped);
-* ``namespace``: the node's namespace (default: none); the outputs are then
-  ``/<namespace>/refiner/depth/image`` + ``.../depth/camera_info``, ``.../depth_refined/...``,
-  ``.../depth_colored/...``, ``.../cloud``, ``.../points``.
+* ``params_file``: a ROS 2 parameter file (default: the installed generic
+  ``params/refiner.yaml``, every parameter at its default; ``params/kitti.yaml`` is KITTI's
+  camera and must be asked for). A shared file with ``/**`` sections for several nodes, and
+  the keys ROS owns (``use_sim_time``, ``qos_overrides.*``), are accepted; an unknown key in
+  the node's own section stops the launch with the key named
+  (:func:`sfm_ttr_ros.ros.launch_params.node_parameters`);
+* ``namespace``: the node's namespace (default: none): ``/<namespace>/refiner``, its outputs
+  ``/<namespace>/refiner/depth/image``, ..., its inputs ``/<namespace>/image``, ...;
+* ``use_sim_time``: ``true`` or ``false`` override the file; empty (default): as the file says;
+* one remap argument per input and output topic
+  (:data:`sfm_ttr_ros.ros.launch_params.REMAPS`); empty (default): not remapped.
 
-The file's section for the node (``refiner:``, ``/refiner:``, ``/<ns>/refiner:`` and ``/**:``)
-is read and checked here (an unknown name, a wrong type or an out-of-range value stops the
-launch with the reason) and handed to the node as a file keyed ``/**``: a section keyed
-``refiner:`` alone would be ignored by a node in a namespace (``/<ns>/refiner``).
-
-The names come from :mod:`sfm_ttr_ros.ros.names`; ``launch`` / ``launch_ros`` are imported only
-when the launch description is generated, so the helpers here can be tested without them.
+The node's parameters go on its command line (``--ros-args -p NAME:=VALUE``), so they apply in
+any namespace and no parameter file is written. ``launch`` / ``launch_ros`` are imported only
+when the launch description is generated, so the helpers can be tested without them.
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 
-from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.ros import launch_params, names
 
 EXECUTABLE = "refiner"  # console script of setup.py
 ARGUMENTS = {
-    "params_file": "ROS 2 parameter file of the node (default: the installed params/kitti.yaml)",
-    "image_topic": "topic the node's `image` subscription is remapped to",
-    "camera_info_topic": "topic the node's `camera_info` subscription is remapped to",
+    "params_file": "ROS 2 parameter file of the node (default: the installed params/refiner.yaml)",
     "namespace": "namespace of the node (empty: none)",
+    "use_sim_time": "true: the node follows /clock (bag replay), false: wall time, empty: as "
+                    "the parameter file says",
+    **{arg: f"topic the node's `{topic}` is remapped to (empty: not remapped)"
+       for arg, topic in launch_params.REMAPS.items()},
 }
 
 
 def default_params_file() -> str:
-    """The installed ``share/sfm_ttr_ros/params/kitti.yaml``."""
+    """The installed ``share/sfm_ttr_ros/params/refiner.yaml``."""
     from ament_index_python.packages import get_package_share_directory
 
-    return os.path.join(get_package_share_directory(names.PACKAGE), "params", "kitti.yaml")
+    return os.path.join(get_package_share_directory(names.PACKAGE), "params", "refiner.yaml")
 
 
-def node_params_file(params_file: str, node_name: str = names.NODE_NAME) -> str:
-    """The node's parameters of ``params_file``, checked, written to a new file keyed ``/**``
-    (so they apply in any namespace); returns its path."""
-    import yaml
-
-    from sfm_ttr_ros.core.params import read_params_file
-
-    values = read_params_file(params_file, node_name)
-    with tempfile.NamedTemporaryFile("w", prefix=f"{node_name}_params_", suffix=".yaml",
-                                     delete=False) as f:
-        yaml.safe_dump({"/**": {"ros__parameters": values}}, f, sort_keys=False)
-    return f.name
+def defaults() -> dict[str, str]:
+    """Each launch argument's default value."""
+    return {name: "" for name in ARGUMENTS} | {"params_file": default_params_file()}
 
 
 def generate_launch_description():
@@ -63,22 +58,21 @@ def generate_launch_description():
     from launch_ros.actions import Node
 
     def refiner(context):
-        params_file = LaunchConfiguration("params_file").perform(context)
+        given = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+        values = launch_params.node_parameters(given["params_file"])
         return [Node(
             package=names.PACKAGE,
             executable=EXECUTABLE,
             name=names.NODE_NAME,
-            namespace=LaunchConfiguration("namespace"),
-            parameters=[node_params_file(params_file)],
-            remappings=[(names.IMAGE_TOPIC, LaunchConfiguration("image_topic")),
-                        (names.CAMERA_INFO_TOPIC, LaunchConfiguration("camera_info_topic"))],
+            namespace=given["namespace"],
+            remappings=launch_params.remappings(given),
+            ros_arguments=launch_params.parameter_arguments(values, given["use_sim_time"]),
             output="screen",
             emulate_tty=True,
         )]
 
-    defaults = {"params_file": default_params_file(), "image_topic": names.IMAGE_TOPIC,
-                "camera_info_topic": names.CAMERA_INFO_TOPIC, "namespace": ""}
+    default = defaults()
     return LaunchDescription(
-        [DeclareLaunchArgument(name, default_value=defaults[name], description=text)
+        [DeclareLaunchArgument(name, default_value=default[name], description=text)
          for name, text in ARGUMENTS.items()]
         + [OpaqueFunction(function=refiner)])

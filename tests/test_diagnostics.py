@@ -11,6 +11,7 @@ from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
+from sfm_ttr_ros.core.stream.health import Health, RateMeter
 from sfm_ttr_ros.core.stream.records import WindowStats
 from sfm_ttr_ros.core.stream.windows import StreamProcessor
 
@@ -155,3 +156,160 @@ def test_the_status_becomes_a_diagnostic_array():
                                       "last_window.refined": "true"}
     assert (arr.header.stamp.sec, arr.header.stamp.nanosec) == (12, 500_000_000)
     assert set(timings) == {"diagnostics"} and timings["diagnostics"] >= 0
+
+
+class FakeClock:
+    """A steady clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_rates_are_taken_over_the_recent_interval():
+    clock = FakeClock()
+    meter = RateMeter(interval_s=5.0, clock=clock)
+    assert (meter.hz(), meter.silent_s()) == (0.0, 0.0)
+    for _ in range(10):  # 10 Hz for 1 s: the interval so far is 1 s long
+        clock.now += 0.1
+        meter.tick()
+    assert meter.hz() == pytest.approx(10.0)
+    clock.now += 3.0  # silent for 3 s: 10 events over 4 s
+    assert meter.hz() == pytest.approx(2.5) and meter.silent_s() == pytest.approx(3.0)
+    clock.now += 2.0  # the events fall out of the 5-s interval
+    assert meter.hz() == 0.0 and meter.count == 10
+
+
+def test_health_is_error_when_the_worker_died_and_stale_when_the_input_is_silent():
+    clock = FakeClock()
+    alive, limit = [True], [2.0]
+    health = Health(lambda: alive[0], lambda: limit[0], "/cam1/image", clock=clock)
+    assert health.problem() is None
+    clock.now += 2.5  # no image since start-up
+    level, why = health.problem()
+    assert level == "stale" and "/cam1/image" in why and "none yet" in why
+    health.image_received()
+    health.published("depth")
+    assert health.problem() is None
+    clock.now += 2.5
+    assert health.problem()[0] == "stale" and "since the last image" in health.problem()[1]
+    limit[0] = 0.0  # never stale
+    assert health.problem() is None
+    alive[0] = False
+    assert health.problem()[0] == "error" and "worker has died" in health.problem()[1]
+    v = health.values()
+    assert list(v) == ["rate.image_hz", "rate.depth_hz", "rate.depth_refined_hz",
+                       "input.silent_s", "worker_alive"]
+    assert v["rate.image_hz"] == pytest.approx(1 / 5.0) and v["rate.depth_refined_hz"] == 0.0
+    assert v["input.silent_s"] == pytest.approx(2.5) and v["worker_alive"] is False
+
+
+def test_error_and_stale_lead_the_status_before_the_warnings(stream):
+    clock = FakeClock()
+    alive = [True]
+    health = Health(lambda: alive[0], lambda: 1.0, clock=clock)
+    diag = StreamDiagnostics(stream, health=health)
+    health.image_received()
+    assert diag.status().level == "ok" and diag.status().values["worker_alive"] is True
+    diag.qos_event("image")
+    clock.now += 1.5
+    status = diag.status()
+    assert status.level == "stale"
+    assert status.message.startswith("no image on image for 1.5 s") and \
+        status.message.endswith("; incompatible QoS")
+    alive[0] = False
+    assert diag.status().level == "error"
+    # the rates come after the counters, before the per-window values
+    keys = list(status.values)
+    assert keys.index("faults") < keys.index("rate.image_hz") < keys.index("keyframes.policy")
+
+
+@pytest.mark.ros
+def test_each_level_maps_to_its_message_and_the_name_follows_the_namespace():
+    pytest.importorskip("diagnostic_msgs")
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from sfm_ttr_ros.ros import names, outputs
+
+    for level, code in (("ok", DiagnosticStatus.OK), ("warn", DiagnosticStatus.WARN),
+                        ("error", DiagnosticStatus.ERROR), ("stale", DiagnosticStatus.STALE)):
+        (s,) = outputs.diagnostics_message(Status(level, "m"), 1.0, "/cam1/refiner").status
+        assert (s.level, s.name, s.hardware_id) == (code, "sfm_ttr_ros: cam1/refiner",
+                                                    "/cam1/refiner")
+    assert names.status_name("/cam2/refiner") != names.status_name("/cam1/refiner")
+    assert names.status_name(names.NODE_FQN) == names.DIAG_NAME == "sfm_ttr_ros: refiner"
+
+
+@pytest.mark.ros
+def test_a_namespaced_node_goes_stale_reports_its_rates_then_errors(context):
+    """The node in namespace cam1: STALE before any image, its input and output rates while a
+    (reliable) camera feeds it at ~20 Hz, ERROR once its window worker is gone."""
+    import threading
+    import time
+
+    from builtin_interfaces.msg import Time
+    from conftest import tiny_model
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Header
+
+    from msg_adapters import diagnostic_values, numpy_to_image
+    from sfm_ttr_ros.ros import names
+    from sfm_ttr_ros.ros.node import RefinerNode
+
+    params = {"diagnostics_period_s": 0.2, "diagnostics.stale_after_s": 1.0,
+              "fallback_intrinsics": "100.0 100.0 0 0", "refinement.steps": 0}
+    refiner = RefinerNode(model=tiny_model(), context=context, namespace="cam1",
+                          parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    camera = rclpy_node("camera", context)
+    statuses: list[DiagnosticStatus] = []
+    camera.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC, lambda m: statuses.extend(
+        s for s in m.status if s.name == "sfm_ttr_ros: cam1/refiner"), 50)
+    pub = camera.create_publisher(Image, "/cam1/image", 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(refiner)
+    executor.add_node(camera)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    rgb = np.random.default_rng(0).integers(0, 255, (48, 160, 3), np.uint8)
+
+    def wait_for(pred, feed: bool, what: str) -> DiagnosticStatus:
+        deadline, n = time.monotonic() + 30, 0
+        while time.monotonic() < deadline:
+            if feed:
+                n += 1
+                stamp = Time(sec=n // 20, nanosec=n % 20 * 50_000_000)
+                header = Header(frame_id="cam", stamp=stamp)
+                pub.publish(numpy_to_image(rgb, "rgb8", header))
+            found = [s for s in list(statuses) if pred(s)]
+            if found:
+                return found[-1]
+            time.sleep(0.05)
+        raise AssertionError(f"no status {what}; last: {statuses[-1:]}")
+
+    try:
+        s = wait_for(lambda s: s.level == DiagnosticStatus.STALE, False, "STALE")
+        assert "no image on /cam1/image" in s.message and "none yet" in s.message
+        assert s.hardware_id == "/cam1/refiner"
+        s = wait_for(lambda s: s.level < DiagnosticStatus.ERROR and float(
+            diagnostic_values(s)["rate.depth_hz"]) > 5, True, "with the camera's rate")
+        v = diagnostic_values(s)
+        assert 5 < float(v["rate.image_hz"]) < 40 and v["worker_alive"] == "true"
+        refiner.online.stop(10)  # the worker gone: no window will run again
+        s = wait_for(lambda s: s.level == DiagnosticStatus.ERROR, False, "ERROR")
+        assert s.message.startswith("window worker has died")
+        assert diagnostic_values(s)["worker_alive"] == "false"
+    finally:
+        executor.shutdown()
+        refiner.destroy_node()
+        camera.destroy_node()
+
+
+def rclpy_node(name: str, context):
+    from rclpy.node import Node
+
+    return Node(name, context=context)

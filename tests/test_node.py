@@ -383,7 +383,10 @@ def _raw_image(width, height, encoding, data, step) -> Image:
 
 @pytest.mark.slow
 def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
-    g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0)
+    # reliable: a best-effort publisher is refused below; never STALE: the last status is the
+    # WARN of the frames passed unrefined, however long the input has been silent by then
+    g = graph_factory(window_size=3, window_stride=3, idle_flush_s=1.0,
+                      qos_reliability="reliable", **{"diagnostics.stale_after_s": 0.0})
     refiner = g.refiner
     ok_rgb, other_rgb = sequence.images[0], sequence.images[1]
 

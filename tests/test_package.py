@@ -201,16 +201,16 @@ def test_installed_launch_file_finds_and_checks_the_installed_params(colcon_inst
                                                                    tmp_path: Path):
     pytest.importorskip("ament_index_python")
     launch_file = colcon_install / "share" / PKG / "launch" / "refiner.launch.py"
-    code = ("import importlib.util, os\n"
+    code = ("import importlib.util\n"
             "spec = importlib.util.spec_from_file_location("
             f"'refiner_launch', {str(launch_file)!r})\n"
             "m = importlib.util.module_from_spec(spec)\n"
             "spec.loader.exec_module(m)\n"
             "default = m.default_params_file()\n"
-            "out = m.node_params_file(default)\n"
-            "print(default)\nprint(m.names.__file__)\nos.unlink(out)\n")
+            "assert m.launch_params.node_parameters(default)\n"
+            "print(default)\nprint(m.names.__file__)\n")
     out = _run([sys.executable, "-c", code], cwd=tmp_path, env=_install_env(colcon_install),
                timeout=120)
     default, names_file = out.stdout.split()[-2:]
-    assert Path(default) == colcon_install / "share" / PKG / "params" / "kitti.yaml"
+    assert Path(default) == colcon_install / "share" / PKG / "params" / "refiner.yaml"
     assert Path(names_file).is_relative_to(colcon_install)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 PACKAGE = "sfm_ttr_ros"
 NODE_NAME = "refiner"
-DIAG_NAME = f"{PACKAGE}: {NODE_NAME}"  # the DiagnosticStatus name on /diagnostics
 
 # subscriptions (relative: remappable)
 IMAGE_TOPIC = "image"
@@ -60,7 +59,15 @@ def resolve(topic: str, node_name: str = NODE_NAME, namespace: str = "/") -> str
     return f"{ns}/{topic}"
 
 
+def status_name(node_fqn: str) -> str:
+    """The node's DiagnosticStatus name on /diagnostics: the package and the node's fully
+    qualified name without its leading slash (``sfm_ttr_ros: cam1/refiner``), so that nodes in
+    different namespaces do not collide."""
+    return f"{PACKAGE}: {node_fqn.lstrip('/')}"
+
+
 NODE_FQN = resolve("~")  # "/refiner": the diagnostics' hardware_id
+DIAG_NAME = status_name(NODE_FQN)  # "sfm_ttr_ros: refiner", the default node's status name
 DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth/image"
 DEPTH_INFO_TOPIC_RESOLVED = resolve(DEPTH_INFO_TOPIC)  # "/refiner/depth/camera_info"
 DEPTH_COLORED_TOPIC_RESOLVED = resolve(DEPTH_COLORED_TOPIC)

@@ -59,6 +59,7 @@ from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.params.node import LIVE_OUTPUTS
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
+from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
@@ -134,6 +135,9 @@ class RefinerNode(Node):
         self.create_timer(float(node.diagnostics_period_s), self._on_timer)
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
+        self.health = self.diagnostics.health = Health(  # ERROR, STALE, rates: from now on
+            lambda: self.online.worker_alive,
+            lambda: self.settings.diagnostics_stale_after_s, self.image_topic)
         subscriptions.subscribe(
             self, [image_input, *subscriptions.camera_and_odometry(self._on_camera_info,
                                                                     self._on_odometry)],
@@ -185,6 +189,7 @@ class RefinerNode(Node):
         """Decode an image message into a frame and hand it to the intrinsics rule; a message
         that cannot be read (any exception: it is the message that is bad) is dropped and
         counted as ``bad_image``."""
+        self.health.image_received()
         try:
             rgb = decode(msg)
             stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -273,6 +278,7 @@ class RefinerNode(Node):
         self.pubs.publish(outputs.live_messages(out, s.published, camera,
                                                 cloud_stride=s.cloud_stride,
                                                 cloud_max_range=s.cloud_max_range))
+        self.health.published("depth")
 
     @contained("publish")
     def _publish_output(self, out: FrameOutput) -> None:
@@ -283,6 +289,7 @@ class RefinerNode(Node):
             if camera is None:
                 self._camera_info_missing("refined", out.frame)
             self.pubs.publish(outputs.frame_messages(out, camera))
+            self.health.published("depth_refined")
         self.diagnostics.output_published(out.refined, out.reason_key)
 
     def _camera_info_missing(self, output: str, frame: Frame) -> None:

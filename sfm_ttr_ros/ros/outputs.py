@@ -15,8 +15,9 @@ which the node counts).
 * per window (:func:`window_messages`): ``~/points``, the window's sparse SfM cloud (x, y, z,
   reprojection_error) with the header of the image whose optical frame it is in, when the
   window has a cloud;
-* ``/diagnostics`` (:func:`diagnostics_message`): one status named
-  :data:`~sfm_ttr_ros.ros.names.DIAG_NAME`.
+* ``/diagnostics`` (:func:`diagnostics_message`): one status named after the node's fully
+  qualified name (:func:`~sfm_ttr_ros.ros.names.status_name`; the default node's:
+  :data:`~sfm_ttr_ros.ros.names.DIAG_NAME`).
 
 Every message is built by msg_adapters. The node publishes what these return, in their order
 (each image before its CameraInfo, as image_transport's CameraPublisher); ``sfm-ttr speed``
@@ -129,6 +130,8 @@ def window_messages(stats: WindowStats, points: bool = True,
 def diagnostics_message(status: Status, stamp, hardware_id: str = names.NODE_FQN,
                         timings: Timings | None = None):
     """The ``/diagnostics`` DiagnosticArray of ``status`` (``stamp``: an rclpy Time, a
-    builtin_interfaces Time or seconds; ``hardware_id``: the node's fully qualified name)."""
-    return _timed(timings, "diagnostics", make_diagnostic_array, stamp, names.DIAG_NAME,
-                  hardware_id, status.level, status.message, status.values)
+    builtin_interfaces Time or seconds; ``hardware_id``: the node's fully qualified name, which
+    also names the status, :func:`~sfm_ttr_ros.ros.names.status_name`)."""
+    return _timed(timings, "diagnostics", make_diagnostic_array, stamp,
+                  names.status_name(hardware_id), hardware_id, status.level, status.message,
+                  status.values)

@@ -1,9 +1,11 @@
 """The ``refiner`` node's inputs: the image (raw, or image_transport's ``<image>/compressed``),
 ``camera_info`` and ``odom``, on one QoS (docs/node.md, "QoS").
 
-The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability`` (best_effort or reliable), which
-``--ros-args`` QoS overrides may change (``QoSOverridingOptions``); an incompatible QoS on an
-input calls the node's handler with the topic.
+The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability``: best_effort by default, REP 2003's
+sensor-data subscription, which matches reliable and best-effort publishers alike; reliable
+refuses best-effort publishers. ``--ros-args`` QoS overrides may change it
+(``QoSOverridingOptions``); an incompatible QoS on an input calls the node's handler with the
+topic.
 """
 
 from __future__ import annotations

@@ -209,6 +209,8 @@ def refiner_command(params_file: Path, overrides: list[str], compressed: bool = 
         cmd += ["-p", "image_transport:=compressed"]
     # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
     cmd += ["-p", "republish_unrefined:=true"]
+    # ...and every frame must arrive: the player is reliable, a reliable reader repairs losses
+    cmd += ["-p", "qos_reliability:=reliable"]
     return cmd + node_arguments(overrides)
 
 

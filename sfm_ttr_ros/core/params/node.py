@@ -78,17 +78,20 @@ class NodeSettings:
     ``"compressed"`` (sensor_msgs/CompressedImage on ``<image>/compressed``).
     ``cloud_stride``: ~/cloud takes every this-many-th pixel of the live depth, in both
     directions; ``cloud_max_range``: ~/cloud leaves out points farther than this from the camera
-    (depth units; 0 = no limit). ``torch_num_threads`` 0 = torch's default."""
+    (depth units; 0 = no limit). ``torch_num_threads`` 0 = torch's default.
+    ``diagnostics_stale_after_s``: /diagnostics is STALE after this long without an image (0 =
+    never)."""
 
     fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
     image_transport: str = "raw"
-    qos_reliability: str = "reliable"
+    qos_reliability: str = "best_effort"
     qos_depth: int = 30
     outputs: str = ",".join(DEFAULT_OUTPUTS)
     cloud_stride: int = 4
     cloud_max_range: float = 0.0
     diagnostics_period_s: float = 1.0
+    diagnostics_stale_after_s: float = 5.0
     torch_num_threads: int = 0
     load_weights_path: str = ""
     save_weights_path: str = ""

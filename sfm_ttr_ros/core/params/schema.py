@@ -314,9 +314,10 @@ PARAMS: tuple[Param, ...] = (
     _p("image_transport", "node.image_transport", "Input: raw = sensor_msgs/Image on image; "
        "compressed = sensor_msgs/CompressedImage (JPEG / PNG) on <image>/compressed.",
        choices=IMAGE_TRANSPORTS, **_START_UP),
-    _p("qos_reliability", "node.qos_reliability", "Reliability of the image and camera_info "
-       "subscriptions (best_effort for sensor-data publishers).", choices=QOS_RELIABILITIES,
-       **_START_UP),
+    _p("qos_reliability", "node.qos_reliability", "Reliability of the image, camera_info and "
+       "odom subscriptions (best_effort matches reliable and best-effort publishers alike; "
+       "reliable refuses best-effort ones, but repairs what the transport loses).",
+       choices=QOS_RELIABILITIES, **_START_UP),
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),
     _p("outputs", "node.outputs", "The outputs published, comma-separated (cloud, the live "
@@ -328,6 +329,9 @@ PARAMS: tuple[Param, ...] = (
        "camera are left out, in the depth's units; 0 = no limit.", 0.0, 1e9),
     _p("diagnostics_period_s", "node.diagnostics_period_s", "Period of the /diagnostics timer, "
        "seconds.", 0.05, 3600.0, **_START_UP),
+    _p("diagnostics.stale_after_s", "node.diagnostics_stale_after_s", "/diagnostics is STALE "
+       "after this long without an input image (counted from start-up before the first), "
+       "seconds; 0 = never.", 0.0, 3600.0),
 )
 SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
 #: ``section.field`` → the parameter that sets it

@@ -174,9 +174,10 @@ def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _ros_parameters(path: Path, node_name: str) -> dict[str, Any]:
-    """The ``ros__parameters`` of ``path`` for ``node_name``: wildcard sections ``/**`` first,
-    then the node's own; nested mappings flattened with dots."""
+def parameter_sections(path: Path) -> list[tuple[str, dict[str, Any]]]:
+    """Each section of the ROS 2 parameter file at ``path`` that has ``ros__parameters``: its
+    node name (``/**``, ``refiner``, ``/ns/refiner``, ...) and its parameters, nested mappings
+    flattened with dots, in the file's order."""
     import yaml
 
     if not path.is_file():
@@ -187,7 +188,7 @@ def _ros_parameters(path: Path, node_name: str) -> dict[str, Any]:
         raise InputError(f"cannot read parameter file {path}: {exc}") from exc
     if not isinstance(doc, Mapping):
         raise InputError(f"{path}: expected a mapping of node names to ros__parameters")
-    wild, own = {}, {}
+    sections = []
     for section, body in doc.items():
         s = str(section).strip()
         if not isinstance(body, Mapping) or "ros__parameters" not in body:
@@ -195,10 +196,30 @@ def _ros_parameters(path: Path, node_name: str) -> dict[str, Any]:
         params = body["ros__parameters"]
         if not isinstance(params, Mapping):
             raise InputError(f"{path}: ros__parameters of {s!r} is not a mapping")
-        if s in ("/**", "**"):
-            wild.update(_flatten(params))
-        elif s.lstrip("/").split("/")[-1] == node_name:
-            own.update(_flatten(params))
+        sections.append((s, _flatten(params)))
+    return sections
+
+
+def is_wildcard_section(section: str) -> bool:
+    """True for a parameter file's section that applies to every node (``/**``)."""
+    return section in ("/**", "**")
+
+
+def names_node(section: str, node_name: str) -> bool:
+    """True for a parameter file's section that names node ``node_name`` (``refiner``,
+    ``/refiner``, ``/<ns>/refiner``, ``/**/refiner``)."""
+    return section.lstrip("/").split("/")[-1] == node_name
+
+
+def _ros_parameters(path: Path, node_name: str) -> dict[str, Any]:
+    """The ``ros__parameters`` of ``path`` for ``node_name``: wildcard sections ``/**`` first,
+    then the node's own; nested mappings flattened with dots."""
+    wild, own = {}, {}
+    for section, params in parameter_sections(path):
+        if is_wildcard_section(section):
+            wild.update(params)
+        elif names_node(section, node_name):
+            own.update(params)
     return {**wild, **own}
 
 

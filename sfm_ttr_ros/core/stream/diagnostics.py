@@ -23,6 +23,10 @@ A depth image published without a CameraInfo beside it (the node knew no intrins
 yet: no CameraInfo received and no fallback) is counted, per output:
 ``live.without_camera_info`` and ``frames_without_camera_info`` (the windowed output); the
 status is WARN while it happens.
+
+With a :class:`~sfm_ttr_ros.core.stream.health.Health` (the node gives one) the values also hold
+the input and output rates, and the status is ERROR when the window worker has died and STALE
+when no image arrived for ``diagnostics.stale_after_s`` (core/stream/health.py).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
+from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.keyframes import keyframe_interval
 from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
 from sfm_ttr_ros.core.stream.windows import StreamProcessor
@@ -45,8 +50,8 @@ SELECTED_OUT = frozenset({Unrefined.NOT_KEYFRAME, Unrefined.STALE})
 
 @dataclass(frozen=True)
 class Status:
-    """One diagnostic status: ``level`` ``"ok"`` or ``"warn"``, a one-line message and the
-    key/values in the order they are published."""
+    """One diagnostic status: ``level`` ``"ok"``, ``"warn"``, ``"error"`` or ``"stale"``, a
+    one-line message and the key/values in the order they are published."""
 
     level: str
     message: str
@@ -57,12 +62,13 @@ class StreamDiagnostics:
     """Counters and status of a :class:`StreamProcessor` fed by a node. Thread-safe.
 
     ``held``: how many frames wait outside the stream (for intrinsics); they count as received
-    and pending.
+    and pending. ``health``: rates, ERROR and STALE (none: OK or WARN only).
     """
 
     def __init__(self, stream: StreamProcessor, held: Callable[[], int] = lambda: 0,
-                 live: Callable[[], dict] | None = None):
+                 live: Callable[[], dict] | None = None, health: Health | None = None):
         self.stream = stream
+        self.health = health
         self._held = held
         self._live = live
         self.rejected_camera_info = 0
@@ -144,6 +150,8 @@ class StreamDiagnostics:
             "faults": sum(self.faults.values()),
         })
         v.update({f"faults.{k}": n for k, n in sorted(self.faults.items())})
+        if self.health is not None:  # rates, silence, the worker
+            v.update(self.health.values())
         if self._live is not None:  # ~/depth: received = published + skipped + pending
             v.update(self._live_values())
         v.update(self._keyframe_values())
@@ -222,9 +230,10 @@ class StreamDiagnostics:
         return out
 
     def status(self) -> Status:
-        """The status now: WARN listing what went wrong since the last status (frames passed
-        through unrefined, the last window not refined, frames held, incompatible QoS, faults
-        contained), else OK. Resets the since-last-status counts."""
+        """The status now: ERROR (the worker died) or STALE (no input) first in the message,
+        then what went wrong since the last status (frames passed through unrefined, the last
+        window not refined, frames held, incompatible QoS, faults contained) at WARN, else OK.
+        Resets the since-last-status counts."""
         with self._lock:
             v = self.values()
             w = self.stream.last_window
@@ -249,6 +258,9 @@ class StreamDiagnostics:
             self._unrefined_since_status = 0
             self._faults_since_status = 0
             self._without_camera_info_since_status = 0
+        severe = self.health.problem() if self.health is not None else None
+        if severe is not None:
+            return Status(severe[0], "; ".join([severe[1], *problems]), v)
         if problems:
             return Status("warn", "; ".join(problems), v)
         return Status("ok", f"{v['frames_refined']} refined, {v['windows_ok']} window(s) ok", v)

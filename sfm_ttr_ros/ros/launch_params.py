@@ -1,0 +1,107 @@
+"""What ``launch/refiner.launch.py`` hands the ``refiner`` node, without the ``launch``
+packages (docs/node.md "Launch"): the node's parameters read from a ROS 2 parameter file, as
+``--ros-args -p NAME:=VALUE`` arguments (no file is written), and the topic remappings of its
+launch arguments.
+
+Which keys of a parameter file are the node's (rcl's matching of node names in parameter
+files, ROS 2 design "Parameters", "YAML file format"):
+
+* sections that name the node (``refiner``, ``/refiner``, ``/<ns>/refiner``, ``/**/refiner``):
+  every key is checked as the node checks it (:func:`~sfm_ttr_ros.core.params.check_value`); a
+  key that is neither a parameter of the node nor owned by ROS itself (:data:`ROS_OWNED`:
+  ``use_sim_time``, ``qos_overrides.*``, ...) stops the launch, with the key named;
+* wildcard sections (``/**``): the node's parameters among them are checked the same way, the
+  keys ROS owns pass through, any other key is another node's (a shared file) and is left to it.
+
+The node's sections win over the wildcard ones (rcl applies the later, more specific match).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.params import SCHEMA, check_value, ros_literal
+from sfm_ttr_ros.core.params.legacy import BY_NAME as LEGACY_NAMES
+from sfm_ttr_ros.core.params.values import is_wildcard_section, names_node, parameter_sections
+from sfm_ttr_ros.ros import names
+
+#: Parameters every rclpy node declares itself, and the prefix of those its QoS overriding
+#: options declare (``qos_overrides.<topic>.<entity>.<policy>``).
+ROS_OWNED = frozenset({"use_sim_time", "start_type_description_service"})
+ROS_OWNED_PREFIXES = ("qos_overrides.",)
+
+#: launch argument -> the node's topic it remaps (inputs: relative names; outputs: private)
+REMAPS: dict[str, str] = {
+    "image_topic": names.IMAGE_TOPIC,
+    "camera_info_topic": names.CAMERA_INFO_TOPIC,
+    "odom_topic": names.ODOMETRY_TOPIC,
+    "depth_topic": names.DEPTH_TOPIC,
+    "depth_camera_info_topic": names.DEPTH_INFO_TOPIC,
+    "depth_colored_topic": names.DEPTH_COLORED_TOPIC,
+    "depth_colored_camera_info_topic": names.DEPTH_COLORED_INFO_TOPIC,
+    "depth_refined_topic": names.DEPTH_REFINED_TOPIC,
+    "depth_refined_camera_info_topic": names.DEPTH_REFINED_INFO_TOPIC,
+    "cloud_topic": names.CLOUD_TOPIC,
+    "points_topic": names.POINTS_TOPIC,
+}
+SIM_TIME_CHOICES = ("", "true", "false")
+
+
+def ros_owned(key: str) -> bool:
+    """True for a parameter ROS itself declares on every node (not the node's schema)."""
+    return key in ROS_OWNED or key.startswith(ROS_OWNED_PREFIXES)
+
+
+def node_parameters(path: str | Path, node_name: str = names.NODE_NAME) -> dict[str, Any]:
+    """The parameters the file at ``path`` gives node ``node_name``, checked (see the module's
+    docstring); an unknown key of the node's own sections, a wrong type or a value out of range
+    raises :class:`InputError` naming the key."""
+    path = Path(path)
+    wild: dict[str, Any] = {}
+    own: dict[str, Any] = {}
+    for section, params in parameter_sections(path):
+        if is_wildcard_section(section):
+            wild.update(params)
+        elif names_node(section, node_name):
+            own.update(params)
+    values: dict[str, Any] = {}
+    for key, value in wild.items():
+        if key in SCHEMA or key in LEGACY_NAMES or ros_owned(key):
+            values[key] = value
+    for key, value in own.items():
+        if not (key in SCHEMA or key in LEGACY_NAMES or ros_owned(key)):
+            raise InputError(f"{path}: {key!r} is not a parameter of the {node_name} node "
+                             "(`sfm-ttr params` lists them)")
+        values[key] = value
+    if not values:
+        raise InputError(f"{path}: no ros__parameters for node {node_name!r}")
+    for key, value in values.items():
+        reason = None if ros_owned(key) else check_value(key, value)
+        if reason:
+            raise InputError(f"{path}: {reason}")
+    return values
+
+
+def parameter_arguments(values: Mapping[str, Any], use_sim_time: str = "") -> list[str]:
+    """``-p NAME:=VALUE`` for each of ``values`` (``--ros-args`` arguments: no parameter file
+    is written), then ``use_sim_time`` when the launch argument sets it (``true``/``false``;
+    empty: as the file says)."""
+    flag = str(use_sim_time).strip().lower()
+    if flag not in SIM_TIME_CHOICES:
+        raise InputError(f"use_sim_time must be true, false or empty, got {use_sim_time!r}")
+    args: list[str] = []
+    for key, value in values.items():
+        args += ["-p", f"{key}:={ros_literal(value)}"]
+    if flag:
+        args += ["-p", f"use_sim_time:={flag}"]
+    return args
+
+
+def remappings(arguments: Mapping[str, str]) -> list[tuple[str, str]]:
+    """``(topic, target)`` for each remap argument of :data:`REMAPS` that is set (an empty
+    argument leaves its topic as it is)."""
+    return [(topic, str(arguments[arg]).strip()) for arg, topic in REMAPS.items()
+            if str(arguments.get(arg, "")).strip()]

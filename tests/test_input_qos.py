@@ -1,0 +1,120 @@
+"""The node's inputs take any camera driver by default (docs/node.md "QoS"): the image,
+camera_info and odom subscriptions, as ``subscriptions`` creates them with the schema's
+default ``qos_reliability``, receive from a RELIABLE and a BEST_EFFORT publisher alike; under
+``reliable`` a best-effort publisher is refused with an incompatible-QoS event."""
+
+from __future__ import annotations
+
+import collections
+import random
+import time
+
+import pytest
+
+from sfm_ttr_ros.core.params import SCHEMA
+from sfm_ttr_ros.core.params.node import NodeSettings
+from sfm_ttr_ros.ros import names
+
+pytestmark = pytest.mark.ros
+rclpy = pytest.importorskip("rclpy")
+
+
+@pytest.fixture
+def ros_context(monkeypatch):
+    from rclpy.context import Context
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    ctx.try_shutdown()
+
+
+def _spin_until(executor, pred, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        executor.spin_once(timeout_sec=0.05)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def _inputs(ctx, received, incompatible, reliability: str):
+    """The node's three inputs, each callback noting which publisher (its frame_id) it heard."""
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from sfm_ttr_ros.ros import subscriptions
+
+    def note(topic):
+        return lambda msg: received[topic].add(msg.header.frame_id)
+
+    node = rclpy.create_node(names.NODE_NAME, context=ctx)
+    inputs = [subscriptions.Input(Image, names.IMAGE_TOPIC, note(names.IMAGE_TOPIC)),
+              *subscriptions.camera_and_odometry(note(names.CAMERA_INFO_TOPIC),
+                                                 note(names.ODOMETRY_TOPIC))]
+    subscriptions.subscribe(node, inputs, subscriptions.input_qos(
+        NodeSettings(qos_reliability=reliability)), lambda topic, event: incompatible.append(topic))
+    return node, {Image: names.IMAGE_TOPIC, CameraInfo: names.CAMERA_INFO_TOPIC,
+                  Odometry: names.ODOMETRY_TOPIC}
+
+
+def _drivers(ctx, types):
+    """A RELIABLE and a BEST_EFFORT publisher on each input topic."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    driver = rclpy.create_node("camera_drivers", context=ctx)
+    pubs = []
+    for policy, label in ((ReliabilityPolicy.RELIABLE, "reliable"),
+                          (ReliabilityPolicy.BEST_EFFORT, "best_effort")):
+        qos = QoSProfile(depth=10, reliability=policy)
+        pubs += [(driver.create_publisher(cls, topic, qos), cls, label)
+                 for cls, topic in types.items()]
+    return driver, pubs
+
+
+def _run(ctx, reliability: str, until) -> tuple[dict, list]:
+    from rclpy.executors import SingleThreadedExecutor
+
+    received: dict[str, set] = collections.defaultdict(set)
+    incompatible: list[str] = []
+    node, types = _inputs(ctx, received, incompatible, reliability)
+    driver, pubs = _drivers(ctx, types)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    executor.add_node(driver)
+
+    def publish_and_check():
+        for pub, cls, label in pubs:
+            msg = cls()
+            msg.header.frame_id = label
+            pub.publish(msg)
+        return until(received, incompatible)
+
+    try:
+        _spin_until(executor, publish_and_check, 20, f"the inputs under {reliability}")
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        driver.destroy_node()
+    return received, incompatible
+
+
+def test_the_default_inputs_take_reliable_and_best_effort_publishers(ros_context):
+    assert SCHEMA["qos_reliability"].default == NodeSettings().qos_reliability == "best_effort"
+    both = {"reliable", "best_effort"}
+    topics = (names.IMAGE_TOPIC, names.CAMERA_INFO_TOPIC, names.ODOMETRY_TOPIC)
+    received, incompatible = _run(ros_context, NodeSettings().qos_reliability,
+                                  lambda got, _: all(got[t] == both for t in topics))
+    assert {t: received[t] for t in topics} == {t: both for t in topics}
+    assert incompatible == []
+
+
+def test_reliable_inputs_refuse_a_best_effort_publisher(ros_context):
+    topics = {names.IMAGE_TOPIC, names.CAMERA_INFO_TOPIC, names.ODOMETRY_TOPIC}
+    received, incompatible = _run(
+        ros_context, "reliable",
+        lambda got, bad: set(bad) >= topics and all(got[t] == {"reliable"} for t in topics))
+    assert all(received[t] == {"reliable"} for t in topics)  # never the best-effort one
+    assert set(incompatible) == topics
