@@ -39,6 +39,7 @@ from sfm_ttr_ros.core.params.node import (
     IMAGE_TRANSPORTS,
     OUTPUTS,
     QOS_RELIABILITIES,
+    RELATIVE_DEPTH_CHOICES,
     USE_PROJECTION_CHOICES,
     NodeSettings,
 )
@@ -328,6 +329,17 @@ PARAMS: tuple[Param, ...] = (
        "camera are left out, in the depth's units; 0 = no limit.", 0.0, 1e9),
     _p("diagnostics_period_s", "node.diagnostics_period_s", "Period of the /diagnostics timer, "
        "seconds.", 0.05, 3600.0, **_START_UP),
+    _p("relative_depth", "node.relative_depth", "Depth, ~/cloud and ~/points not (yet) in "
+       "metres (metric state not_metric or waiting): publish = on their relative twins "
+       "(~/depth_relative, ~/depth_refined_relative, ~/cloud_relative, ~/points_relative); "
+       "drop = not published. The metric topics carry metres only (REP 118).",
+       choices=RELATIVE_DEPTH_CHOICES),
+    _p("compressed_depth.depth_max", "node.compressed_depth_max", "compressedDepth outputs: "
+       "depths at or beyond this (metres, or the network's units on the relative topics) are "
+       "sent as none (image_transport's depth_max).", 1e-3, 1e6),
+    _p("compressed_depth.png_level", "node.compressed_depth_png_level", "compressedDepth "
+       "outputs: PNG compression level (image_transport's png_level; 9 takes ~25x longer "
+       "than 1 for ~15 % fewer bytes).", 0, 9),
 )
 SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
 #: ``section.field`` → the parameter that sets it
