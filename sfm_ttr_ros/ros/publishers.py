@@ -12,6 +12,7 @@ diagnostics status at a time.
 
 from __future__ import annotations
 
+import copy
 import threading
 from collections.abc import Callable
 from functools import partial
@@ -52,8 +53,10 @@ class OutputPublishers:
         overrides = QoSOverridingOptions.with_default_policies()
 
         def pub(msg_type, topic, depth_qos=qos, overridable=True):
+            # a profile of its own: rclpy writes the topic's overrides into the one given
+            profile = copy.copy(depth_qos) if isinstance(depth_qos, QoSProfile) else depth_qos
             return node.create_publisher(
-                msg_type, topic, depth_qos, event_callbacks=PublisherEventCallbacks(
+                msg_type, topic, profile, event_callbacks=PublisherEventCallbacks(
                     incompatible_qos=partial(on_incompatible_qos, topic)),
                 qos_overriding_options=overrides if overridable else None)
 
