@@ -145,7 +145,10 @@ def compressed_depth_to_numpy(msg) -> tuple[str, np.ndarray]:
     if fmt != INV_DEPTH:
         raise CompressedDepthError(f"compressedDepth header format {fmt}, not INV_DEPTH (0)")
     png = data[HEADER_BYTES:]
-    codec, w, h = declared_size(png)
+    try:
+        codec, w, h = declared_size(png)
+    except CompressedImageError as exc:
+        raise CompressedDepthError(f"compressedDepth image: {exc}") from exc
     if codec != "png" or w <= 0 or h <= 0 or w * h > MAX_PIXELS:
         raise CompressedDepthError(f"compressedDepth holds a {w}x{h} {codec}: not a PNG of "
                                    f"1 to {MAX_PIXELS} pixels")
