@@ -77,15 +77,15 @@ def test_every_depth_image_has_a_camera_info_with_its_header_and_size():
     same = CameraSource(Intrinsics(10, 11, 5.5, 3.5, 6, 4), camera_info_msg(
         6, 4, [[10, 0, 2.5], [0, 11, 1.5], [0, 0, 1]], [[9, 0, 2, 0], [0, 9, 1, 0], [0, 0, 1, 0]],
         D=[0.3], header=header(1, "elsewhere"), distortion_model="rational_polynomial"))
-    info = outputs.frame_messages(FrameOutput(frame, depth, refined=True, metres_per_unit=1.0), same)[
-        names.DEPTH_REFINED_INFO_TOPIC]
+    metric = FrameOutput(frame, depth, refined=True, metres_per_unit=1.0)
+    info = outputs.frame_messages(metric, same)[names.DEPTH_REFINED_INFO_TOPIC]
     assert info.header == frame.header and info.distortion_model == "rational_polynomial"
     for field in ("k", "p", "d", "r"):
         np.testing.assert_array_equal(getattr(info, field), getattr(same.message, field))
     # the fallback intrinsics: K, P = [K | 0], D empty, at the image's size
     fallback = CameraSource(Intrinsics(7, 7, 2.5, 1.5, 6, 4), None, fallback=True)
-    info = outputs.frame_messages(FrameOutput(frame, depth, refined=False, metres_per_unit=1.0), fallback)[
-        names.DEPTH_REFINED_INFO_TOPIC]
+    unrefined = FrameOutput(frame, depth, refined=False, metres_per_unit=1.0)
+    info = outputs.frame_messages(unrefined, fallback)[names.DEPTH_REFINED_INFO_TOPIC]
     np.testing.assert_array_equal(np.reshape(info.p, (3, 4)),
                                   [[7, 0, 2.5, 0], [0, 7, 1.5, 0], [0, 0, 1, 0]])
     assert len(info.d) == 0 and (info.width, info.height) == (6, 4)

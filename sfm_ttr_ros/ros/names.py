@@ -95,6 +95,15 @@ def resolve(topic: str, node_name: str = NODE_NAME, namespace: str = "/") -> str
     return f"{ns}/{topic}"
 
 
+def relative_twin_of(topic: str) -> str | None:
+    """The relative twin of a metric output topic, resolved or not (``/cam1/refiner/depth/image``
+    -> ``/cam1/refiner/depth_relative/image``); None for any other topic."""
+    for metric, relative in RELATIVE_TWIN.items():
+        if topic == metric or (topic.startswith("/") and topic.endswith(metric[1:])):
+            return topic[:len(topic) - len(metric) + 1] + relative[1:]
+    return None
+
+
 NODE_FQN = resolve("~")  # "/refiner": the diagnostics' hardware_id
 DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth/image"
 DEPTH_INFO_TOPIC_RESOLVED = resolve(DEPTH_INFO_TOPIC)  # "/refiner/depth/camera_info"

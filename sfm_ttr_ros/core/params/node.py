@@ -84,8 +84,9 @@ class NodeSettings:
     directions; ``cloud_max_range``: ~/cloud leaves out points farther than this from the camera
     (depth units; 0 = no limit). ``torch_num_threads`` 0 = torch's default.
     ``relative_depth``: depth, clouds and points not in metres on their relative topics
-    (``publish``) or not at all (``drop``); ``compressed_depth_max`` / ``compressed_depth_png_level``:
-    the compressedDepth outputs' ``depth_max`` (farther = none) and PNG level."""
+    (``publish``) or not at all (``drop``); ``compressed_depth_max`` /
+    ``compressed_depth_png_level``: the compressedDepth outputs' ``depth_max`` (farther =
+    none) and PNG level."""
 
     fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
