@@ -247,7 +247,8 @@ def _wait_got(rec, topic: str, n: int, timeout: float) -> bool:
 
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
     """Start the node, play the bag into it, record ``/refiner/depth/image`` (live) and
-    ``/refiner/depth_refined/image`` (windows) until every frame is back on both."""
+    ``/refiner/depth_refined/image`` (windows), each with its relative twin (depth not yet in
+    metres), until every frame is back on both outputs."""
     from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC
     from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
