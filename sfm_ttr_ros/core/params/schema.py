@@ -321,7 +321,8 @@ PARAMS: tuple[Param, ...] = (
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),
     _p("outputs", "node.outputs", "The outputs published, comma-separated (cloud, the live "
-       "depth back-projected on ~/cloud, is off unless listed).",
+       "depth back-projected on ~/cloud, and compressed_depth, each depth image also on "
+       "<image>/compressedDepth, are off unless listed).",
        constraints=f"any of {', '.join(OUTPUTS)}"),
     _p("cloud.stride", "node.cloud_stride", "~/cloud: every this-many-th pixel of the live "
        "depth, in both directions.", 1, 1000),
