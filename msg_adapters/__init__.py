@@ -15,6 +15,7 @@ import importlib
 
 _LOCATIONS = {
     "CameraInfoError": "msg_adapters.camera_info",
+    "CompressedDepthError": "msg_adapters.compressed_depth",
     "CompressedImageError": "msg_adapters.compressed",
     "ImageConversionError": "msg_adapters.image",
     "MessageClasses": "msg_adapters.classes",
@@ -25,9 +26,11 @@ _LOCATIONS = {
     "camera_info_for": "msg_adapters.camera_info",
     "camera_info_msg": "msg_adapters.camera_info",
     "clock_message": "msg_adapters.stamp",
+    "compressed_depth_to_depth": "msg_adapters.compressed_depth",
     "compressed_to_rgb8": "msg_adapters.compressed",
     "camera_info_to_intrinsics": "msg_adapters.camera_info",
     "depth_to_colored_image": "msg_adapters.image",
+    "depth_to_compressed_depth": "msg_adapters.compressed_depth",
     "depth_to_image": "msg_adapters.image",
     "depth_to_pointcloud2": "msg_adapters.pointcloud",
     "diagnostic_values": "msg_adapters.diagnostics",

@@ -91,9 +91,11 @@ class Fuzzer:
         self.live_back = 0
         self.diag: dict[str, str] = {}
         self._lock = threading.Lock()
-        self.node.create_subscription(Image, names.DEPTH_REFINED_TOPIC_RESOLVED,
-                                      self._on_refined, qos)
-        self.node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED, self._on_live, qos)
+        # each output on its metric topic and its relative twin (REP 118)
+        for topic, callback in ((names.DEPTH_REFINED_TOPIC_RESOLVED, self._on_refined),
+                                (names.DEPTH_TOPIC_RESOLVED, self._on_live)):
+            for t in (topic, names.relative_twin_of(topic)):
+                self.node.create_subscription(Image, t, callback, qos)
         from diagnostic_msgs.msg import DiagnosticArray
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC, self._on_diag,
                                       10)

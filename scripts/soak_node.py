@@ -157,8 +157,10 @@ def listen_live(out_path: str, best_effort: bool = False) -> int:
     if best_effort:  # sensor-data QoS, as a controller takes a camera-rate stream
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                          reliability=ReliabilityPolicy.BEST_EFFORT)
-    sub = node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED, lambda m: got.append(
+    # metres on ~/depth/image, the network's units on its relative twin (REP 118)
+    sub, _ = [node.create_subscription(Image, topic, lambda m: got.append(
         (stamp_to_ns(m.header.stamp), time.monotonic())), qos)
+        for topic in (names.DEPTH_TOPIC_RESOLVED, names.DEPTH_RELATIVE_TOPIC_RESOLVED)]
     ready = ready_file(out_path)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -209,11 +211,14 @@ class Client:
         self.diag: dict[str, str] = {}
         self.t0 = time.monotonic()
         self._lock = threading.Lock()
+        # each output on its metric topic and its relative twin (REP 118)
+        outputs = [(names.DEPTH_REFINED_TOPIC_RESOLVED, self.refined)]
         if live:  # else a listener process of its own takes ~/depth (listen_live)
-            self.node.create_subscription(Image, names.DEPTH_TOPIC_RESOLVED,
-                                          lambda m: self._on_depth(m, self.live), qos)
-        self.node.create_subscription(Image, names.DEPTH_REFINED_TOPIC_RESOLVED,
-                                      lambda m: self._on_depth(m, self.refined), qos)
+            outputs.append((names.DEPTH_TOPIC_RESOLVED, self.live))
+        for topic, sink in outputs:
+            for t in (topic, names.relative_twin_of(topic)):
+                self.node.create_subscription(
+                    Image, t, lambda m, sink=sink: self._on_depth(m, sink), qos)
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC, self._on_diag,
                                       10)
         self.executor = SingleThreadedExecutor()

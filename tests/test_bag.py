@@ -403,6 +403,31 @@ def test_evaluate_bag_matches_by_stamp(bags, tmp_path):
     assert res["abs_rel"] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_evaluate_bag_reads_the_refiners_relative_twin_beside_its_metric_topic(tmp_path):
+    """Depth not yet in metres comes on ~/depth_relative/image (REP 118): the evaluation of the
+    refiner's depth topic takes each frame from whichever of the two carries it."""
+    from sfm_ttr_ros.ros import names
+
+    gts = [(st, np.full((8, 12), 2.0 + st / 1e9, np.float32)) for st in
+           (1_000_000_000, 2_000_000_000, 3_000_000_000, 4_000_000_000)]
+    relative = names.relative_twin_of(DEFAULT_PRED_TOPIC)
+    bag = tmp_path / "mixed"
+    with BagRecorder(bag, "mcap") as rec:
+        for topic in (DEPTH_GT_TOPIC, DEFAULT_PRED_TOPIC, relative):
+            rec.add_topic(topic, "sensor_msgs/msg/Image")
+        for i, (st, gt) in enumerate(gts):
+            rec.write(DEPTH_GT_TOPIC, depth_msg(gt, st, "c"))
+            # the first two frames before the scale was known: network units (x 3)
+            rec.write(relative if i < 2 else DEFAULT_PRED_TOPIC,
+                      depth_msg(gt * (3.0 if i < 2 else 1.0), st, "c"))
+    res = evaluate_bag(bag)
+    assert res["frames"] == 4 and res["pred_relative_frames"] == 2
+    assert res["pred_topic"] == f"{DEFAULT_PRED_TOPIC} + {relative}"
+    assert res["abs_rel"] == pytest.approx(0.0, abs=1e-6)  # median-scaled: either unit
+    metres = evaluate_bag(bag, config=EvalConfig(median_scaling=False))
+    assert metres["abs_rel"] == pytest.approx(1.0, abs=1e-6)  # (0 + 0 + 2 + 2) / 4
+
+
 def test_evaluate_bag_command(bags, tmp_path, capsys):
     from sfm_ttr_ros.tools.cli_bag import evaluate_bag_command
 

@@ -119,6 +119,11 @@ class Graph:
                 (CameraInfo, names.DEPTH_REFINED_INFO_TOPIC_RESOLVED, self.refined_infos),
                 (PointCloud2, names.CLOUD_TOPIC_RESOLVED, self.clouds)):
             self.node.create_subscription(msg_type, topic, sink.append, reliable)
+            # metric.source none: the depth is not in metres, it comes on the relative twin
+            twin = names.RELATIVE_TWIN.get("~/" + topic.split("/", 2)[2])
+            if twin is not None:
+                self.node.create_subscription(msg_type, names.resolve(twin), sink.append,
+                                              reliable)
         self.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC,
                                       self.diags.append, 10)
         self.executor = SingleThreadedExecutor(context=context)

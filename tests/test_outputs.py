@@ -31,7 +31,8 @@ def test_live_and_refined_frames_keep_the_image_header():
     depth = np.full((4, 6), 2.0, np.float32)
     depth[0, 0] = 0.0  # invalid
     frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
-    live = LiveOutput(frame, depth, version=3, weights_age_s=1.0, arrival=0.0, served=0.01)
+    live = LiveOutput(frame, depth, version=3, weights_age_s=1.0, arrival=0.0, served=0.01,
+                      metres_per_unit=1.0)
     timings: dict[str, float] = {}
     # no intrinsics known yet: the images go out alone (the node counts it), no cloud
     msgs = outputs.live_messages(live, ("depth", "depth_colored", "cloud"), timings=timings)
@@ -44,7 +45,7 @@ def test_live_and_refined_frames_keep_the_image_header():
     assert set(timings) == {"depth_image", "colored_image", "camera_info"}
     assert list(outputs.live_messages(live, ("depth",))) == [names.DEPTH_TOPIC]
     # the windowed output: ~/depth_refined/image only, same header and encoding
-    refined = outputs.frame_messages(FrameOutput(frame, depth, refined=True))
+    refined = outputs.frame_messages(FrameOutput(frame, depth, refined=True, metres_per_unit=1.0))
     assert list(refined) == [names.DEPTH_REFINED_TOPIC]
     r = refined[names.DEPTH_REFINED_TOPIC]
     assert r.header == frame.header and r.encoding == "32FC1"
@@ -54,7 +55,8 @@ def test_live_and_refined_frames_keep_the_image_header():
 def test_every_depth_image_has_a_camera_info_with_its_header_and_size():
     depth = np.full((4, 6), 2.0, np.float32)
     frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
-    live = LiveOutput(frame, depth, version=0, weights_age_s=0.0, arrival=0.0, served=0.0)
+    live = LiveOutput(frame, depth, version=0, weights_age_s=0.0, arrival=0.0, served=0.0,
+                      metres_per_unit=2.0)
     # received for a 12x8 image (e.g. before a downscale), with distortion and a stereo Tx
     received = camera_info_msg(12, 8, [[10, 0, 5.5], [0, 11, 3.5], [0, 0, 1]],
                                [[9, 0, 5, -1.2], [0, 9.5, 3, 0], [0, 0, 1, 0]],
@@ -75,15 +77,15 @@ def test_every_depth_image_has_a_camera_info_with_its_header_and_size():
     same = CameraSource(Intrinsics(10, 11, 5.5, 3.5, 6, 4), camera_info_msg(
         6, 4, [[10, 0, 2.5], [0, 11, 1.5], [0, 0, 1]], [[9, 0, 2, 0], [0, 9, 1, 0], [0, 0, 1, 0]],
         D=[0.3], header=header(1, "elsewhere"), distortion_model="rational_polynomial"))
-    info = outputs.frame_messages(FrameOutput(frame, depth, refined=True), same)[
-        names.DEPTH_REFINED_INFO_TOPIC]
+    metric = FrameOutput(frame, depth, refined=True, metres_per_unit=1.0)
+    info = outputs.frame_messages(metric, same)[names.DEPTH_REFINED_INFO_TOPIC]
     assert info.header == frame.header and info.distortion_model == "rational_polynomial"
     for field in ("k", "p", "d", "r"):
         np.testing.assert_array_equal(getattr(info, field), getattr(same.message, field))
     # the fallback intrinsics: K, P = [K | 0], D empty, at the image's size
     fallback = CameraSource(Intrinsics(7, 7, 2.5, 1.5, 6, 4), None, fallback=True)
-    info = outputs.frame_messages(FrameOutput(frame, depth, refined=False), fallback)[
-        names.DEPTH_REFINED_INFO_TOPIC]
+    unrefined = FrameOutput(frame, depth, refined=False, metres_per_unit=1.0)
+    info = outputs.frame_messages(unrefined, fallback)[names.DEPTH_REFINED_INFO_TOPIC]
     np.testing.assert_array_equal(np.reshape(info.p, (3, 4)),
                                   [[7, 0, 2.5, 0], [0, 7, 1.5, 0], [0, 0, 1, 0]])
     assert len(info.d) == 0 and (info.width, info.height) == (6, 4)
@@ -95,7 +97,7 @@ def test_a_window_gives_its_cloud_in_the_newest_registered_frame():
     err = np.array([0.5, 1.5], np.float32)
     stats = WindowStats(index=1, new_frames=2, cloud_frame=cloud_frame, result=WindowResult(
         ["a", "b"], {}, {}, refined=True, cloud_frame="b", cloud_xyz=xyz, cloud_error=err))
-    msgs = outputs.window_messages(stats, points=True)
+    msgs = outputs.window_messages(stats, points=True, metric=True)
     assert list(msgs) == [names.POINTS_TOPIC]
     cloud = msgs[names.POINTS_TOPIC]
     assert cloud.header == cloud_frame.header
@@ -106,3 +108,54 @@ def test_a_window_gives_its_cloud_in_the_newest_registered_frame():
     # no cloud (the window did not reach refinement): nothing to publish
     empty = WindowStats(index=2, new_frames=1, result=WindowResult(["a"], {}, {}, False))
     assert outputs.window_messages(empty) == {}
+
+
+def test_depth_not_in_metres_goes_out_on_the_relative_topics_or_not_at_all():
+    """REP 118: the metric topics carry metres only; the relative twins (or nothing) the rest;
+    the colour image has no unit and stays."""
+    depth = np.full((4, 6), 2.0, np.float32)
+    frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
+    camera = CameraSource(Intrinsics(7, 7, 2.5, 1.5, 6, 4), None, fallback=True)
+    live = LiveOutput(frame, depth, version=0, weights_age_s=0.0, arrival=0.0, served=0.0)
+    every = ("depth", "depth_colored", "cloud")
+    msgs = outputs.live_messages(live, every, camera)
+    assert list(msgs) == [names.DEPTH_RELATIVE_TOPIC, names.DEPTH_RELATIVE_INFO_TOPIC,
+                          names.DEPTH_COLORED_TOPIC, names.DEPTH_COLORED_INFO_TOPIC,
+                          names.CLOUD_RELATIVE_TOPIC]
+    np.testing.assert_array_equal(image_to_numpy(msgs[names.DEPTH_RELATIVE_TOPIC]), depth)
+    dropped = outputs.live_messages(live, every, camera, relative="drop")
+    assert list(dropped) == [names.DEPTH_COLORED_TOPIC, names.DEPTH_COLORED_INFO_TOPIC]
+    refined = FrameOutput(frame, depth, refined=True)
+    assert list(outputs.frame_messages(refined, camera)) == [
+        names.DEPTH_REFINED_RELATIVE_TOPIC, names.DEPTH_REFINED_RELATIVE_INFO_TOPIC]
+    assert outputs.frame_messages(refined, camera, relative="drop") == {}
+    stats = WindowStats(index=1, new_frames=2, cloud_frame=frame, result=WindowResult(
+        ["a"], {}, {}, refined=True, cloud_frame="a", cloud_xyz=np.ones((2, 3), np.float32),
+        cloud_error=np.zeros(2, np.float32)))
+    assert list(outputs.window_messages(stats)) == [names.POINTS_RELATIVE_TOPIC]
+    assert outputs.window_messages(stats, relative="drop") == {}
+
+
+def test_compressed_depth_follows_each_depth_image_on_its_own_topic():
+    """compressed_depth: <image>/compressedDepth after each depth image, metric or relative,
+    decoding back to the depth within one quantisation step of inverse depth."""
+    from msg_adapters.compressed_depth import compressed_depth_to_depth, quantisation_error
+
+    depth = np.linspace(0.5, 20.0, 24, dtype=np.float32).reshape(4, 6)
+    frame = Frame(index=0, image=np.zeros((4, 6, 3), np.uint8), header=header(7, "cam"))
+    packed = outputs.Compression(depth_max=15.0, png_level=1)
+    live = LiveOutput(frame, depth, version=0, weights_age_s=0.0, arrival=0.0, served=0.0,
+                      metres_per_unit=1.0)
+    timings: dict[str, float] = {}
+    msgs = outputs.live_messages(live, ("depth",), compressed=packed, timings=timings)
+    topic = names.DEPTH_TOPIC + "/compressedDepth"
+    assert list(msgs) == [names.DEPTH_TOPIC, topic] and "compressed_depth" in timings
+    c = msgs[topic]
+    assert c.format == "32FC1; compressedDepth png" and c.header == frame.header
+    back = compressed_depth_to_depth(c)
+    near = depth < 15.0
+    assert np.all(np.isnan(back[~near]))
+    assert np.max(np.abs(1 / depth[near] - 1 / back[near])) <= quantisation_error(15.0) * 1.001
+    refined = outputs.frame_messages(FrameOutput(frame, depth, refined=True), compressed=packed)
+    assert list(refined) == [names.DEPTH_REFINED_RELATIVE_TOPIC,
+                             names.DEPTH_REFINED_RELATIVE_TOPIC + "/compressedDepth"]

@@ -1,5 +1,11 @@
 """KITTI metrics of a bag of predicted depth against a ground-truth depth topic, matched by
-header stamp: :func:`evaluate_bag` (``sfm-ttr evaluate --bag``)."""
+header stamp: :func:`evaluate_bag` (``sfm-ttr evaluate --bag``).
+
+The refiner publishes depth in metres on its metric topics and depth not (yet) in metres on
+their relative twins (REP 118, :mod:`sfm_ttr_ros.ros.units`): a refiner output topic is read
+together with its twin (:func:`pred_topics`), each frame from whichever carries it; median-scaled
+metrics take either, metres-only metrics should be read with ``--no-median-scaling`` knowing
+how many frames came relative (``pred_relative_frames``)."""
 
 from __future__ import annotations
 
@@ -26,18 +32,28 @@ from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 DEFAULT_PRED_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
 
 
-def _stamp_index(path: Path, topic: str) -> tuple[dict[int, int], int]:
+def pred_topics(path: Path, topic: str) -> list[str]:
+    """``topic`` and its relative twin (:func:`~sfm_ttr_ros.ros.names.relative_twin_of`), those
+    of them in the bag at ``path``; ``[topic]`` when neither is (the check names it)."""
+    have = bag_topics(path)
+    twin = names.relative_twin_of(topic)
+    found = [t for t in (topic, twin) if t is not None and t in have]
+    return found or [topic]
+
+
+def _stamp_index(path: Path, topics: list[str]) -> tuple[dict[int, int], int]:
     """header stamp -> log time of the first message with it; number of repeated stamps."""
     index: dict[int, int] = {}
     dupes = 0
     reader = open_reader(path)
     try:
-        conns = select_connections(reader, path, [topic])
+        conns = select_connections(reader, path, topics)
         for conn, t, raw in reader.messages(connections=conns):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception as exc:
-                raise InputError(f"cannot decode a message on {topic} in {path}: {exc}") from exc
+                raise InputError(f"cannot decode a message on {conn.topic} in {path}: "
+                                 f"{exc}") from exc
             st = header_stamp_ns(msg, t)
             if st in index:
                 dupes += 1
@@ -68,7 +84,9 @@ def evaluate_bag(
 ) -> dict:
     """KITTI metrics of the depth images on ``pred_topic`` of ``pred_bag`` against the ground
     truth on ``gt_topic`` of ``gt_bag`` (default: the same bag), matched by header stamp
-    (exact nanoseconds).
+    (exact nanoseconds); with the relative twin of ``pred_topic`` when the bag has it
+    (:func:`pred_topics`: ``pred_topic`` in the result lists what was read,
+    ``pred_relative_frames`` counts the frames from the twin).
 
     Both topics hold depth Images (32FC1 metres, NaN = none; 16UC1 millimetres also read). The
     ground truth is read one frame at a time (indexed by stamp first), so memory stays at one
@@ -80,23 +98,26 @@ def evaluate_bag(
     """
     pred_bag = Path(pred_bag)
     gt_bag = pred_bag if gt_bag is None else Path(gt_bag)
-    _check_image_topic(pred_bag, pred_topic)
+    topics = pred_topics(pred_bag, pred_topic)
+    for topic in topics:
+        _check_image_topic(pred_bag, topic)
     _check_image_topic(gt_bag, gt_topic)
-    gt_index, dup_gt = _stamp_index(gt_bag, gt_topic)
-    pred_index, dup_pred = _stamp_index(pred_bag, pred_topic)
+    gt_index, dup_gt = _stamp_index(gt_bag, [gt_topic])
+    pred_index, dup_pred = _stamp_index(pred_bag, topics)
     matched = sorted(set(gt_index) & set(pred_index))
 
     evaluator = Evaluator(config or EvalConfig())
     bar = ProgressBar(len(matched), "evaluate", enabled=progress)
     gt_reader = open_reader(gt_bag)
     seen: set[int] = set()
+    relative = 0
     try:
         gt_conns = select_connections(gt_reader, gt_bag, [gt_topic])
-        for topic, _, st, msg in read_bag(pred_bag, [pred_topic]):
-            del topic
+        for topic, _, st, msg in read_bag(pred_bag, topics):
             if st not in gt_index or st in seen:
                 continue
             seen.add(st)
+            relative += topic != pred_topic
             pred = image_to_depth(msg)
             t = gt_index[st]
             gt = None
@@ -117,7 +138,8 @@ def evaluate_bag(
     missing_pred = sorted(set(gt_index) - set(pred_index))
     out.update({
         "pred_bag": str(pred_bag), "gt_bag": str(gt_bag),
-        "pred_topic": pred_topic, "gt_topic": gt_topic,
+        "pred_topic": " + ".join(topics), "gt_topic": gt_topic,
+        "pred_relative_frames": relative,
         "pred_frames": len(pred_index), "gt_frames": len(gt_index), "matched": len(matched),
         "missing_gt": len(missing_gt), "missing_pred": len(missing_pred),
         "missing_gt_stamps": [stamp_str(s) for s in missing_gt],
@@ -127,4 +149,4 @@ def evaluate_bag(
     return out
 
 
-__all__ = ["DEFAULT_PRED_TOPIC", "evaluate_bag"]
+__all__ = ["DEFAULT_PRED_TOPIC", "evaluate_bag", "pred_topics"]

@@ -45,6 +45,41 @@ CLOUD_TOPIC = "~/cloud"  # the live depth back-projected (outputs: cloud)
 POINTS_TOPIC = "~/points"  # the windows' sparse SfM clouds
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
+# REP 118: 32FC1 depth is metres. Depth, clouds and points not (yet) in metres go out on a
+# relative twin of their topic (relative_depth: publish) or not at all (drop).
+DEPTH_RELATIVE_BASE = "~/depth_relative"
+DEPTH_RELATIVE_TOPIC = DEPTH_RELATIVE_BASE + IMAGE_SUFFIX
+DEPTH_RELATIVE_INFO_TOPIC = DEPTH_RELATIVE_BASE + CAMERA_INFO_SUFFIX
+DEPTH_REFINED_RELATIVE_BASE = "~/depth_refined_relative"
+DEPTH_REFINED_RELATIVE_TOPIC = DEPTH_REFINED_RELATIVE_BASE + IMAGE_SUFFIX
+DEPTH_REFINED_RELATIVE_INFO_TOPIC = DEPTH_REFINED_RELATIVE_BASE + CAMERA_INFO_SUFFIX
+CLOUD_RELATIVE_TOPIC = "~/cloud_relative"
+POINTS_RELATIVE_TOPIC = "~/points_relative"
+#: metric topic -> its relative twin (the outputs in the depth's units)
+RELATIVE_TWIN = {
+    DEPTH_TOPIC: DEPTH_RELATIVE_TOPIC, DEPTH_INFO_TOPIC: DEPTH_RELATIVE_INFO_TOPIC,
+    DEPTH_REFINED_TOPIC: DEPTH_REFINED_RELATIVE_TOPIC,
+    DEPTH_REFINED_INFO_TOPIC: DEPTH_REFINED_RELATIVE_INFO_TOPIC,
+    CLOUD_TOPIC: CLOUD_RELATIVE_TOPIC, POINTS_TOPIC: POINTS_RELATIVE_TOPIC,
+}
+#: latched (transient local, depth 1) diagnostic_msgs/DiagnosticStatus: the depth's scale now
+DEPTH_SCALE_TOPIC = "~/depth_scale"
+COMPRESSED_DEPTH_SUFFIX = "/compressedDepth"  # image_transport: <image>/compressedDepth
+
+
+def compressed_depth_topic(image_topic: str) -> str:
+    """The compressedDepth topic of a depth image topic (image_transport's naming)."""
+    return image_topic.rstrip("/") + COMPRESSED_DEPTH_SUFFIX
+
+
+#: the depth image topics (each may have a compressedDepth twin)
+DEPTH_IMAGE_TOPICS = (DEPTH_TOPIC, DEPTH_REFINED_TOPIC, DEPTH_RELATIVE_TOPIC,
+                      DEPTH_REFINED_RELATIVE_TOPIC)
+RELATIVE_TWIN.update({compressed_depth_topic(metric): compressed_depth_topic(relative)
+                      for metric, relative in ((DEPTH_TOPIC, DEPTH_RELATIVE_TOPIC),
+                                               (DEPTH_REFINED_TOPIC,
+                                                DEPTH_REFINED_RELATIVE_TOPIC))})
+
 
 def resolve(topic: str, node_name: str = NODE_NAME, namespace: str = "/") -> str:
     """The absolute name of ``topic`` for a node ``node_name`` in ``namespace`` (ROS 2 rules:
@@ -66,6 +101,15 @@ def status_name(node_fqn: str) -> str:
     return f"{PACKAGE}: {node_fqn.lstrip('/')}"
 
 
+def relative_twin_of(topic: str) -> str | None:
+    """The relative twin of a metric output topic, resolved or not (``/cam1/refiner/depth/image``
+    -> ``/cam1/refiner/depth_relative/image``); None for any other topic."""
+    for metric, relative in RELATIVE_TWIN.items():
+        if topic == metric or (topic.startswith("/") and topic.endswith(metric[1:])):
+            return topic[:len(topic) - len(metric) + 1] + relative[1:]
+    return None
+
+
 NODE_FQN = resolve("~")  # "/refiner": the diagnostics' hardware_id
 DIAG_NAME = status_name(NODE_FQN)  # "sfm_ttr_ros: refiner", the default node's status name
 DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth/image"
@@ -76,3 +120,6 @@ DEPTH_REFINED_TOPIC_RESOLVED = resolve(DEPTH_REFINED_TOPIC)  # "/refiner/depth_r
 DEPTH_REFINED_INFO_TOPIC_RESOLVED = resolve(DEPTH_REFINED_INFO_TOPIC)
 CLOUD_TOPIC_RESOLVED = resolve(CLOUD_TOPIC)  # "/refiner/cloud"
 POINTS_TOPIC_RESOLVED = resolve(POINTS_TOPIC)
+DEPTH_RELATIVE_TOPIC_RESOLVED = resolve(DEPTH_RELATIVE_TOPIC)  # "/refiner/depth_relative/image"
+DEPTH_REFINED_RELATIVE_TOPIC_RESOLVED = resolve(DEPTH_REFINED_RELATIVE_TOPIC)
+DEPTH_SCALE_TOPIC_RESOLVED = resolve(DEPTH_SCALE_TOPIC)  # "/refiner/depth_scale"

@@ -71,6 +71,7 @@ from sfm_ttr_ros.ros.containment import ThrottledLog, contained, fault_message, 
 from sfm_ttr_ros.ros.encoder_file import load_encoder, save_encoder
 from sfm_ttr_ros.ros.live_settings import LiveSettings
 from sfm_ttr_ros.ros.publishers import OutputPublishers
+from sfm_ttr_ros.ros.units import ScaleState
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
 EXIT_START_UP = 1  # the node could not start (parameters, model, weights)
@@ -132,6 +133,8 @@ class RefinerNode(Node):
                                                 self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input.topic)
         self.pubs = OutputPublishers(self, int(node.qos_depth), self._on_incompatible_qos)
+        self.scale = ScaleState(self.pubs.depth_scale.publish, self.get_fully_qualified_name())
+        self._report_scale()
         self.create_timer(float(node.diagnostics_period_s), self._on_timer)
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
@@ -261,7 +264,12 @@ class RefinerNode(Node):
     @contained("timer")
     def _on_timer(self) -> None:
         self._hand_over(self.intrinsics.release())  # the fallback may have been set meanwhile
+        self._report_scale()
         self.publish_diagnostics()
+
+    def _report_scale(self) -> None:
+        """~/depth_scale (latched) when the depth's scale changed (ros/units.py)."""
+        self.scale.update(self.ttr.metric_status(), self.settings.relative_depth)
 
     # -- outputs (live thread, worker thread) --------------------------------------------------
     def _publish_live(self, out: LiveOutput) -> None:
@@ -277,7 +285,8 @@ class RefinerNode(Node):
             self._camera_info_missing("live", out.frame)
         self.pubs.publish(outputs.live_messages(out, s.published, camera,
                                                 cloud_stride=s.cloud_stride,
-                                                cloud_max_range=s.cloud_max_range))
+                                                cloud_max_range=s.cloud_max_range,
+                                                **outputs.unit_options(s)))
         self.health.published("depth")
 
     @contained("publish")
@@ -288,7 +297,8 @@ class RefinerNode(Node):
             camera = self.intrinsics.window_camera(out.frame, _stamp_ns(out.frame))
             if camera is None:
                 self._camera_info_missing("refined", out.frame)
-            self.pubs.publish(outputs.frame_messages(out, camera))
+            self.pubs.publish(outputs.frame_messages(out, camera,
+                                                     **outputs.unit_options(self.settings)))
             self.health.published("depth_refined")
         self.diagnostics.output_published(out.refined, out.reason_key)
 
@@ -305,7 +315,10 @@ class RefinerNode(Node):
             return
         if stats.reason_key == Unrefined.ROLLED_BACK:
             self.warn_every("rolled_back", f"window {stats.index}: {stats.reason}")
-        self.pubs.publish(outputs.window_messages(stats, points=self._publishes("points")))
+        self.pubs.publish(outputs.window_messages(
+            stats, points=self._publishes("points"), metric=self.ttr.metres_per_unit is not None,
+            relative=self.settings.relative_depth))
+        self._report_scale()
         self.publish_diagnostics()
 
     def diagnostics_values(self) -> dict[str, object]:

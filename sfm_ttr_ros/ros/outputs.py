@@ -19,17 +19,27 @@ which the node counts).
   qualified name (:func:`~sfm_ttr_ros.ros.names.status_name`; the default node's:
   :data:`~sfm_ttr_ros.ros.names.DIAG_NAME`).
 
+Units (REP 118, :mod:`sfm_ttr_ros.ros.units`): each message is built on its metric topic and
+goes out there only when its depth is in metres (the frame's ``metres_per_unit`` is known, or
+``metric`` for a window); otherwise on the topic's relative twin (``relative`` ``"publish"``) or
+not at all (``"drop"``). With ``compressed`` (a :class:`Compression`), each depth image is also
+sent as image_transport's ``<image>/compressedDepth`` (:mod:`msg_adapters.compressed_depth`),
+right after it.
+
 Every message is built by msg_adapters. The node publishes what these return, in their order
 (each image before its CameraInfo, as image_transport's CameraPublisher); ``sfm-ttr speed``
 (tools/benchmark/messages.py) converts through the same functions. ``timings``, when given, adds
 the seconds spent building each message under ``depth_image``, ``colored_image``,
-``camera_info``, ``cloud``, ``pointcloud`` and ``diagnostics``.
+``camera_info``, ``cloud``, ``pointcloud``, ``compressed_depth`` and ``diagnostics``.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Collection, MutableMapping
+from typing import NamedTuple
+
+import numpy as np
 
 from msg_adapters import (
     camera_info_for,
@@ -40,14 +50,41 @@ from msg_adapters import (
     make_diagnostic_array,
     numpy_to_pointcloud2,
 )
+from msg_adapters.compressed_depth import depth_to_compressed_depth
 from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS
 from sfm_ttr_ros.core.stream.diagnostics import Status
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
-from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.ros import names, units
 from sfm_ttr_ros.ros.camera import CameraSource
 
 Timings = MutableMapping[str, float]
+
+
+class Compression(NamedTuple):
+    """The compressedDepth outputs' settings (``compressed_depth.*`` parameters)."""
+
+    depth_max: float = 100.0
+    png_level: int = 1
+
+
+def unit_options(settings) -> dict[str, object]:
+    """The units and compression keywords of :func:`live_messages` and :func:`frame_messages`
+    under the node's ``settings`` (:class:`~sfm_ttr_ros.core.params.node.NodeSettings`)."""
+    compressed = (Compression(settings.compressed_depth_max,
+                              settings.compressed_depth_png_level)
+                  if "compressed_depth" in settings.published else None)
+    return {"relative": settings.relative_depth, "compressed": compressed}
+
+
+def _compressed(msgs: dict[str, object], topic: str, depth: np.ndarray, header,
+                compressed: Compression | None, timings: Timings | None) -> None:
+    """Add ``<topic>/compressedDepth`` of ``depth`` to ``msgs`` when ``compressed``."""
+    if compressed is not None:
+        msgs[names.compressed_depth_topic(topic)] = _timed(
+            timings, "compressed_depth", lambda: depth_to_compressed_depth(
+                depth, header, depth_max=compressed.depth_max,
+                png_level=compressed.png_level))
 
 
 def _timed(timings: Timings | None, key: str, build: Callable, *args):
@@ -74,13 +111,15 @@ def camera_info_message(camera: CameraSource | None, size: tuple[int, int], head
 
 def live_messages(out: LiveOutput, published: Collection[str] = DEFAULT_OUTPUTS,
                   camera: CameraSource | None = None, *, cloud_stride: int = 4,
-                  cloud_max_range: float = 0.0,
+                  cloud_max_range: float = 0.0, relative: str = "publish",
+                  compressed: Compression | None = None,
                   timings: Timings | None = None) -> dict[str, object]:
-    """{topic: message} for one live frame, for the outputs in ``published``: ``depth``,
-    ``depth_colored`` (each image with the input image's header, and its ``camera_info`` when
-    ``camera`` is known) and ``cloud`` (only with ``camera``: the depth back-projected every
-    ``cloud_stride`` pixels, points beyond ``cloud_max_range`` left out, with the input
-    image's colours)."""
+    """{topic: message} for one live frame, for the outputs in ``published``: ``depth``
+    (and its compressedDepth with ``compressed``), ``depth_colored`` (each image with the
+    input image's header, and its ``camera_info`` when ``camera`` is known) and ``cloud`` (only
+    with ``camera``: the depth back-projected every ``cloud_stride`` pixels, points beyond
+    ``cloud_max_range`` left out, with the input image's colours); routed by units (module
+    docstring)."""
     header = out.frame.header
     size = (int(out.depth.shape[1]), int(out.depth.shape[0]))
     info = _timed(timings, "camera_info", camera_info_message, camera, size, header)
@@ -88,6 +127,7 @@ def live_messages(out: LiveOutput, published: Collection[str] = DEFAULT_OUTPUTS,
     if "depth" in published:
         msgs[names.DEPTH_TOPIC] = _timed(timings, "depth_image", depth_to_image, out.depth,
                                          header)
+        _compressed(msgs, names.DEPTH_TOPIC, out.depth, header, compressed, timings)
         if info is not None:
             msgs[names.DEPTH_INFO_TOPIC] = info
     if "depth_colored" in published:
@@ -99,32 +139,39 @@ def live_messages(out: LiveOutput, published: Collection[str] = DEFAULT_OUTPUTS,
         msgs[names.CLOUD_TOPIC] = _timed(timings, "cloud", depth_to_pointcloud2, out.depth,
                                          out.frame.image, info, cloud_stride, cloud_max_range,
                                          header)
-    return msgs
+    return units.route(msgs, out.metres_per_unit is not None, relative)
+
 
 
 def frame_messages(out: FrameOutput, camera: CameraSource | None = None,
-                   timings: Timings | None = None) -> dict[str, object]:
+                   timings: Timings | None = None, *, relative: str = "publish",
+                   compressed: Compression | None = None) -> dict[str, object]:
     """{topic: message} for one frame out of its window: ``~/depth_refined/image`` with the
-    input image's header and, when ``camera`` is known, its ``camera_info``."""
+    input image's header (and its compressedDepth with ``compressed``) and, when ``camera`` is
+    known, its ``camera_info``; routed by units (module docstring)."""
     header = out.frame.header
     msgs = {names.DEPTH_REFINED_TOPIC: _timed(timings, "depth_image", depth_to_image, out.depth,
                                               header)}
+    _compressed(msgs, names.DEPTH_REFINED_TOPIC, out.depth, header, compressed, timings)
     size = (int(out.depth.shape[1]), int(out.depth.shape[0]))
     info = _timed(timings, "camera_info", camera_info_message, camera, size, header)
     if info is not None:
         msgs[names.DEPTH_REFINED_INFO_TOPIC] = info
-    return msgs
+    return units.route(msgs, out.metres_per_unit is not None, relative)
 
 
 def window_messages(stats: WindowStats, points: bool = True,
-                    timings: Timings | None = None) -> dict[str, object]:
+                    timings: Timings | None = None, *, metric: bool = False,
+                    relative: str = "publish") -> dict[str, object]:
     """{topic: message} for one finished window: ``~/points`` when ``points`` and the window
-    has a non-empty cloud (it reached refinement), else nothing."""
+    has a non-empty cloud (it reached refinement), else nothing; on ``~/points`` when
+    ``metric`` (the outputs' metric factor is known), else routed by units (module
+    docstring)."""
     if not points or stats.cloud_frame is None or not stats.cloud_xyz.shape[0]:
         return {}
     cloud = _timed(timings, "pointcloud", numpy_to_pointcloud2, stats.cloud_xyz,
                    stats.cloud_frame.header, {"reprojection_error": stats.cloud_error})
-    return {names.POINTS_TOPIC: cloud}
+    return units.route({names.POINTS_TOPIC: cloud}, metric, relative)
 
 
 def diagnostics_message(status: Status, stamp, hardware_id: str = names.NODE_FQN,

@@ -1,49 +1,73 @@
 """The ``refiner`` node's publishers: every output topic (docs/node.md, "Topics"), each depth
-image's CameraInfo beside it, and ``/diagnostics``.
+image's CameraInfo beside it, the relative twins of the metric outputs, the compressedDepth of
+each depth image, the latched ``~/depth_scale`` and ``/diagnostics``.
 
 :class:`OutputPublishers` creates them (KEEP_LAST ``qos_depth``, reliable; /diagnostics depth
-10), publishes the ``{topic: message}`` dicts :mod:`sfm_ttr_ros.ros.outputs` builds, in their
-order, and one diagnostics status at a time.
+10; ``~/depth_scale`` transient local, depth 1), each output's QoS overridable at start-up by
+ROS's ``qos_overrides.<topic>.publisher.<policy>`` parameters (rclpy's
+``QoSOverridingOptions``, as the inputs', :mod:`sfm_ttr_ros.ros.subscriptions`), publishes the
+``{topic: message}`` dicts :mod:`sfm_ttr_ros.ros.outputs` builds, in their order, and one
+diagnostics status at a time.
 """
 
 from __future__ import annotations
 
+import copy
 import threading
 from collections.abc import Callable
 from functools import partial
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from sfm_ttr_ros.ros import names, outputs
 
 DIAGNOSTICS_QOS_DEPTH = 10
-IMAGE_TOPICS = (names.DEPTH_TOPIC, names.DEPTH_COLORED_TOPIC, names.DEPTH_REFINED_TOPIC)
-CLOUD_TOPICS = (names.POINTS_TOPIC, names.CLOUD_TOPIC)
+IMAGE_TOPICS = (names.DEPTH_TOPIC, names.DEPTH_COLORED_TOPIC, names.DEPTH_REFINED_TOPIC,
+                names.DEPTH_RELATIVE_TOPIC, names.DEPTH_REFINED_RELATIVE_TOPIC)
+COMPRESSED_DEPTH_TOPICS = tuple(names.compressed_depth_topic(t)
+                                for t in names.DEPTH_IMAGE_TOPICS)
+CLOUD_TOPICS = (names.POINTS_TOPIC, names.CLOUD_TOPIC, names.POINTS_RELATIVE_TOPIC,
+                names.CLOUD_RELATIVE_TOPIC)
 CAMERA_INFO_TOPICS = (names.DEPTH_INFO_TOPIC, names.DEPTH_COLORED_INFO_TOPIC,
-                      names.DEPTH_REFINED_INFO_TOPIC)
+                      names.DEPTH_REFINED_INFO_TOPIC, names.DEPTH_RELATIVE_INFO_TOPIC,
+                      names.DEPTH_REFINED_RELATIVE_INFO_TOPIC)
+#: ~/depth_scale: a late subscriber still gets the last state (transient local, depth 1)
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class OutputPublishers:
-    """One publisher per output topic of ``node`` (``by_topic``) and ``diagnostics``; an
-    incompatible QoS on any of them calls ``on_incompatible_qos(topic, event)``."""
+    """One publisher per output topic of ``node`` (``by_topic``), ``depth_scale`` and
+    ``diagnostics``; an incompatible QoS on any of them calls ``on_incompatible_qos(topic,
+    event)``."""
 
     def __init__(self, node, qos_depth: int,
                  on_incompatible_qos: Callable[[str, object], None]) -> None:
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
                          reliability=ReliabilityPolicy.RELIABLE)
+        overrides = QoSOverridingOptions.with_default_policies()
 
-        def pub(msg_type, topic, depth_qos=qos):
+        def pub(msg_type, topic, depth_qos=qos, overridable=True):
+            # a profile of its own: rclpy writes the topic's overrides into the one given
+            profile = copy.copy(depth_qos) if isinstance(depth_qos, QoSProfile) else depth_qos
             return node.create_publisher(
-                msg_type, topic, depth_qos, event_callbacks=PublisherEventCallbacks(
-                    incompatible_qos=partial(on_incompatible_qos, topic)))
+                msg_type, topic, profile, event_callbacks=PublisherEventCallbacks(
+                    incompatible_qos=partial(on_incompatible_qos, topic)),
+                qos_overriding_options=overrides if overridable else None)
 
         self.by_topic = {topic: pub(Image, topic) for topic in IMAGE_TOPICS}
+        self.by_topic.update({topic: pub(CompressedImage, topic)
+                              for topic in COMPRESSED_DEPTH_TOPICS})
         self.by_topic.update({topic: pub(PointCloud2, topic) for topic in CLOUD_TOPICS})
-        self.diagnostics = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS_DEPTH)
+        self.diagnostics = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS_DEPTH,
+                               overridable=False)
         self.by_topic.update({topic: pub(CameraInfo, topic) for topic in CAMERA_INFO_TOPICS})
+        self.depth_scale = pub(DiagnosticStatus, names.DEPTH_SCALE_TOPIC, LATCHED_QOS)
         self._diag_lock = threading.Lock()  # one status published at a time, in order
 
     def publish(self, messages: dict[str, object]) -> None:

@@ -74,7 +74,8 @@ def add_evaluate_bag_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--gt-bag", default=None,
                    help="rosbag2 holding the ground truth (default: the same bag)")
     g.add_argument("--pred-topic", default=DEFAULT_PRED_TOPIC,
-                   help=f"predicted depth topic (default {DEFAULT_PRED_TOPIC})")
+                   help=f"predicted depth topic (default {DEFAULT_PRED_TOPIC}); a refiner "
+                        "output is read with its relative twin (depth not yet in metres)")
     g.add_argument("--gt-topic", default=DEPTH_GT_TOPIC,
                    help=f"ground-truth depth topic (default {DEPTH_GT_TOPIC})")
 

@@ -50,6 +50,8 @@ from sfm_ttr_ros.tools.process import interrupt
 
 DEPTH_TOPIC = names.DEPTH_TOPIC_RESOLVED  # the refiner's live depth: /refiner/depth/image
 REFINED_TOPIC = names.DEPTH_REFINED_TOPIC_RESOLVED  # each frame out of its window
+# depth not (yet) in metres comes on the relative twins (REP 118): each output is read from both
+TWINS = {t: names.relative_twin_of(t) for t in (DEPTH_TOPIC, REFINED_TOPIC)}
 LIVE_GRACE_S = 5.0  # after the last refined depth, how long to wait for missing live ones
 NODE_START_TIMEOUT_S = 120.0  # from starting the refiner to its publishers being discovered
 ACCOUNTING_FILE = "refiner_accounting.json"  # the node's final accounting, written as it stops
@@ -174,11 +176,11 @@ def _predict_no_ttr(bag: Path, out_bag: Path, model, storage: str,
 
     n = 0
     with BagRecorder(out_bag, storage) as rec:
-        rec.add_topic(DEPTH_TOPIC, IMAGE_MSGTYPE)
+        rec.add_topic(TWINS[DEPTH_TOPIC], IMAGE_MSGTYPE)  # the network's units, not metres
         for _, _, stamp_ns, msg in read_bag(bag, [bag_image_topic(compressed)]):
             rgb = bag_rgb(msg)
             depth = model.predict(rgb)[0]
-            rec.write(DEPTH_TOPIC, depth_msg(depth, stamp_ns, msg.header.frame_id))
+            rec.write(TWINS[DEPTH_TOPIC], depth_msg(depth, stamp_ns, msg.header.frame_id))
             n += 1
     return n
 
@@ -229,9 +231,26 @@ def node_arguments(items: list[str]) -> list[str]:
     return out
 
 
+def _got(rec, topic: str) -> int:
+    """Messages ``rec`` has of an output: on ``topic`` and on its relative twin."""
+    counts = rec.counts
+    return counts.get(topic, 0) + counts.get(TWINS[topic], 0)
+
+
+def _wait_got(rec, topic: str, n: int, timeout: float) -> bool:
+    """Wait until ``rec`` has ``n`` messages of an output (:func:`_got`); False on timeout."""
+    deadline = time.monotonic() + timeout
+    while _got(rec, topic) < n:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
 def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict:
     """Start the node, play the bag into it, record ``/refiner/depth/image`` (live) and
-    ``/refiner/depth_refined/image`` (windows) until every frame is back on both."""
+    ``/refiner/depth_refined/image`` (windows), each with its relative twin (depth not yet in
+    metres), until every frame is back on both outputs."""
     from sfm_ttr_ros.ros.bag import IMAGE_MSGTYPE
     from sfm_ttr_ros.ros.kitti_bag import CAMERA_INFO_TOPIC
     from sfm_ttr_ros.ros.player import TopicRecorder, play_bag
@@ -250,7 +269,7 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
-            wanted = {DEPTH_TOPIC: IMAGE_MSGTYPE, REFINED_TOPIC: IMAGE_MSGTYPE}
+            wanted = {t: IMAGE_MSGTYPE for pair in TWINS.items() for t in pair}
             with TopicRecorder(out / "refined_bag", wanted, storage=opts.storage) as rec:
                 # the recorder's subscriptions are VOLATILE: what the node publishes before they
                 # match is never delivered: wait for the match before playing
@@ -274,21 +293,21 @@ def _run_refiner(opts: DemoOptions, bag: Path, out: Path, expected: int) -> dict
                      f"{expected} frames")
                 last, t_wait = -1, time.monotonic()
                 while time.monotonic() - t_wait < opts.timeout_s:
-                    if rec.wait_for({REFINED_TOPIC: expected}, timeout=10.0):
+                    if _wait_got(rec, REFINED_TOPIC, expected, timeout=10.0):
                         # live frames come first; one skipped under load (live_max_queue) is
                         # counted by the node, not waited for
-                        rec.wait_for({DEPTH_TOPIC: expected}, timeout=LIVE_GRACE_S)
+                        _wait_got(rec, DEPTH_TOPIC, expected, timeout=LIVE_GRACE_S)
                         break
                     if proc.poll() is not None:
                         raise InputError(f"refiner exited with code {proc.returncode} "
                                          f"before publishing every frame; see {log_path}")
-                    got = rec.counts.get(REFINED_TOPIC, 0)
+                    got = _got(rec, REFINED_TOPIC)
                     if got != last:
                         _say(f"   {got}/{expected} refined depth images received "
-                             f"({rec.counts.get(DEPTH_TOPIC, 0)} live)")
+                             f"({_got(rec, DEPTH_TOPIC)} live)")
                         last = got
-                received = rec.counts.get(REFINED_TOPIC, 0)
-                live_received = rec.counts.get(DEPTH_TOPIC, 0)
+                received = _got(rec, REFINED_TOPIC)
+                live_received = _got(rec, DEPTH_TOPIC)
         finally:
             interrupt(proc, timeout=20)
     seconds = time.perf_counter() - t0
@@ -379,7 +398,8 @@ def _metric_outputs(out: Path, bag: Path, cfg) -> dict[str, dict]:
     from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
 
     sources = _output_sources(out)
-    keep = ("abs_rel", "rmse", "ratio_median", "ratio_std", "frames")
+    keep = ("abs_rel", "rmse", "ratio_median", "ratio_std", "frames",
+            "pred_relative_frames")
     out_metrics = {}
     for key in ("sfm_ttr", "sfm_ttr_live"):
         e = evaluate_bag(sources[key][0], bag, sources[key][1], DEPTH_GT_TOPIC, cfg)

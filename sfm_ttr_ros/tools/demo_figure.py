@@ -72,6 +72,7 @@ def draw_figure(out: Path, bag: Path, drive: str, cfg, image_topic: str,
 
     from msg_adapters.image import image_to_depth
     from sfm_ttr_ros.ros.bag import bag_rgb, read_bag
+    from sfm_ttr_ros.ros.bag_evaluation import pred_topics
     from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC
     from sfm_ttr_ros.tools.benchmark import qualitative_figure
 
@@ -80,7 +81,8 @@ def draw_figure(out: Path, bag: Path, drive: str, cfg, image_topic: str,
     if gt_msg is None:
         return None
     image = next(bag_rgb(m) for _, _, s, m in read_bag(bag, [image_topic]) if s == stamp)
-    found = {k: next((m for _, _, s, m in read_bag(p, [topic]) if s == stamp), None)
+    found = {k: next((m for _, _, s, m in read_bag(p, pred_topics(p, topic)) if s == stamp),
+                     None)
              for k, (p, topic) in sources.items()}
     preds = {k: image_to_depth(m) for k, m in found.items() if m is not None}
     gt = np.nan_to_num(image_to_depth(gt_msg), nan=0.0)

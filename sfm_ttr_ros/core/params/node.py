@@ -14,10 +14,14 @@ QOS_RELIABILITIES = ("reliable", "best_effort")
 IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, CompressedImage on
 # image/compressed (the image_transport convention)
 USE_PROJECTION_CHOICES = ("auto", "true", "false")
+#: depth not (yet) in metres: on the outputs' relative twins (publish) or not at all (drop)
+RELATIVE_DEPTH_CHOICES = ("publish", "drop")
 #: The node's outputs (``outputs``): ~/depth (live), ~/depth_colored, ~/depth_refined
 #: (windowed), ~/points (the windows' sparse clouds), /diagnostics and ~/cloud (the live depth
-#: back-projected; off by default: not in :data:`DEFAULT_OUTPUTS`).
-OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics", "cloud")
+#: back-projected; off by default: not in :data:`DEFAULT_OUTPUTS`) and compressed_depth (each
+#: published depth image also as image_transport's ``<image>/compressedDepth``; off by default).
+OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics", "cloud",
+           "compressed_depth")
 DEFAULT_OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics")
 #: The outputs made from the live depth (any of them starts live serving).
 LIVE_OUTPUTS = ("depth", "depth_colored", "cloud")
@@ -80,7 +84,11 @@ class NodeSettings:
     directions; ``cloud_max_range``: ~/cloud leaves out points farther than this from the camera
     (depth units; 0 = no limit). ``torch_num_threads`` 0 = torch's default.
     ``diagnostics_stale_after_s``: /diagnostics is STALE after this long without an image (0 =
-    never)."""
+    never);
+    ``relative_depth``: depth, clouds and points not in metres on their relative topics
+    (``publish``) or not at all (``drop``); ``compressed_depth_max`` /
+    ``compressed_depth_png_level``: the compressedDepth outputs' ``depth_max`` (farther =
+    none) and PNG level."""
 
     fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
@@ -95,6 +103,9 @@ class NodeSettings:
     torch_num_threads: int = 0
     load_weights_path: str = ""
     save_weights_path: str = ""
+    relative_depth: str = "publish"
+    compressed_depth_max: float = 100.0
+    compressed_depth_png_level: int = 1
 
     def __post_init__(self) -> None:
         parse_fallback_intrinsics(self.fallback_intrinsics)
@@ -114,6 +125,13 @@ class NodeSettings:
                              f"{self.diagnostics_period_s}")
         if self.torch_num_threads < 0:
             raise InputError(f"torch_num_threads must be >= 0, got {self.torch_num_threads}")
+        check_choice("relative_depth", self.relative_depth, RELATIVE_DEPTH_CHOICES)
+        if not (math.isfinite(self.compressed_depth_max) and self.compressed_depth_max > 0):
+            raise InputError(f"compressed_depth.depth_max must be > 0, got "
+                             f"{self.compressed_depth_max}")
+        if not 0 <= self.compressed_depth_png_level <= 9:
+            raise InputError(f"compressed_depth.png_level must be 0-9, got "
+                             f"{self.compressed_depth_png_level}")
 
     # parsed once (read per frame); the settings are replaced, never changed, on a new value
     @cached_property

@@ -39,6 +39,7 @@ from sfm_ttr_ros.core.params.node import (
     IMAGE_TRANSPORTS,
     OUTPUTS,
     QOS_RELIABILITIES,
+    RELATIVE_DEPTH_CHOICES,
     USE_PROJECTION_CHOICES,
     NodeSettings,
 )
@@ -321,7 +322,8 @@ PARAMS: tuple[Param, ...] = (
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),
     _p("outputs", "node.outputs", "The outputs published, comma-separated (cloud, the live "
-       "depth back-projected on ~/cloud, is off unless listed).",
+       "depth back-projected on ~/cloud, and compressed_depth, each depth image also on "
+       "<image>/compressedDepth, are off unless listed).",
        constraints=f"any of {', '.join(OUTPUTS)}"),
     _p("cloud.stride", "node.cloud_stride", "~/cloud: every this-many-th pixel of the live "
        "depth, in both directions.", 1, 1000),
@@ -332,6 +334,17 @@ PARAMS: tuple[Param, ...] = (
     _p("diagnostics.stale_after_s", "node.diagnostics_stale_after_s", "/diagnostics is STALE "
        "after this long without an input image (counted from start-up before the first), "
        "seconds; 0 = never.", 0.0, 3600.0),
+    _p("relative_depth", "node.relative_depth", "Depth, ~/cloud and ~/points not (yet) in "
+       "metres (metric state not_metric or waiting): publish = on their relative twins "
+       "(~/depth_relative, ~/depth_refined_relative, ~/cloud_relative, ~/points_relative); "
+       "drop = not published. The metric topics carry metres only (REP 118).",
+       choices=RELATIVE_DEPTH_CHOICES),
+    _p("compressed_depth.depth_max", "node.compressed_depth_max", "compressedDepth outputs: "
+       "depths at or beyond this (metres, or the network's units on the relative topics) are "
+       "sent as none (image_transport's depth_max).", 1e-3, 1e6),
+    _p("compressed_depth.png_level", "node.compressed_depth_png_level", "compressedDepth "
+       "outputs: PNG compression level (image_transport's png_level; 9 takes ~25x longer "
+       "than 1 for ~15 % fewer bytes).", 0, 9),
 )
 SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
 #: ``section.field`` → the parameter that sets it

@@ -65,6 +65,7 @@ class LiveOutput:
     weights_age_s: float
     arrival: float  # time.monotonic() when submitted
     served: float  # time.monotonic() when the depth was ready
+    metres_per_unit: float | None = None  # the factor ``depth`` is in metres by; None: not
 
     @property
     def latency_s(self) -> float:
@@ -156,7 +157,7 @@ class LiveServer:
         except Exception as exc:  # noqa: BLE001 - one bad frame must not stop serving
             return self._skip(LiveSkipped.PREDICTION_ERROR, frame, exc)
         out = LiveOutput(frame, served.depth, served.version, self.serving.age_s, arrival,
-                         time.monotonic())
+                         time.monotonic(), served.metres_per_unit)
         try:
             self.on_depth(out)
         except Exception as exc:  # noqa: BLE001 - a failing publisher must not stop serving

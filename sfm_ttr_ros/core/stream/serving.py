@@ -49,13 +49,15 @@ LIVE_STREAM_PRIORITY = -1
 class Served:
     """One live prediction: ``depth`` in the outputs' units (metres when the served weights
     have a factor), ``raw`` the network's depth (network units; the same array when there is no
-    factor), the weights' ``version`` (the window that made them) and ``generation`` (the
-    swap)."""
+    factor), the weights' ``version`` (the window that made them), ``generation`` (the
+    swap) and ``metres_per_unit`` (the factor ``depth`` was multiplied by; None: network
+    units)."""
 
     depth: np.ndarray
     raw: np.ndarray
     version: int
     generation: int
+    metres_per_unit: float | None = None
 
 
 def live_stream(device: torch.device):
@@ -199,4 +201,4 @@ class ServingModel:
             raw = self._model.predict([image])[0]
             self.predictions += 1
             return Served(in_metres(raw, self._metres_per_unit), raw, self._version,
-                          self._generation)
+                          self._generation, self._metres_per_unit)

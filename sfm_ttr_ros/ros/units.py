@@ -1,0 +1,93 @@
+"""The units of the ``refiner`` node's depth outputs on the wire (docs/node.md, "Units").
+
+REP 118: a 32FC1 depth image is metres. ``~/depth/image``, ``~/depth_refined/image``,
+``~/cloud`` and ``~/points`` carry metres only; what is not (yet) in metres (metric state
+``not_metric`` or ``waiting``: :class:`~sfm_ttr_ros.core.metric.scale.MetricStatus`) goes out on
+the relative twin of its topic (:data:`~sfm_ttr_ros.ros.names.RELATIVE_TWIN`,
+``relative_depth: publish``) or not at all (``drop``; ``~/depth_scale`` says which): :func:`route`.
+
+``~/depth_scale`` (:class:`ScaleState`) states the scale now: a latched (transient local,
+depth 1) diagnostic_msgs/DiagnosticStatus, published at start and at every change of source,
+state, factor or the relative policy, so that a subscriber that comes late still reads it.
+Why DiagnosticStatus: it is in common_interfaces (no package of ours to build on the
+consumer's side), ``ros2 topic echo`` shows it as it is, and its key/values hold the source and
+state (strings) beside the factor (a number), which a std_msgs/Float64 could not; its level
+says whether the depth topics carry metres (OK) or not (WARN).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Mapping
+
+from msg_adapters import make_diagnostic_array
+from sfm_ttr_ros.core.metric.scale import MetricStatus
+from sfm_ttr_ros.ros import names
+
+SCALE_STATUS_NAME = "depth scale"  # the DiagnosticStatus name (after the node's full name)
+
+
+def route(messages: Mapping[str, object], metric: bool, relative: str) -> dict[str, object]:
+    """``messages`` built on the metric topics, as they go out: unchanged when ``metric``;
+    else each metric topic's message on its relative twin (``relative`` ``"publish"``) or left
+    out (``"drop"``). Topics without a twin (``~/depth_colored``: colours, no unit) stay."""
+    if metric:
+        return dict(messages)
+    out: dict[str, object] = {}
+    for topic, msg in messages.items():
+        twin = names.RELATIVE_TWIN.get(topic)
+        if twin is None:
+            out[topic] = msg
+        elif relative == "publish":
+            out[twin] = msg
+    return out
+
+
+def depth_topic_now(state: str, relative: str) -> str:
+    """Where the live depth goes in ``state``: the metric topic, its relative twin, or
+    ``"dropped"``."""
+    if state == "metric":
+        return names.DEPTH_TOPIC
+    return names.DEPTH_RELATIVE_TOPIC if relative == "publish" else "dropped"
+
+
+def scale_status_message(status: MetricStatus, relative: str, hardware_id: str):
+    """The ``~/depth_scale`` DiagnosticStatus of ``status``: key/values ``source``, ``state``,
+    ``factor`` (metres per network unit, ``nan`` when not metric) and ``depth_topic`` (where
+    the live depth goes now); level OK when the depth is in metres, else WARN."""
+    metric = status.state == "metric"
+    message = ("depth in metres (REP 118)" if metric else
+               f"depth not in metres ({status.state}): relative topics"
+               if relative == "publish" else
+               f"depth not in metres ({status.state}): not published")
+    values = {"source": status.source, "state": status.state,
+              "factor": float("nan") if status.metres_per_unit is None
+              else status.metres_per_unit,
+              "depth_topic": depth_topic_now(status.state, relative)}
+    array = make_diagnostic_array(None, f"{hardware_id} {SCALE_STATUS_NAME}", hardware_id,
+                                  "ok" if metric else "warn", message, values)
+    return array.status[0]
+
+
+class ScaleState:
+    """Publishes ``~/depth_scale`` through ``publish(msg)`` whenever (source, state, factor,
+    relative policy) differs from the last one published (``changes`` counts them).
+    Thread-safe (the worker and the executor both report)."""
+
+    def __init__(self, publish: Callable[[object], None], hardware_id: str) -> None:
+        self._publish = publish
+        self._hardware_id = hardware_id
+        self._last: tuple | None = None
+        self._lock = threading.Lock()
+        self.changes = 0
+
+    def update(self, status: MetricStatus, relative: str) -> bool:
+        """Publish ``status`` when it differs from the last published; True when it did."""
+        key = (status.source, status.state, status.metres_per_unit, relative)
+        with self._lock:
+            if key == self._last:
+                return False
+            self._publish(scale_status_message(status, relative, self._hardware_id))
+            self._last = key
+            self.changes += 1
+            return True
