@@ -118,3 +118,31 @@ def test_reliable_inputs_refuse_a_best_effort_publisher(ros_context):
         lambda got, bad: set(bad) >= topics and all(got[t] == {"reliable"} for t in topics))
     assert all(received[t] == {"reliable"} for t in topics)  # never the best-effort one
     assert set(incompatible) == topics
+
+
+def test_an_override_of_one_input_stays_on_that_input(monkeypatch):
+    """rclpy writes a topic's qos_overrides into the profile it is given: each input has its
+    own copy, so the image's override does not reach camera_info or odom."""
+    from rclpy.context import Context
+    from rclpy.qos import ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from sfm_ttr_ros.ros import subscriptions
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
+    ctx = Context()
+    rclpy.init(context=ctx, args=["--ros-args", "-p",
+                                  "qos_overrides./image.subscription.reliability:=reliable"])
+    try:
+        node = rclpy.create_node(names.NODE_NAME, context=ctx)
+        inputs = [subscriptions.Input(Image, names.IMAGE_TOPIC, lambda m: None),
+                  *subscriptions.camera_and_odometry(lambda m: None, lambda m: None)]
+        subscriptions.subscribe(node, inputs, subscriptions.input_qos(NodeSettings()),
+                                lambda *a: None)
+        got = {s.topic_name: s.qos_profile.reliability for s in node.subscriptions}
+        node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+    assert got == {"/image": ReliabilityPolicy.RELIABLE,
+                   "/camera_info": ReliabilityPolicy.BEST_EFFORT,
+                   "/odom": ReliabilityPolicy.BEST_EFFORT}

@@ -218,10 +218,13 @@ def _replay(bag: Path, ros_args: list[str], clock: bool) -> tuple[dict[int, obje
     try:
         refiner = RefinerNode(model=tiny_model(), context=ctx)
         listener = rclpy.create_node("listener", context=ctx)
-        listener.create_subscription(
-            Image, "/cam1/depth_out",
-            lambda m: depths.__setitem__(stamp_to_ns(m.header.stamp), image_to_depth(m)),
-            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        # the refined depth, in metres or (not metric: the network's units) on its relative twin
+        for topic in ("/cam1/depth_out",
+                      refiner.resolve_topic_name(names.DEPTH_REFINED_RELATIVE_TOPIC)):
+            listener.create_subscription(
+                Image, topic,
+                lambda m: depths.__setitem__(stamp_to_ns(m.header.stamp), image_to_depth(m)),
+                QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(refiner)
         executor.add_node(listener)

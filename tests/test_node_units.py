@@ -143,3 +143,19 @@ def test_metres_on_the_metric_topic_and_an_output_qos_overridden(consumer):
     scale = c.late_scale()
     assert (scale["source"], scale["state"], float(scale["factor"])) == ("fixed", "metric", 2.0)
     assert scale["depth_topic"] == names.DEPTH_TOPIC and scale["level"] == b"\x00"
+
+
+def test_a_remapped_depth_topic_takes_its_compressed_depth_along(context, one_thread):
+    """image_transport's naming: the compressedDepth topic hangs under the depth topic as
+    resolved and remapped, in the node's namespace."""
+    node = RefinerNode(model=tiny_model(), context=context, namespace="cam1",
+                       cli_args=["--ros-args", "-r", "~/depth/image:=/front/depth"],
+                       parameter_overrides=[Parameter(k, value=v) for k, v in QUIET.items()])
+    try:
+        topic = node.pubs.by_topic[names.compressed_depth_topic(names.DEPTH_TOPIC)].topic_name
+        relative = node.pubs.by_topic[
+            names.compressed_depth_topic(names.DEPTH_RELATIVE_TOPIC)].topic_name
+    finally:
+        node.destroy_node()
+    assert topic == "/front/depth/compressedDepth"
+    assert relative == "/cam1/refiner/depth_relative/image/compressedDepth"

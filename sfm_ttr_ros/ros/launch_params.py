@@ -46,6 +46,13 @@ REMAPS: dict[str, str] = {
     "depth_refined_camera_info_topic": names.DEPTH_REFINED_INFO_TOPIC,
     "cloud_topic": names.CLOUD_TOPIC,
     "points_topic": names.POINTS_TOPIC,
+    "depth_relative_topic": names.DEPTH_RELATIVE_TOPIC,
+    "depth_relative_camera_info_topic": names.DEPTH_RELATIVE_INFO_TOPIC,
+    "depth_refined_relative_topic": names.DEPTH_REFINED_RELATIVE_TOPIC,
+    "depth_refined_relative_camera_info_topic": names.DEPTH_REFINED_RELATIVE_INFO_TOPIC,
+    "cloud_relative_topic": names.CLOUD_RELATIVE_TOPIC,
+    "points_relative_topic": names.POINTS_RELATIVE_TOPIC,
+    "depth_scale_topic": names.DEPTH_SCALE_TOPIC,
 }
 SIM_TIME_CHOICES = ("", "true", "false")
 

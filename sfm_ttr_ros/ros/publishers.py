@@ -28,8 +28,6 @@ from sfm_ttr_ros.ros import names, outputs
 DIAGNOSTICS_QOS_DEPTH = 10
 IMAGE_TOPICS = (names.DEPTH_TOPIC, names.DEPTH_COLORED_TOPIC, names.DEPTH_REFINED_TOPIC,
                 names.DEPTH_RELATIVE_TOPIC, names.DEPTH_REFINED_RELATIVE_TOPIC)
-COMPRESSED_DEPTH_TOPICS = tuple(names.compressed_depth_topic(t)
-                                for t in names.DEPTH_IMAGE_TOPICS)
 CLOUD_TOPICS = (names.POINTS_TOPIC, names.CLOUD_TOPIC, names.POINTS_RELATIVE_TOPIC,
                 names.CLOUD_RELATIVE_TOPIC)
 CAMERA_INFO_TOPICS = (names.DEPTH_INFO_TOPIC, names.DEPTH_COLORED_INFO_TOPIC,
@@ -61,8 +59,10 @@ class OutputPublishers:
                 qos_overriding_options=overrides if overridable else None)
 
         self.by_topic = {topic: pub(Image, topic) for topic in IMAGE_TOPICS}
-        self.by_topic.update({topic: pub(CompressedImage, topic)
-                              for topic in COMPRESSED_DEPTH_TOPICS})
+        # image_transport's naming: <the depth image topic, resolved and remapped>/compressedDepth
+        self.by_topic.update({names.compressed_depth_topic(image): pub(
+            CompressedImage, names.compressed_depth_topic(node.resolve_topic_name(image)))
+            for image in names.DEPTH_IMAGE_TOPICS})
         self.by_topic.update({topic: pub(PointCloud2, topic) for topic in CLOUD_TOPICS})
         self.diagnostics = pub(DiagnosticArray, names.DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS_DEPTH,
                                overridable=False)

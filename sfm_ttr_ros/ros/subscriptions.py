@@ -10,6 +10,7 @@ topic.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from functools import partial
 from typing import NamedTuple
@@ -52,11 +53,12 @@ def image_input(node, settings: NodeSettings, on_image: Callable,
 
 def subscribe(node, inputs: list[Input], qos: QoSProfile,
               on_incompatible_qos: Callable[[str, object], None]) -> None:
-    """Create each input's subscription on ``qos`` (overridable by ``--ros-args``)."""
+    """Create each input's subscription on ``qos`` (overridable by ``--ros-args``; each on a
+    copy: rclpy writes a topic's overrides into the profile it is given)."""
     overrides = QoSOverridingOptions.with_default_policies()
     for msg_type, topic, callback in inputs:
         node.create_subscription(
-            msg_type, topic, callback, qos, qos_overriding_options=overrides,
+            msg_type, topic, callback, copy.copy(qos), qos_overriding_options=overrides,
             event_callbacks=SubscriptionEventCallbacks(
                 incompatible_qos=partial(on_incompatible_qos, topic)))
 
