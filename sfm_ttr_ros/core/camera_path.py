@@ -7,7 +7,8 @@ similarity S = (s, R, t) (an odom point x_o = s·R·x_w + t), chosen by how the 
 * the first window defines ``odom``: its first registered frame at the origin, ``odom``'s axes
   that camera's body axes by REP 103 (x forward, y left, z up: :data:`BODY_FROM_OPTICAL`);
 * ``continued`` (``sfm.mode: streaming``, the carried map: one world, one scale): the same S as
-  the window before, chained directly;
+  the window before, chained directly; on a metre path its scale is the median of the map's
+  windows' metres per SfM unit so far, re-anchored at the path's newest frame (no jump);
 * ``fresh`` (a new mapping) or a batch window (each its own reconstruction): S fitted to the
   frames it shares with the path (:func:`fit_similarity`): R the chordal mean of R_path·R_windowᵀ
   over the shared frames, s the metres per SfM unit when known (else the least-squares scale of
@@ -196,11 +197,27 @@ def fit_similarity(path_poses: list[np.ndarray], cam_from_world: list[np.ndarray
 
 @dataclass
 class _Segment:
-    """The similarity of the current map's world and the base variances its frames carry."""
+    """The similarity of the current map's world, the base variances its frames carry, the
+    metres per SfM unit of its windows (a metre path) and its newest frame (its odom position
+    and world centre: where a new scale is anchored)."""
 
     S: Similarity
     position_base: float
     rotation_base: float
+    metres: list[float] = field(default_factory=list)
+    anchor: tuple[np.ndarray, np.ndarray] | None = None
+
+    def rescale(self, metres: float | None) -> None:
+        """A continued window's metres per SfM unit: the segment's scale becomes the median
+        of its windows' (one map, one scale: the median of their estimates), re-anchored at
+        its newest frame so the path stays continuous."""
+        if metres is None or self.anchor is None:
+            return
+        self.metres.append(metres)
+        s = float(np.median(self.metres))
+        position, centre = self.anchor
+        self.S = Similarity(s, self.S.R, position - s * self.S.R @ centre,
+                            self.S.position_res2, self.S.rotation_res2)
 
 
 class CameraPath:
@@ -235,6 +252,10 @@ class CameraPath:
             self.units = "m" if metres is not None else "sfm"
         scale = metres if self.units == "m" else None
         chain, segment = self._chain(window, scale)
+        if chain == "continued":
+            segment.rescale(scale)
+        elif scale is not None:
+            segment.metres = [scale]
         self._segment = segment
         self.chains[chain] += 1
         index, self._windows = self._windows, self._windows + 1
@@ -312,6 +333,7 @@ class CameraPath:
                             index, chain)
             self.poses[name] = pose
             added.append(pose)
+            segment.anchor = (pose.position.copy(), _centre(window.poses[name]))
         while len(self.poses) > self.max_poses:
             del self.poses[next(iter(self.poses))]
         return added

@@ -69,6 +69,7 @@ from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, Intrinsics
 from sfm_ttr_ros.ros.containment import ThrottledLog, contained, fault_message, where
 from sfm_ttr_ros.ros.encoder_file import load_encoder, save_encoder
 from sfm_ttr_ros.ros.live_settings import LiveSettings
+from sfm_ttr_ros.ros.odom_output import OdomOutput
 from sfm_ttr_ros.ros.publishers import OutputPublishers
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
@@ -131,6 +132,7 @@ class RefinerNode(Node):
                                                 self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input.topic)
         self.pubs = OutputPublishers(self, int(node.qos_depth), self._on_incompatible_qos)
+        self.odom = OdomOutput(self, node, int(node.qos_depth))  # ~/odom: the camera's path
         self.create_timer(float(node.diagnostics_period_s), self._on_timer)
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
@@ -278,6 +280,7 @@ class RefinerNode(Node):
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
+        self.odom.frame_seen(out.frame)
         if self._publishes("depth_refined") and not out.live_only:
             camera = self.intrinsics.window_camera(out.frame, _stamp_ns(out.frame))
             if camera is None:
@@ -299,6 +302,7 @@ class RefinerNode(Node):
         if stats.reason_key == Unrefined.ROLLED_BACK:
             self.warn_every("rolled_back", f"window {stats.index}: {stats.reason}")
         self.pubs.publish(outputs.window_messages(stats, points=self._publishes("points")))
+        self.odom.window(stats, self.ttr.metres_per_unit, publish=self._publishes("odom"))
         self.publish_diagnostics()
 
     def diagnostics_values(self) -> dict[str, object]:

@@ -328,6 +328,12 @@ PARAMS: tuple[Param, ...] = (
        "camera are left out, in the depth's units; 0 = no limit.", 0.0, 1e9),
     _p("diagnostics_period_s", "node.diagnostics_period_s", "Period of the /diagnostics timer, "
        "seconds.", 0.05, 3600.0, **_START_UP),
+    _p("odom.frame_id", "node.odom_frame_id", "~/odom (outputs: odom): the frame the camera's "
+       "path is in (REP 105's odom).", **_START_UP),
+    _p("odom.child_frame_id", "node.odom_child_frame_id", "~/odom: the camera's frame; empty "
+       "= each image's header frame_id.", **_START_UP),
+    _p("odom.publish_tf", "node.odom_publish_tf", "Also publish the camera's path as the "
+       "transform odom.frame_id -> the camera's frame on /tf (needs tf2_msgs).", **_START_UP),
 )
 SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
 #: ``section.field`` → the parameter that sets it
