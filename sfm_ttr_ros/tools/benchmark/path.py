@@ -77,3 +77,11 @@ def add_window(path: CameraPath, result, stamp_of, metres_per_unit: float | None
     poses = result_poses(result, {n: stamp_of(n) for n in result.sfm.frames}, metres_per_unit)
     if poses is not None:
         path.add(poses)
+
+
+def path_report(path: CameraPath, poses: np.ndarray | None, index_of) -> dict[str, object]:
+    """``{"path": drift}`` against a sequence's ``poses`` (N x 4 x 4 camera-to-world; frame
+    ``name`` at ``index_of(name)``); {} when the sequence has none."""
+    if poses is None:
+        return {}
+    return {"path": path_drift(path, {n: poses[index_of(n)] for n in path.poses})}

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.camera_path import CameraPath
+from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator, mean_over_frames
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.metric.scale import in_metres
@@ -33,7 +33,7 @@ from sfm_ttr_ros.core.stream.windows import (
 )
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import DepthBands
-from sfm_ttr_ros.tools.benchmark.path import add_window, path_drift
+from sfm_ttr_ros.tools.benchmark.path import add_window, path_report
 
 log = logging.getLogger("sfm_ttr_ros.tools.benchmark")
 
@@ -294,8 +294,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra.update(windows)
     run.extra["stream_counters"] = counters
     run.extra["metric"] = ttr.metric_status().values()
-    if seq.poses is not None:
-        run.extra["path"] = path_drift(path, {n: seq.poses[seq_index(n)] for n in path.poses})
+    run.extra.update(path_report(path, seq.poses, seq_index))
 
 
 def _push_in_order(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int], take,
