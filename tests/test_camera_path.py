@@ -205,3 +205,17 @@ def test_the_path_of_a_short_generated_drive_drifts_less_than_its_metric_scale_e
     assert drift["length_m"] == pytest.approx(12.57, abs=0.1)
     assert drift["drift_pct"] < 5.0, drift
     assert drift_shape["scale_fitted"] and drift_shape["ate_rmse"] < 0.01 * 12.57, drift_shape
+
+
+def test_the_benchmark_reports_the_path_only_where_the_sequence_has_poses():
+    from sfm_ttr_ros.tools.benchmark.path import path_lines, path_report
+
+    gt = _drive(12)
+    path = CameraPath()
+    path.add(_window(gt, range(12), 1.0, np.eye(3), np.zeros(3), metres=1.02))
+    assert path_report(path, None, int) == {}
+    report = path_report(path, np.array(gt), int)
+    assert report["path"]["compared"] == 12 and report["path"]["drift_pct"] > 0
+    lines = path_lines({"node_online": report, "no_ttr": {}}, ["no_ttr", "node_online"])
+    assert len(lines) == 6 and lines[-2].startswith("| node_online | m | 12 | 11.00 |")
+    assert path_lines({"no_ttr": {}}, ["no_ttr"]) == []

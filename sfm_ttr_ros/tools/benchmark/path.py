@@ -85,3 +85,21 @@ def path_report(path: CameraPath, poses: np.ndarray | None, index_of) -> dict[st
     if poses is None:
         return {}
     return {"path": path_drift(path, {n: poses[index_of(n)] for n in path.poses})}
+
+
+def path_lines(results: Mapping[str, object], modes) -> list[str]:
+    """Markdown: per windowed mode with a ``path``, its drift against the drive's poses."""
+    rows = [(m, results[m]["path"]) for m in modes if "path" in results[m]]
+    if not rows:
+        return []
+    lines = ["The camera's path against the drive's poses (drift: end-point error over the "
+             "distance travelled; ATE after a rigid alignment):", "",
+             "| method | units | frames | distance m | drift % | max drift % | ATE | breaks |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for m, p in rows:
+        cells = [f"{p[k]:.2f}" if isinstance(p.get(k), float) else "-"
+                 for k in ("length_m", "drift_pct", "max_drift_pct", "ate_rmse")]
+        units = p.get("units", "") + (" (scale fitted)" if p.get("scale_fitted") else "")
+        lines.append(f"| {m} | {units} | {p.get('compared', 0)} | " + " | ".join(cells)
+                     + f" | {p.get('breaks', 0)} |")
+    return lines + [""]
