@@ -36,9 +36,12 @@ def graph(context, sequence):  # noqa: F811
 
 @pytest.mark.slow
 def test_the_node_publishes_the_cameras_path_on_odom_with_covariance(graph, sequence):  # noqa: F811
-    odoms: list[Odometry] = []
-    graph.node.create_subscription(Odometry, names.ODOM_OUTPUT_TOPIC_RESOLVED, odoms.append, 100)
-    wait_for(lambda: graph.refiner.odom.publisher.get_subscription_count() > 0, 10, "discovery")
+    by_units: dict[str, list[Odometry]] = {"m": [], "sfm": []}
+    for units, topic in (("m", names.ODOM_OUTPUT_TOPIC_RESOLVED),
+                         ("sfm", names.ODOM_RELATIVE_TOPIC_RESOLVED)):
+        graph.node.create_subscription(Odometry, topic, by_units[units].append, 100)
+    wait_for(lambda: all(p.get_subscription_count() > 0
+                         for p in graph.refiner.odom.publishers.values()), 10, "discovery")
     sent = []
     for rgb, t in zip(sequence.images, sequence.stamps, strict=True):
         graph.send_info(sequence.intrinsics, t)
@@ -47,10 +50,13 @@ def test_the_node_publishes_the_cameras_path_on_odom_with_covariance(graph, sequ
     wait_for(lambda: len(graph.depths) == len(sent), 120, "every depth image")
     path = graph.refiner.odom.path
     wait_for(lambda: graph.refiner.odom.published == len(path.poses) > 0 and
-             len(odoms) == len(path.poses), 10, "the path on ~/odom")
+             sum(map(len, by_units.values())) == len(path.poses), 10, "the path on ~/odom")
+    # metres on ~/odom, SfM units on ~/odom_relative: never both
+    odoms = by_units[path.units]
+    assert not by_units["sfm" if path.units == "m" else "m"]
     windows = list(graph.refiner.stream.windows)
     assert len(odoms) >= windows[0].registered >= 2
-    assert path.units in ("m", "sfm") and path.summary()["windows"] == len(windows)
+    assert path.summary()["windows"] == len(windows)
     stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in odoms]
     assert stamps == sorted(set(stamps))  # forward in time, each frame once
     assert set(stamps) <= {(s.sec, s.nanosec) for s in sent}

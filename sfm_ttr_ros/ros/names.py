@@ -44,7 +44,8 @@ DEPTH_REFINED_TOPIC = DEPTH_REFINED_BASE + IMAGE_SUFFIX
 DEPTH_REFINED_INFO_TOPIC = DEPTH_REFINED_BASE + CAMERA_INFO_SUFFIX
 CLOUD_TOPIC = "~/cloud"  # the live depth back-projected (outputs: cloud)
 POINTS_TOPIC = "~/points"  # the windows' sparse SfM clouds
-ODOM_OUTPUT_TOPIC = "~/odom"  # nav_msgs/Odometry: the camera's path (outputs: odom)
+ODOM_OUTPUT_TOPIC = "~/odom"  # nav_msgs/Odometry: the camera's path in metres (outputs: odom)
+ODOM_RELATIVE_TOPIC = "~/odom_relative"  # the same in SfM units, while no metres are known
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
@@ -71,3 +72,4 @@ DEPTH_REFINED_INFO_TOPIC_RESOLVED = resolve(DEPTH_REFINED_INFO_TOPIC)
 CLOUD_TOPIC_RESOLVED = resolve(CLOUD_TOPIC)  # "/refiner/cloud"
 POINTS_TOPIC_RESOLVED = resolve(POINTS_TOPIC)
 ODOM_OUTPUT_TOPIC_RESOLVED = resolve(ODOM_OUTPUT_TOPIC)  # "/refiner/odom"
+ODOM_RELATIVE_TOPIC_RESOLVED = resolve(ODOM_RELATIVE_TOPIC)

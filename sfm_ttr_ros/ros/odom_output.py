@@ -7,8 +7,11 @@ new to it go out on ``~/odom``, in stamp order, each with its image's stamp, in
 frame (``odom.child_frame_id``, or the image header's frame_id when empty) and the pose's
 covariance from the reconstruction (core/camera_path.py says what it is); with
 ``odom.publish_tf`` the same pose as the transform ``odom`` -> the camera's frame on ``/tf``.
-Metres when the window's metric scale is known (core/metric), else SfM units (the first
-reconstruction's, ``units`` in :meth:`OdomOutput.summary`). The twist is not estimated (zero).
+Metres when the first window's metric scale is known (core/metric): ``~/odom``; otherwise the
+path is in the first reconstruction's SfM units and goes out on ``~/odom_relative`` instead
+(REP 105 frames are in metres; the depth outputs' units contract, docs/node.md), never on
+``~/odom`` (``units`` in :meth:`OdomOutput.summary`). The twist is not estimated (zero). Both
+publishers' QoS can be overridden at start-up (``qos_overrides.<topic>.publisher.*``).
 
 TF needs tf2_msgs, which these PyPI installs lack: ``odom.publish_tf`` true without it stops
 the start with a clear error (:func:`msg_adapters.odometry.tf_message_class`).
@@ -21,6 +24,7 @@ from collections import OrderedDict
 
 from nav_msgs.msg import Odometry
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from msg_adapters.odometry import odometry_msg, tf_message_class, transform_msg
 from msg_adapters.stamp import stamp_to_ns
@@ -49,7 +53,11 @@ class OdomOutput:
         self.tf = None
         if settings.odom_publish_tf:
             self.tf = node.create_publisher(tf_message_class(), TF_TOPIC, TF_QOS_DEPTH)
-        self.publisher = node.create_publisher(Odometry, names.ODOM_OUTPUT_TOPIC, qos)
+        overrides = QoSOverridingOptions.with_default_policies()
+        self.publishers = {units: node.create_publisher(Odometry, topic, qos,
+                                                        qos_overriding_options=overrides)
+                           for units, topic in (("m", names.ODOM_OUTPUT_TOPIC),
+                                                ("sfm", names.ODOM_RELATIVE_TOPIC))}
         self.path = CameraPath()
         self.published = 0
         self._frames: OrderedDict[str, tuple[int, str]] = OrderedDict()
@@ -83,7 +91,7 @@ class OdomOutput:
 
     def _publish(self, pose: PathPose, stamp_ns: int, image_frame_id: str) -> None:
         child = self.child_frame_id or image_frame_id or DEFAULT_CHILD_FRAME
-        self.publisher.publish(odometry_msg(stamp_ns, self.frame_id, child,
+        self.publishers[self.path.units].publish(odometry_msg(stamp_ns, self.frame_id, child,
                                             pose.odom_from_camera,
                                             covariance=pose.covariance()))
         if self.tf is not None:
