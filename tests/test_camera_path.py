@@ -10,6 +10,7 @@ import pytest
 
 from sfm_ttr_ros.core.camera_path import (
     BODY_FROM_OPTICAL,
+    UNKNOWN_VARIANCE,
     CameraPath,
     WindowPoses,
     fit_similarity,
@@ -124,6 +125,15 @@ def test_a_window_sharing_no_frame_is_a_counted_break_on_a_constant_velocity_gue
     assert added[0].position_var >= end.position_var + 9.0 - 1e-6  # the guessed 3 m, squared
     # the guess keeps the last heading: the 0.06 rad turned in the gap costs ~0.06 x 7 m here
     np.testing.assert_allclose(added[-1].position, _expected(gt, 19)[:3, 3], atol=0.6)
+
+
+def test_a_break_with_no_velocity_to_guess_from_says_the_pose_is_unknown():
+    gt = _drive()
+    path = CameraPath()
+    path.add(_window(gt, [0], 1.0, np.eye(3), np.zeros(3), metres=1.0))
+    added = path.add(_window(gt, range(3, 6), 1.0, _rot(1, 0.4), np.ones(3), "fresh"))
+    assert added[0].chain == "break" and added[0].position_var >= UNKNOWN_VARIANCE
+    np.testing.assert_allclose(added[0].position, path.poses["0000"].position)
 
 
 def test_nothing_older_than_the_path_end_joins_it_and_bad_limits_are_refused():

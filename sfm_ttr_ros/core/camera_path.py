@@ -52,6 +52,7 @@ from sfm_ttr_ros.core.window import WindowResult
 BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 #: Position variance (units²) of a break with no velocity to guess from: unknown.
 UNKNOWN_VARIANCE = 1e6
+UNKNOWN_ROTATION_VARIANCE = (math.pi / 2) ** 2  # rad²: a heading unknown within ±90°
 #: How the path's windows were chained (the counters' keys).
 CHAINS = ("first", "continued", "shared", "break")
 
@@ -305,9 +306,11 @@ class CameraPath:
         T = window.poses[order[0]]
         R = end.odom_from_camera[:3, :3] @ T[:3, :3]
         t = end.position + step - s * R @ _centre(T)
-        guess = UNKNOWN_VARIANCE if velocity is None else float(step @ step)
-        return _Segment(Similarity(s, R, t), end.position_var + guess,
-                        end.rotation_var + (math.pi / 2) ** 2 * (velocity is None))
+        if velocity is None:  # nothing to guess from: position and heading unknown
+            return _Segment(Similarity(s, R, t), end.position_var + UNKNOWN_VARIANCE,
+                            end.rotation_var + UNKNOWN_ROTATION_VARIANCE)
+        return _Segment(Similarity(s, R, t), end.position_var + float(step @ step),
+                        end.rotation_var)
 
     def _velocity(self) -> np.ndarray | None:
         """The path's last velocity (units per second) from its last two poses; None without."""
