@@ -16,7 +16,9 @@ similarity S = (s, R, t) (an odom point x_o = s·R·x_w + t), chosen by how the 
 * no shared frames (or too few for the fit): a **break**, counted. The window's first frame is
   put where the path's last velocity carries it by its stamp (constant velocity, the last
   orientation kept) and, without metres, its scale makes its first step as long as that velocity
-  says; the covariance grows by the square of the guessed displacement (it says "a guess").
+  says; the covariance grows by the square of the guessed displacement (it says "a guess"),
+  or, with no velocity yet (a path of one frame), by :data:`UNKNOWN_VARIANCE` and a heading
+  unknown within ±90°.
 
 Units: metres when the first window's metres per SfM unit is known (``metric``: m_w of
 core/metric/scale.py), otherwise the first reconstruction's SfM units (``units`` says which).
