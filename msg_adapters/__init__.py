@@ -45,6 +45,7 @@ _LOCATIONS = {
     "numpy_to_image": "msg_adapters.image",
     "numpy_to_pointcloud2": "msg_adapters.pointcloud",
     "odometry_msg": "msg_adapters.odometry",
+    "odometry_to_pose": "msg_adapters.odometry",
     "odometry_to_position": "msg_adapters.odometry",
     "pack_rgb": "msg_adapters.pointcloud",
     "pointcloud2_to_numpy": "msg_adapters.pointcloud",
@@ -57,6 +58,8 @@ _LOCATIONS = {
     "scale_camera_info": "msg_adapters.camera_info",
     "stamp_to_ns": "msg_adapters.stamp",
     "stamp_to_seconds": "msg_adapters.stamp",
+    "tf_message_class": "msg_adapters.odometry",
+    "transform_msg": "msg_adapters.odometry",
     "typestore_classes": "msg_adapters.classes",
     "unpack_rgb": "msg_adapters.pointcloud",
 }

@@ -4,7 +4,10 @@ Reading (:func:`odometry_to_position`) is duck-typed: rclpy and rosbags messages
 Writing (:func:`odometry_msg`) builds a rosbags type store's classes (the bag tools) or rclpy's
 from a 4x4 pose (``parent_from_child``: the child frame's pose in the parent frame, metres):
 position = its translation, orientation = its rotation as a unit quaternion (x, y, z, w, w >= 0),
-twist zero, covariances zero (not estimated).
+twist zero; the pose's covariance given (6x6 over x, y, z and the rotations about x, y, z,
+row-major, in the header's frame: nav_msgs' convention) or zero (not estimated), the twist's
+zero. :func:`odometry_to_pose` reads a pose and its covariance back; :func:`transform_msg` and
+:func:`tf_message` write the same pose as a geometry_msgs/TransformStamped on ``/tf``.
 """
 
 from __future__ import annotations
@@ -74,31 +77,83 @@ def _rclpy_type(msgtype: str) -> type:
     return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
 
 
-def odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str, parent_from_child,
-                 store=None):
-    """A nav_msgs/Odometry stamped ``stamp_ns`` in ``frame_id`` whose pose is the 4x4
-    ``parent_from_child`` of ``child_frame_id`` (metres). ``store``: a rosbags type store (its
-    classes are built, for bags) or None (rclpy's)."""
+def _checked_pose(parent_from_child) -> tuple[np.ndarray, np.ndarray]:
+    """(translation, quaternion x y z w) of a finite 4x4 rigid pose."""
     T = np.asarray(parent_from_child, np.float64)
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise OdometryError(f"a pose must be a finite 4x4 matrix, got shape {T.shape}")
-    q = rotation_to_quaternion(T[:3, :3])
-    t = T[:3, 3]
+    return T[:3, 3], rotation_to_quaternion(T[:3, :3])
+
+
+def _checked_covariance(covariance) -> np.ndarray:
+    """36 finite numbers of a symmetric 6x6 covariance with a non-negative diagonal (zeros
+    when None)."""
+    if covariance is None:
+        return np.zeros(36)
+    C = np.asarray(covariance, np.float64)
+    if C.size != 36 or not np.isfinite(C).all():
+        raise OdometryError(f"a pose covariance must be 36 finite numbers (6x6), got {C.size}")
+    C = C.reshape(6, 6)
+    if not np.allclose(C, C.T) or (np.diag(C) < 0).any():
+        raise OdometryError("a pose covariance must be symmetric with a diagonal >= 0")
+    return C.ravel()
+
+
+def odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str, parent_from_child,
+                 store=None, covariance=None):
+    """A nav_msgs/Odometry stamped ``stamp_ns`` in ``frame_id`` whose pose is the 4x4
+    ``parent_from_child`` of ``child_frame_id`` (metres) with the pose's 6x6 ``covariance``
+    (None: zeros, not estimated). ``store``: a rosbags type store (its classes are built, for
+    bags) or None (rclpy's)."""
+    t, q = _checked_pose(parent_from_child)
+    cov = _checked_covariance(covariance)
     if store is None:
         classes, of = rclpy_classes(), _rclpy_type
     else:
         classes, of = typestore_classes(store), store.types.__getitem__
     point, quat = of("geometry_msgs/msg/Point"), of("geometry_msgs/msg/Quaternion")
     vec = of("geometry_msgs/msg/Vector3")
-    zeros = classes.doubles_field(np.zeros(36))  # covariances: not estimated
     pose = of("geometry_msgs/msg/PoseWithCovariance")(
         pose=of("geometry_msgs/msg/Pose")(
             position=point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
             orientation=quat(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))),
-        covariance=zeros)
+        covariance=classes.doubles_field(cov))
     twist = of("geometry_msgs/msg/TwistWithCovariance")(
         twist=of("geometry_msgs/msg/Twist")(linear=vec(x=0.0, y=0.0, z=0.0),
                                             angular=vec(x=0.0, y=0.0, z=0.0)),
         covariance=classes.doubles_field(np.zeros(36)))
     return of(ODOMETRY_MSGTYPE)(header=make_header(stamp_ns, frame_id, classes),
                                 child_frame_id=str(child_frame_id), pose=pose, twist=twist)
+
+
+def odometry_to_pose(msg) -> tuple[float, np.ndarray, np.ndarray]:
+    """(header stamp in seconds, the 4x4 pose, the 6x6 pose covariance) of a nav_msgs/Odometry."""
+    stamp, xyz = odometry_to_position(msg)
+    o = msg.pose.pose.orientation
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_rotation([float(o.x), float(o.y), float(o.z), float(o.w)])
+    T[:3, 3] = xyz
+    return stamp, T, _checked_covariance(list(msg.pose.covariance)).reshape(6, 6)
+
+
+def transform_msg(stamp_ns: int, frame_id: str, child_frame_id: str, parent_from_child):
+    """A geometry_msgs/TransformStamped (rclpy's): ``child_frame_id`` in ``frame_id``, the
+    4x4 ``parent_from_child`` (what TF's ``/tf`` carries)."""
+    from geometry_msgs.msg import Quaternion, Transform, TransformStamped, Vector3
+
+    t, q = _checked_pose(parent_from_child)
+    return TransformStamped(
+        header=make_header(stamp_ns, frame_id), child_frame_id=str(child_frame_id),
+        transform=Transform(translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                            rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                w=float(q[3]))))
+
+
+def tf_message_class() -> type:
+    """tf2_msgs/TFMessage (rclpy's); InputError naming the package when it is not installed."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError as exc:
+        raise InputError("TF output needs the tf2_msgs message package, which is not "
+                         f"installed ({exc}); install ROS 2's tf2_msgs or leave TF off") from exc
+    return TFMessage

@@ -184,7 +184,7 @@ def test_no_import_goes_up_a_layer():
 CORE_RANKS = (
     ("errors", "frames", "outcomes", "threads", "models", "visualize", "evaluation"),
     ("sfm", "alignment", "refinement", "checks", "metric", "prediction"),
-    ("pipeline", "window"),
+    ("pipeline", "window", "camera_path"),
     ("stream",),
     ("params",),
 )

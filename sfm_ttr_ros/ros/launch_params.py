@@ -53,6 +53,8 @@ REMAPS: dict[str, str] = {
     "cloud_relative_topic": names.CLOUD_RELATIVE_TOPIC,
     "points_relative_topic": names.POINTS_RELATIVE_TOPIC,
     "depth_scale_topic": names.DEPTH_SCALE_TOPIC,
+    "odom_output_topic": names.ODOM_OUTPUT_TOPIC,
+    "odom_relative_topic": names.ODOM_RELATIVE_TOPIC,
 }
 SIM_TIME_CHOICES = ("", "true", "false")
 

@@ -43,6 +43,8 @@ DEPTH_REFINED_TOPIC = DEPTH_REFINED_BASE + IMAGE_SUFFIX
 DEPTH_REFINED_INFO_TOPIC = DEPTH_REFINED_BASE + CAMERA_INFO_SUFFIX
 CLOUD_TOPIC = "~/cloud"  # the live depth back-projected (outputs: cloud)
 POINTS_TOPIC = "~/points"  # the windows' sparse SfM clouds
+ODOM_OUTPUT_TOPIC = "~/odom"  # nav_msgs/Odometry: the camera's path in metres (outputs: odom)
+ODOM_RELATIVE_TOPIC = "~/odom_relative"  # the same in SfM units, while no metres are known
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 # REP 118: 32FC1 depth is metres. Depth, clouds and points not (yet) in metres go out on a
@@ -123,3 +125,5 @@ POINTS_TOPIC_RESOLVED = resolve(POINTS_TOPIC)
 DEPTH_RELATIVE_TOPIC_RESOLVED = resolve(DEPTH_RELATIVE_TOPIC)  # "/refiner/depth_relative/image"
 DEPTH_REFINED_RELATIVE_TOPIC_RESOLVED = resolve(DEPTH_REFINED_RELATIVE_TOPIC)
 DEPTH_SCALE_TOPIC_RESOLVED = resolve(DEPTH_SCALE_TOPIC)  # "/refiner/depth_scale"
+ODOM_OUTPUT_TOPIC_RESOLVED = resolve(ODOM_OUTPUT_TOPIC)  # "/refiner/odom"
+ODOM_RELATIVE_TOPIC_RESOLVED = resolve(ODOM_RELATIVE_TOPIC)

@@ -17,11 +17,12 @@ USE_PROJECTION_CHOICES = ("auto", "true", "false")
 #: depth not (yet) in metres: on the outputs' relative twins (publish) or not at all (drop)
 RELATIVE_DEPTH_CHOICES = ("publish", "drop")
 #: The node's outputs (``outputs``): ~/depth (live), ~/depth_colored, ~/depth_refined
-#: (windowed), ~/points (the windows' sparse clouds), /diagnostics and ~/cloud (the live depth
-#: back-projected; off by default: not in :data:`DEFAULT_OUTPUTS`) and compressed_depth (each
-#: published depth image also as image_transport's ``<image>/compressedDepth``; off by default).
+#: (windowed), ~/points (the windows' sparse clouds), /diagnostics, ~/cloud (the live depth
+#: back-projected), compressed_depth (each published depth image also as image_transport's
+#: ``<image>/compressedDepth``) and ~/odom (the camera's path); the last three off by default:
+#: not in :data:`DEFAULT_OUTPUTS`.
 OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics", "cloud",
-           "compressed_depth")
+           "compressed_depth", "odom")
 DEFAULT_OUTPUTS = ("depth", "depth_colored", "depth_refined", "points", "diagnostics")
 #: The outputs made from the live depth (any of them starts live serving).
 LIVE_OUTPUTS = ("depth", "depth_colored", "cloud")
@@ -35,6 +36,14 @@ def parse_outputs(text: str) -> frozenset[str]:
         raise InputError(f"outputs: unknown output(s) {', '.join(map(repr, unknown))}; "
                          f"choose from {', '.join(OUTPUTS)}")
     return frozenset(names)
+
+
+def _check_frame_id(name: str, value: str, *, empty: bool) -> None:
+    """A TF frame name (REP 105): no whitespace, no leading '/' (tf2 refuses both)."""
+    text = str(value)
+    if (not text and not empty) or any(c.isspace() for c in text) or text.startswith("/"):
+        raise InputError(f"{name} must be a frame name without spaces or a leading '/'"
+                         f"{'' if empty else ', not empty'}, got {value!r}")
 
 
 def parse_fallback_intrinsics(text: str) -> tuple[float, float, float, float] | None:
@@ -106,8 +115,13 @@ class NodeSettings:
     relative_depth: str = "publish"
     compressed_depth_max: float = 100.0
     compressed_depth_png_level: int = 1
+    odom_frame_id: str = "odom"
+    odom_child_frame_id: str = ""
+    odom_publish_tf: bool = False
 
     def __post_init__(self) -> None:
+        _check_frame_id("odom.frame_id", self.odom_frame_id, empty=False)
+        _check_frame_id("odom.child_frame_id", self.odom_child_frame_id, empty=True)
         parse_fallback_intrinsics(self.fallback_intrinsics)
         parse_outputs(self.outputs)
         parse_use_projection(self.camera_info_use_projection)

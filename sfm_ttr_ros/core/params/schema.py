@@ -345,6 +345,12 @@ PARAMS: tuple[Param, ...] = (
     _p("compressed_depth.png_level", "node.compressed_depth_png_level", "compressedDepth "
        "outputs: PNG compression level (image_transport's png_level; 9 takes ~25x longer "
        "than 1 for ~15 % fewer bytes).", 0, 9),
+    _p("odom.frame_id", "node.odom_frame_id", "~/odom (outputs: odom): the frame the camera's "
+       "path is in (REP 105's odom).", **_START_UP),
+    _p("odom.child_frame_id", "node.odom_child_frame_id", "~/odom: the camera's frame; empty "
+       "= each image's header frame_id.", **_START_UP),
+    _p("odom.publish_tf", "node.odom_publish_tf", "Also publish the camera's path as the "
+       "transform odom.frame_id -> the camera's frame on /tf (needs tf2_msgs).", **_START_UP),
 )
 SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
 #: ``section.field`` → the parameter that sets it

@@ -12,6 +12,7 @@ from typing import Any
 from sfm_ttr_ros.core.evaluation import ERROR_METRICS
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE
+from sfm_ttr_ros.tools.benchmark.path import path_lines
 from sfm_ttr_ros.tools.benchmark.runners import MODES, ModeRun
 from sfm_ttr_ros.tools.report import gain_table, metric_table, write_per_frame_csv
 
@@ -95,6 +96,7 @@ def results_markdown(results: Mapping[str, Any]) -> str:
               + "; higher for a1-a3. Frames SfM could not use count with the prediction the "
               "mode published for them.", ""]
     lines += window_check_lines(results, modes)
+    lines += path_lines(results, modes)
     lines += [f"![error by GT depth]({ERROR_FIGURE})", ""]
     if results.get("figure_frames"):
         lines += [f"![qualitative results, frames {', '.join(results['figure_frames'])}]"

@@ -1,0 +1,349 @@
+"""The camera's path: the windows' SfM camera poses chained into one path in an ``odom`` frame.
+
+Every window's reconstruction (Sec. 3.1) holds the pose ``cam_from_world`` of each registered
+frame in its own world frame. :class:`CameraPath` maps each window's world into ``odom`` with a
+similarity S = (s, R, t) (an odom point x_o = s·R·x_w + t), chosen by how the window was mapped:
+
+* the first window defines ``odom``: its first registered frame at the origin, ``odom``'s axes
+  that camera's body axes by REP 103 (x forward, y left, z up: :data:`BODY_FROM_OPTICAL`);
+* ``continued`` (``sfm.mode: streaming``, the carried map: one world, one scale): the same S as
+  the window before, chained directly; on a metre path its scale is the median of the map's
+  windows' metres per SfM unit so far, re-anchored at the path's newest frame (no jump);
+* ``fresh`` (a new mapping) or a batch window (each its own reconstruction): S fitted to the
+  frames it shares with the path (:func:`fit_similarity`): R the chordal mean of R_path·R_windowᵀ
+  over the shared frames, s the metres per SfM unit when known (else the least-squares scale of
+  the shared camera centres, which needs two distinct ones), t from the centres' means;
+* no shared frames (or too few for the fit): a **break**, counted. The window's first frame is
+  put where the path's last velocity carries it by its stamp (constant velocity, the last
+  orientation kept) and, without metres, its scale makes its first step as long as that velocity
+  says; the covariance grows by the square of the guessed displacement (it says "a guess"),
+  or, with no velocity yet (a path of one frame), by :data:`UNKNOWN_VARIANCE` and a heading
+  unknown within ±90°.
+
+Units: metres when the first window's metres per SfM unit is known (``metric``: m_w of
+core/metric/scale.py), otherwise the first reconstruction's SfM units (``units`` says which).
+
+Covariance (what it is): per frame, isotropic, in the path's units. From the reconstruction, a
+frame j with n_j observations, RMS reprojection error r_j (px), focal f (px) and median
+observed depth d_j: the angle of one observation is uncertain by r_j/f, so the rotation's
+variance is (r_j/f)²/n_j and the position's (d_j·r_j/f)²/n_j (scaled by s²). To that each window
+adds a base carried along the path: the mean variance of the shared frames it was fitted to plus
+the fit's mean squared residual (centres, and angles for the rotation), or at a break the
+guessed displacement squared. It is the reconstruction's local precision plus what chaining
+added, not a bound on the drift (measured: tools/benchmark ``path``).
+
+Only frames newer than the path's last stamp join it (an odometry stream goes forward in
+time); a frame seen again in a later window is used for the fit, never re-published.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.window import WindowResult
+
+#: REP 103 body axes (x forward, y left, z up) from a camera's optical axes (z forward, x right,
+#: y down): odom is the first camera's body frame.
+BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+#: Position variance (units²) of a break with no velocity to guess from: unknown.
+UNKNOWN_VARIANCE = 1e6
+UNKNOWN_ROTATION_VARIANCE = (math.pi / 2) ** 2  # rad²: a heading unknown within ±90°
+#: How the path's windows were chained (the counters' keys).
+CHAINS = ("first", "continued", "shared", "break")
+
+
+@dataclass
+class WindowPoses:
+    """What the path takes of one window: ``cam_from_world`` (4x4, SfM units) and stamp (s) per
+    registered frame, how it was mapped (``continued``, ``fresh``, "" in batch), its metres per
+    SfM unit (None: unknown) and each frame's variances in SfM units (module docstring)."""
+
+    poses: dict[str, np.ndarray]
+    stamps: dict[str, float]
+    mapping: str = ""
+    metres_per_sfm_unit: float | None = None
+    position_var: dict[str, float] = field(default_factory=dict)
+    rotation_var: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PathPose:
+    """One frame on the path: ``odom_from_camera`` (4x4, the path's units), its variances
+    (position in units², rotation in rad²), its window and how the window was chained."""
+
+    name: str
+    stamp: float
+    odom_from_camera: np.ndarray
+    position_var: float
+    rotation_var: float
+    window: int
+    chain: str
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.odom_from_camera[:3, 3]
+
+    def covariance(self) -> np.ndarray:
+        """The 6x6 covariance (x, y, z, rotation about x, y, z), row-major as nav_msgs wants."""
+        return np.diag([self.position_var] * 3 + [self.rotation_var] * 3)
+
+
+@dataclass
+class Similarity:
+    """x_odom = s·R·x_world + t, and the mean squared residuals of the fit that chose it."""
+
+    s: float
+    R: np.ndarray
+    t: np.ndarray
+    position_res2: float = 0.0
+    rotation_res2: float = 0.0
+
+    def apply(self, cam_from_world: np.ndarray) -> np.ndarray:
+        """odom_from_camera of a camera whose pose in the world is ``cam_from_world``."""
+        R_cw, t_cw = cam_from_world[:3, :3], cam_from_world[:3, 3]
+        out = np.eye(4)
+        out[:3, :3] = self.R @ R_cw.T
+        out[:3, 3] = self.s * self.R @ (-R_cw.T @ t_cw) + self.t
+        return out
+
+
+def window_poses(sfm: SfmResult, stamps: Mapping[str, float], mapping: str = "",
+                 metres_per_sfm_unit: float | None = None) -> WindowPoses:
+    """The registered frames of ``sfm`` with their stamps (frames without a stamp left out)
+    and the reconstruction's variances per frame (module docstring)."""
+    f = 1.0
+    if sfm.intrinsics is not None:
+        f = max(1e-9, 0.5 * (sfm.intrinsics.fx + sfm.intrinsics.fy))
+    out = WindowPoses({}, {}, mapping, metres_per_sfm_unit)
+    for name, obs in sfm.frames.items():
+        if name not in stamps or len(obs) == 0:
+            continue
+        out.poses[name] = np.asarray(obs.cam_from_world, np.float64)
+        out.stamps[name] = float(stamps[name])
+        angle2 = float(np.mean(np.square(obs.reproj_errors))) / (f * f) / len(obs)
+        depth = float(np.median(np.abs(obs.depths)))
+        out.rotation_var[name] = angle2
+        out.position_var[name] = depth * depth * angle2
+    return out
+
+
+def metres_per_sfm_unit(result: WindowResult, metres_per_unit: float | None) -> float | None:
+    """The window's metres per SfM unit: its own estimate m_w (core/metric/scale.py), or under
+    ``metric.source: fixed`` the user's metres per network unit times the alignment's ŝ
+    (D_nn ≈ ŝ·D_sfm, Eq. (4)); None when neither is known."""
+    metric = result.metric
+    if metric is not None and math.isfinite(metric.m) and metric.m > 0:
+        return float(metric.m)
+    if (metric is not None and metric.source == "fixed" and metres_per_unit is not None
+            and math.isfinite(result.scale) and result.scale > 0):
+        return float(metres_per_unit * result.scale)
+    return None
+
+
+def result_poses(result: WindowResult, stamps: Mapping[str, float],
+                 metres_per_unit: float | None = None) -> WindowPoses | None:
+    """What the path takes of a window's result (None: it has no reconstruction)."""
+    if result.sfm is None or not result.sfm.frames:
+        return None
+    return window_poses(result.sfm, stamps, result.sfm_mapping,
+                        metres_per_sfm_unit(result, metres_per_unit))
+
+
+def _centre(cam_from_world: np.ndarray) -> np.ndarray:
+    return -cam_from_world[:3, :3].T @ cam_from_world[:3, 3]
+
+
+def _project_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest ``M`` (chordal mean of the rotations summed into it)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def _angle(R: np.ndarray) -> float:
+    return math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
+
+
+def fit_similarity(path_poses: list[np.ndarray], cam_from_world: list[np.ndarray],
+                   scale: float | None) -> Similarity | None:
+    """S with S·world_from_cam_i ≈ path_pose_i over the shared frames (module docstring);
+    ``scale`` fixed (metres) or fitted; None when it cannot be fitted (no frames, or a fitted
+    scale from fewer than two distinct centres)."""
+    if not path_poses:
+        return None
+    M = sum(P[:3, :3] @ T[:3, :3] for P, T in zip(path_poses, cam_from_world, strict=True))
+    R = _project_rotation(M)
+    c = np.array([_centre(T) for T in cam_from_world])
+    p = np.array([P[:3, 3] for P in path_poses])
+    rc = (c - c.mean(0)) @ R.T
+    if scale is None:
+        denom = float(np.sum(rc * rc))
+        if len(path_poses) < 2 or denom <= 1e-12:
+            return None
+        scale = float(np.sum(rc * (p - p.mean(0)))) / denom
+        if not (math.isfinite(scale) and scale > 0):
+            return None
+    t = p.mean(0) - scale * R @ c.mean(0)
+    res = p - (scale * c @ R.T + t)
+    rot = [_angle(P[:3, :3] @ (R @ T[:3, :3].T).T)
+           for P, T in zip(path_poses, cam_from_world, strict=True)]
+    return Similarity(scale, R, t, float(np.mean(np.sum(res * res, 1))),
+                      float(np.mean(np.square(rot))))
+
+
+@dataclass
+class _Segment:
+    """The similarity of the current map's world, the base variances its frames carry, the
+    metres per SfM unit of its windows (a metre path) and its newest frame (its odom position
+    and world centre: where a new scale is anchored)."""
+
+    S: Similarity
+    position_base: float
+    rotation_base: float
+    metres: list[float] = field(default_factory=list)
+    anchor: tuple[np.ndarray, np.ndarray] | None = None
+
+    def rescale(self, metres: float | None) -> None:
+        """A continued window's metres per SfM unit: the segment's scale becomes the median
+        of its windows' (one map, one scale: the median of their estimates), re-anchored at
+        its newest frame so the path stays continuous."""
+        if metres is None or self.anchor is None:
+            return
+        self.metres.append(metres)
+        s = float(np.median(self.metres))
+        position, centre = self.anchor
+        self.S = Similarity(s, self.S.R, position - s * self.S.R @ centre,
+                            self.S.position_res2, self.S.rotation_res2)
+
+
+class CameraPath:
+    """The windows' camera poses chained into one path in ``odom`` (module docstring)."""
+
+    def __init__(self, max_poses: int = 100_000):
+        if max_poses < 2:
+            raise InputError(f"a camera path keeps at least 2 poses, got {max_poses}")
+        self.max_poses = int(max_poses)
+        self.poses: dict[str, PathPose] = {}  # insertion (= stamp) order, the oldest dropped
+        self.units = ""  # "m" or "sfm" once the first window set them
+        self.chains: Counter[str] = Counter()
+        self._segment: _Segment | None = None
+        self._windows = 0
+
+    @property
+    def breaks(self) -> int:
+        return self.chains["break"]
+
+    @property
+    def last(self) -> PathPose | None:
+        return next(reversed(self.poses.values()), None)
+
+    def add(self, window: WindowPoses) -> list[PathPose]:
+        """Chain one window; its frames newer than the path's end, in stamp order (possibly
+        none: a window with no registered frame adds nothing and counts nothing)."""
+        if not window.poses:
+            return []
+        m = window.metres_per_sfm_unit
+        metres = m if m is not None and math.isfinite(m) and m > 0 else None
+        if not self.units:
+            self.units = "m" if metres is not None else "sfm"
+        scale = metres if self.units == "m" else None
+        chain, segment = self._chain(window, scale)
+        if chain == "continued":
+            segment.rescale(scale)
+        elif scale is not None:
+            segment.metres = [scale]
+        self._segment = segment
+        self.chains[chain] += 1
+        index, self._windows = self._windows, self._windows + 1
+        return self._append(window, segment, chain, index)
+
+    def _chain(self, window: WindowPoses, scale: float | None) -> tuple[str, _Segment]:
+        """How the window joins the path, and its segment."""
+        if self._segment is None:
+            return "first", self._first(window, scale)
+        if window.mapping == "continued":
+            return "continued", self._segment
+        shared = [n for n in window.poses if n in self.poses]
+        S = fit_similarity([self.poses[n].odom_from_camera for n in shared],
+                           [window.poses[n] for n in shared], scale)
+        if S is None:
+            return "break", self._guess(window, scale)
+        pv = float(np.mean([self.poses[n].position_var for n in shared]))
+        rv = float(np.mean([self.poses[n].rotation_var for n in shared]))
+        return "shared", _Segment(S, pv + S.position_res2, rv + S.rotation_res2)
+
+    @staticmethod
+    def _first(window: WindowPoses, scale: float | None) -> _Segment:
+        """The first window: its earliest frame at the origin, on odom's REP 103 axes."""
+        first = min(window.poses, key=window.stamps.__getitem__)
+        T = window.poses[first]
+        R = BODY_FROM_OPTICAL @ T[:3, :3]
+        s = 1.0 if scale is None else scale
+        return _Segment(Similarity(s, R, -s * R @ _centre(T)), 0.0, 0.0)
+
+    def _guess(self, window: WindowPoses, scale: float | None) -> _Segment:
+        """A break: the window's earliest frame where the last velocity carries the path's end
+        (module docstring)."""
+        order = sorted(window.poses, key=window.stamps.__getitem__)
+        end = self.last
+        velocity = self._velocity()
+        dt = window.stamps[order[0]] - end.stamp
+        step = np.zeros(3) if velocity is None else velocity * dt
+        s = scale
+        if s is None:
+            s = self._segment.S.s
+            if velocity is not None and len(order) > 1:
+                a, b = (_centre(window.poses[n]) for n in order[:2])
+                seconds = window.stamps[order[1]] - window.stamps[order[0]]
+                length = float(np.linalg.norm(b - a))
+                if length > 1e-12 and seconds > 0:
+                    s = float(np.linalg.norm(velocity)) * seconds / length
+        T = window.poses[order[0]]
+        R = end.odom_from_camera[:3, :3] @ T[:3, :3]
+        t = end.position + step - s * R @ _centre(T)
+        if velocity is None:  # nothing to guess from: position and heading unknown
+            return _Segment(Similarity(s, R, t), end.position_var + UNKNOWN_VARIANCE,
+                            end.rotation_var + UNKNOWN_ROTATION_VARIANCE)
+        return _Segment(Similarity(s, R, t), end.position_var + float(step @ step),
+                        end.rotation_var)
+
+    def _velocity(self) -> np.ndarray | None:
+        """The path's last velocity (units per second) from its last two poses; None without."""
+        if len(self.poses) < 2:
+            return None
+        *_, a, b = self.poses.values()
+        dt = b.stamp - a.stamp
+        return None if dt <= 0 else (b.position - a.position) / dt
+
+    def _append(self, window: WindowPoses, segment: _Segment, chain: str,
+                index: int) -> list[PathPose]:
+        end = self.last
+        after = -math.inf if end is None else end.stamp
+        new = sorted((n for n in window.poses
+                      if n not in self.poses and window.stamps[n] > after),
+                     key=window.stamps.__getitem__)
+        s2 = segment.S.s ** 2
+        added = []
+        for name in new:
+            pose = PathPose(name, window.stamps[name], segment.S.apply(window.poses[name]),
+                            segment.position_base + s2 * window.position_var.get(name, 0.0),
+                            segment.rotation_base + window.rotation_var.get(name, 0.0),
+                            index, chain)
+            self.poses[name] = pose
+            added.append(pose)
+            segment.anchor = (pose.position.copy(), _centre(window.poses[name]))
+        while len(self.poses) > self.max_poses:
+            del self.poses[next(iter(self.poses))]
+        return added
+
+    def summary(self) -> dict[str, object]:
+        """Plain numbers: the units, poses, windows by how they were chained, breaks."""
+        return {"units": self.units, "poses": len(self.poses), "windows": self._windows,
+                "chains": {k: self.chains[k] for k in CHAINS}, "breaks": self.breaks}
