@@ -408,6 +408,9 @@ def run(args: argparse.Namespace) -> dict:
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / "refiner.log"
     cmd = [args.exe, "--ros-args", "--params-file", args.params_file]
+    # every frame counts here: a reliable reader repairs what the transport loses (the
+    # default best-effort input takes any driver; --set qos_reliability=best_effort to try it)
+    cmd += ["-p", "qos_reliability:=reliable"]
     cmd += node_arguments(LIGHT + list(args.set or []))
     t0 = time.monotonic()
     with open(log_path, "w") as log:

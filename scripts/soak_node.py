@@ -332,6 +332,9 @@ def _start_node(args: argparse.Namespace, out: Path) -> tuple[list[str], subproc
     paths made absolute first)."""
     exe = [str(Path(t).absolute()) if Path(t).exists() else t for t in shlex.split(args.exe)]
     cmd = [*exe, "--ros-args", "--params-file", args.params_file]
+    # every frame counts here: a reliable reader repairs what the transport loses (the
+    # default best-effort input takes any driver; --set qos_reliability=best_effort to try it)
+    cmd += ["-p", "qos_reliability:=reliable"]
     cmd += node_arguments(list(args.set or []))
     log_path = out / "refiner.log"
     with open(log_path, "w") as log:
