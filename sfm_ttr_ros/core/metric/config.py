@@ -40,10 +40,22 @@ class MetricConfig:
     min_ground_extent: float = 3.0
     # odometry: the least travel (m) a window's frames must span
     min_travel: float = 0.2
+    # the anchor (core/metric/anchor.py): windows agree when their k lie within this relative
+    # tolerance of each other; this many agreeing windows confirm the first estimate (state
+    # ``confirming`` until then), and this many recent windows that agree with each other and
+    # not with the anchor re-anchor it
+    agreement: float = 0.15
+    confirm_windows: int = 2
+    reanchor_windows: int = 3
+    # once ``metric``, the state demotes to ``stale`` when its source stops: odometry silent
+    # for this long (s), or this many windows in a row without a camera-height estimate
+    odometry_timeout_s: float = 5.0
+    stale_windows: int = 3
 
     def __post_init__(self) -> None:
         check_choice("metric.source", self.source, METRIC_SOURCES)
-        for name in ("camera_height", "factor", "inlier_tolerance", "min_travel"):
+        for name in ("camera_height", "factor", "inlier_tolerance", "min_travel", "agreement",
+                     "odometry_timeout_s"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"metric.{name} must be a finite number > 0, got {v}")
@@ -52,5 +64,8 @@ class MetricConfig:
                              f"{self.max_jump}")
         if self.history < 1 or self.min_ground_points < 3:
             raise InputError("metric.history must be >= 1 and min_ground_points >= 3")
+        if min(self.confirm_windows, self.reanchor_windows, self.stale_windows) < 1:
+            raise InputError("metric.confirm_windows, reanchor_windows and stale_windows must "
+                             "be >= 1")
         if not 0 < self.max_tilt_deg < 90 or not self.max_height_spread > 0:
             raise InputError("metric.max_tilt_deg must lie in (0, 90) and max_height_spread > 0")
