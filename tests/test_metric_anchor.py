@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_metric import street
 
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.odometry import OdometryTrack
 from sfm_ttr_ros.core.metric.scale import MetricScale, WindowMetric, estimate
 from sfm_ttr_ros.core.sfm.cloud import window_cloud
-from test_metric import street
 
 
 class Network:
