@@ -5,7 +5,7 @@ it and core/metric/ground.py estimates metres per SfM unit from the camera's hei
 is the similarity scale between SfM's and the drive's camera centres. Prints each window's
 estimate over the truth (1 = exact; the target: within 3 %) and the worst per drive.
 
-    python scripts/ground_height_check.py --domain C --seeds 0 1 --frames 60 --width 621 --height 188
+    python scripts/ground_height_check.py --domain C --seeds 0 1 --frames 60
 """
 
 from __future__ import annotations
