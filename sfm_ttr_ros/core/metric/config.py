@@ -38,6 +38,15 @@ class MetricConfig:
     # least this many camera heights (a ground, not a table top)
     max_pitch_deg: float = 25.0
     min_ground_extent: float = 3.0
+    # ... and, for cameras that travel, its normal within this angle of square to the travel
+    # (they move along their ground) and, across the travel, within this angle of the
+    # cameras' down axis (a camera rolls with its ground: a plane rolled further is a slope
+    # through the road and the kerb side, not the road)
+    max_slope_deg: float = 3.0
+    max_roll_deg: float = 3.0
+    # ... and only the points within this many camera heights aside of the cameras' track
+    # count for it (the road they drive on, not a track bed, a sidewalk or a wall's foot)
+    corridor: float = 2.5
     # odometry: the least travel (m) a window's frames must span
     min_travel: float = 0.2
     # the anchor (core/metric/anchor.py): windows agree when their k lie within this relative

@@ -68,7 +68,8 @@ def ground_plane(sfm: SfmResult, registered: Sequence[str], cfg: MetricConfig,
     X = X[(X - mean_c) @ down > 0]
     if X.shape[0] < cfg.min_ground_points:
         return GroundPlane(reason=f"{X.shape[0]} points below the cameras")
-    plane = _ransac_plane(X, down, mean_c, cfg, np.random.default_rng(seed))
+    travel = _travel(centres)
+    plane = _ransac_plane(X, Axes(down, travel), mean_c, cfg, np.random.default_rng(seed))
     if plane is None:
         return GroundPlane(reason="no plane across the cameras' down axis")
     n, c, inliers = plane
@@ -112,11 +113,53 @@ def _extent(P: np.ndarray, n: np.ndarray, h: float) -> float:
     return float((np.percentile(along, 95) - np.percentile(along, 5)) / h) if h > 0 else 0.0
 
 
-def _ransac_plane(X: np.ndarray, down: np.ndarray, centre: np.ndarray, cfg: MetricConfig,
+@dataclass
+class Axes:
+    """The cameras' mean down axis and their direction of travel (None: they hardly moved)."""
+
+    down: np.ndarray
+    travel: np.ndarray | None
+
+    def admits(self, n: np.ndarray, cfg: MetricConfig) -> bool:
+        """Whether a plane normal ``n`` (oriented along ``down``) can be the ground: within
+        ``max_tilt_deg`` of the down axis; with travel, within ``max_slope_deg`` of square to
+        it (the camera moves along its ground) and, across the travel, within
+        ``max_roll_deg`` of the down axis (a camera rolls with its ground)."""
+        if n @ self.down < math.cos(math.radians(cfg.max_tilt_deg)):
+            return False
+        v = self.travel
+        if v is None:
+            return True
+        if abs(n @ v) > math.sin(math.radians(cfg.max_slope_deg)):
+            return False
+        a, b = n - (n @ v) * v, self.down - (self.down @ v) * v
+        cos_roll = (a @ b) / (np.linalg.norm(a) * np.linalg.norm(b))
+        return bool(cos_roll >= math.cos(math.radians(cfg.max_roll_deg)))
+
+
+    def lateral(self, offsets: np.ndarray) -> np.ndarray:
+        """How far aside of the cameras' track ``offsets`` (from the mean centre) lie, across
+        the travel and the down axis; zeros without travel."""
+        if self.travel is None:
+            return np.zeros(offsets.shape[0])
+        across = np.cross(self.travel, self.down)
+        return np.abs(offsets @ (across / np.linalg.norm(across)))
+
+
+def _travel(centres: np.ndarray) -> np.ndarray | None:
+    """The unit direction from the first to the last camera centre; None when the cameras
+    stood (their path under a tenth of their spread... or no path at all)."""
+    d = centres[-1] - centres[0]
+    norm = float(np.linalg.norm(d))
+    return d / norm if norm > 0 else None
+
+
+def _ransac_plane(X: np.ndarray, axes: Axes, centre: np.ndarray, cfg: MetricConfig,
                   rng: np.random.Generator):
     """(n, c, inlier mask) of the plane with the most inliers among three-point samples whose
-    normal is within max_tilt_deg of ``down`` (n oriented along ``down``), or None."""
-    cos_tilt = math.cos(math.radians(cfg.max_tilt_deg))
+    normal :meth:`Axes.admits` (n oriented along the down axis), or None."""
+    down = axes.down
+    lateral = axes.lateral(X - centre)
     best, best_count = None, 0
     for _ in range(RANSAC_ITERATIONS):
         a, b, c3 = X[rng.choice(X.shape[0], 3, replace=False)]
@@ -126,13 +169,13 @@ def _ransac_plane(X: np.ndarray, down: np.ndarray, centre: np.ndarray, cfg: Metr
             continue
         n = n / norm
         n = n if n @ down > 0 else -n
-        if n @ down < cos_tilt:
+        if not axes.admits(n, cfg):
             continue
         c = float(n @ a)
         h = c - float(n @ centre)  # the plane lies below the cameras: c > n·C
         if h <= 0:
             continue
-        inliers = np.abs(X @ n - c) < cfg.inlier_tolerance * h
+        inliers = (np.abs(X @ n - c) < cfg.inlier_tolerance * h) & (lateral < cfg.corridor * h)
         count = int(inliers.sum())
         if count > best_count:
             best, best_count = (n, c, inliers), count
