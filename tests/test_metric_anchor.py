@@ -139,3 +139,36 @@ def test_the_cloud_is_in_the_depth_outputs_units():
                                MetricScale().factor(MetricConfig(source="fixed", factor=0.25)))
     assert np.allclose(fixed, 0.25 * plain) and np.allclose(plain, 2.0 * sfm.points_in_frame(
         reg[-1]), rtol=1e-5)
+
+
+def test_the_pipeline_supervises_a_disagreeing_window_in_the_streams_metres():
+    """SfmTTR's metric stage: a window that agrees with the anchor is supervised in its own
+    metres (targets m·D_sfm); one that disagrees (k 1.4x the anchor's, within max_jump) in the
+    stream's (ref·ŝ: here ŝ itself, the network having learnt metres), not moving them."""
+    from types import SimpleNamespace
+
+    from conftest import tiny_model
+
+    from sfm_ttr_ros.core.pipeline import SfmTTR
+    from sfm_ttr_ros.core.window import TTRConfig
+
+    sfm, reg = street(units=0.5)  # 0.5 m per SfM unit
+    cfg = TTRConfig(weight_policy="continue", metric=MetricConfig(source="camera_height"))
+    ttr = SfmTTR(tiny_model(), cfg)
+    targets, verdicts = [], []
+    try:
+        for s_hat in (0.5, 0.5, 0.5 / 1.4, 0.5):  # k = m / ŝ: 1, 1, 1.4, 1
+            fit = AlignmentResult(s_hat, np.ones(1, bool), np.ones(1, bool))
+            res = SimpleNamespace(sfm=sfm, scale=s_hat, alignment=fit, metric=None)
+            w = SimpleNamespace(result=res, registered=reg, scaled=True, metric=None,
+                                frames=[SimpleNamespace(name=n, stamp=0.1 * i)
+                                        for i, n in enumerate(reg)])
+            assert ttr._measure_metric(w) is None
+            ttr.metric.accept(cfg.metric, w.metric, cfg.weight_policy)
+            targets.append(res.alignment.scale)
+            verdicts.append(w.metric.verdict)
+    finally:
+        ttr.close()
+    assert verdicts == ["candidate", "confirms", "disagrees", "agrees"]
+    assert targets == pytest.approx([0.5, 0.5, 0.5 / 1.4, 0.5], rel=0.02)
+    assert ttr.metric_status().state == "metric"
