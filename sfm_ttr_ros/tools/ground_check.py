@@ -5,7 +5,7 @@ it and core/metric/ground.py estimates metres per SfM unit from the camera's hei
 is the similarity scale between SfM's and the drive's camera centres. Prints each window's
 estimate over the truth (1 = exact; the target: within 3 %) and the worst per drive.
 
-    python scripts/ground_height_check.py --domain C --seeds 0 1 --frames 60
+    python -m sfm_ttr_ros.tools.ground_check --domain C A --seeds 0 1 2 --frames 45
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 
+from sfm_ttr_ros.core.metric.ground import cameras
+
 
 def true_metres_per_unit(sfm, registered, cam_from_world, index) -> float:
     """The similarity scale between the drive's camera centres and SfM's (metres per unit)."""
-    from sfm_ttr_ros.core.metric.ground import cameras
-
     sfm_c = cameras(sfm, registered)[0]
     true_c = np.stack([-(cam_from_world[index[n]][:3, :3].T @ cam_from_world[index[n]][:3, 3])
                        for n in registered])
