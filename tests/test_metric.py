@@ -49,8 +49,8 @@ def test_the_camera_height_is_found_in_sfm_units_under_any_scale():
         sfm, reg = street(units=units)
         plane = ground_plane(sfm, reg, cfg)
         assert plane.height == pytest.approx(1.65 / units, rel=0.02), plane.reason
-        # the ground within metric.corridor (2.5 camera heights) of the track: ~200 of 300
-        assert plane.inliers >= 150 and plane.spread < 0.05 and abs(plane.pitch_deg) < 1
+        # the ground within metric.corridor (1.5 camera heights) of the track: ~125 of 300
+        assert plane.inliers >= 100 and plane.spread < 0.05 and abs(plane.pitch_deg) < 1
         w = estimate(cfg, sfm, reg, [0.1 * i for i in range(10)], alignment_scale=2.0,
                      odometry=None)
         assert w.ok and w.m == pytest.approx(units, rel=0.02)

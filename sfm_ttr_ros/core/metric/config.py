@@ -31,7 +31,7 @@ class MetricConfig:
     # registered cameras' heights above it within this relative spread
     max_tilt_deg: float = 20.0
     inlier_tolerance: float = 0.04
-    min_ground_points: int = 30
+    min_ground_points: int = 50
     max_height_spread: float = 0.25
     # ... and the cameras looking along it (their optical axis within this angle of the plane:
     # a vehicle's camera, not one looking down at a table), the plane's inliers spanning at
@@ -46,7 +46,7 @@ class MetricConfig:
     max_roll_deg: float = 3.0
     # ... and only the points within this many camera heights aside of the cameras' track
     # count for it (the road they drive on, not a track bed, a sidewalk or a wall's foot)
-    corridor: float = 2.5
+    corridor: float = 1.5
     # odometry: the least travel (m) a window's frames must span
     min_travel: float = 0.2
     # the anchor (core/metric/anchor.py): windows agree when their k lie within this relative
