@@ -172,3 +172,26 @@ def test_the_pipeline_supervises_a_disagreeing_window_in_the_streams_metres():
     assert verdicts == ["candidate", "confirms", "disagrees", "agrees"]
     assert targets == pytest.approx([0.5, 0.5, 0.5 / 1.4, 0.5], rel=0.02)
     assert ttr.metric_status().state == "metric"
+
+
+def test_the_node_warns_while_the_metres_are_stale():
+    """ros/metric_watch.py: the node's timer warns (throttled by warn_every's key) while the
+    state is stale, with its reason; nothing otherwise."""
+    from types import SimpleNamespace
+
+    from sfm_ttr_ros.ros.metric_watch import warn_if_stale
+
+    cfg = MetricConfig(source="camera_height", stale_windows=1)
+    scale, odom, said = MetricScale(), OdometryTrack(), []
+    ttr = SimpleNamespace(metric_status=lambda: scale.status(cfg, odom))
+
+    def warn(key, message):
+        said.append((key, message))
+
+    for _ in range(2):
+        Network(1.0).window(scale, cfg, 1.0)
+    assert not warn_if_stale(ttr, warn) and said == []
+    scale.judge(cfg, WindowMetric("camera_height", reason="no ground plane"), "continue")
+    assert warn_if_stale(ttr, warn)
+    assert said[0][0] == "metric_stale" and "1 windows in a row" in said[0][1]
+    assert not warn_if_stale(SimpleNamespace(), warn)  # a ttr without a metric status
