@@ -39,7 +39,7 @@ import numpy as np
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
-RANSAC_ITERATIONS = 500
+RANSAC_ITERATIONS = 1000
 
 
 @dataclass
