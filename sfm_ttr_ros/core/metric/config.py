@@ -31,7 +31,7 @@ class MetricConfig:
     # registered cameras' heights above it within this relative spread
     max_tilt_deg: float = 20.0
     inlier_tolerance: float = 0.04
-    min_ground_points: int = 50
+    min_ground_points: int = 12
     max_height_spread: float = 0.25
     # ... and the cameras looking along it (their optical axis within this angle of the plane:
     # a vehicle's camera, not one looking down at a table), the plane's inliers spanning at
