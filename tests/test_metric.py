@@ -49,7 +49,8 @@ def test_the_camera_height_is_found_in_sfm_units_under_any_scale():
         sfm, reg = street(units=units)
         plane = ground_plane(sfm, reg, cfg)
         assert plane.height == pytest.approx(1.65 / units, rel=0.02), plane.reason
-        assert plane.inliers >= 250 and plane.spread < 0.05 and abs(plane.pitch_deg) < 1
+        # the ground within metric.corridor (1.5 camera heights) of the track: ~125 of 300
+        assert plane.inliers >= 100 and plane.spread < 0.05 and abs(plane.pitch_deg) < 1
         w = estimate(cfg, sfm, reg, [0.1 * i for i in range(10)], alignment_scale=2.0,
                      odometry=None)
         assert w.ok and w.m == pytest.approx(units, rel=0.02)
@@ -85,7 +86,7 @@ def test_odometry_gives_metres_per_sfm_unit_from_the_travelled_path():
     track = OdometryTrack()
     for i in range(-5, 40):  # 20 Hz positions, the frames at 10 Hz
         assert track.add(0.05 * i, [0.0, 0.0, 0.3 * i])
-    assert not track.add(0.0, [0, 0, 0])  # out of order: rejected, counted
+    assert not track.add(1.9, [0, 0, 0])  # out of order (< 1 s back): rejected, counted
     assert not track.add(9.0, [np.nan, 0, 0]) and track.rejected == 2
     cfg = MetricConfig(source="odometry")
     w = estimate(cfg, sfm, reg, [0.1 * i for i in range(10)], 1.0, track)
@@ -106,15 +107,15 @@ def test_a_network_that_learns_metres_is_served_as_metric_and_a_jump_is_refused(
     scale = MetricScale()
     assert scale.factor(cfg) is None  # waiting for the first accepted estimate
     first = WindowMetric("camera_height", k=0.6, k_after=1.0)  # start-up units: 0.6 m each
-    assert scale.refusal(cfg, first, "continue") == ""  # no reference yet
+    assert scale.judge(cfg, first, "continue") == ""  # no reference yet
     scale.accept(cfg, first, "continue")
     assert scale.factor(cfg) == 1.0
     for k in (1.02, 0.97):
         w = WindowMetric("camera_height", k=k, k_after=1.0)
-        assert scale.refusal(cfg, w, "continue") == ""
+        assert scale.judge(cfg, w, "continue") == ""
         scale.accept(cfg, w, "continue")
     assert scale.spread() == pytest.approx(0.025, abs=1e-9)
-    assert "metric.max_jump" in scale.refusal(cfg, WindowMetric("camera_height", k=1.8,
+    assert "metric.max_jump" in scale.judge(cfg, WindowMetric("camera_height", k=1.8,
                                                                 k_after=1.0), "continue")
 
 
@@ -123,13 +124,13 @@ def test_scaled_outputs_take_the_median_of_the_accepted_windows():
     scale = MetricScale()
     for k in (0.5, 0.52, 0.49):
         w = WindowMetric("camera_height", k=k, k_after=k)
-        assert scale.refusal(cfg, w, "continue") == ""
+        assert scale.judge(cfg, w, "continue") == ""
         scale.accept(cfg, w, "continue")
     assert scale.factor(cfg) == pytest.approx(0.5) and scale.spread() < 0.05
     jump = WindowMetric("camera_height", k=0.9, k_after=0.9)
-    assert "metric.max_jump 1.5" in scale.refusal(cfg, jump, "continue")
+    assert "metric.max_jump 1.5" in scale.judge(cfg, jump, "continue")
     # no estimate: no verdict
-    assert scale.refusal(cfg, WindowMetric("camera_height"), "continue") == ""
+    assert scale.judge(cfg, WindowMetric("camera_height"), "continue") == ""
     assert scale.factor(MetricConfig(source="fixed", factor=2.5)) == 2.5
     assert scale.factor(MetricConfig()) is None  # none: the network's units
 
@@ -141,10 +142,10 @@ def test_under_reset_a_window_is_judged_against_the_start_up_weights():
     scale = MetricScale()
     for k in (0.6, 0.62, 0.58):
         w = WindowMetric("camera_height", k=k, k_after=1.0)
-        assert scale.refusal(cfg, w, "reset") == "", k
+        assert scale.judge(cfg, w, "reset") == "", k
         scale.accept(cfg, w, "reset")
     assert scale.factor(cfg) == 1.0 and scale.reference(cfg, "reset") == pytest.approx(0.6)
-    assert scale.refusal(cfg, WindowMetric("camera_height", k=1.2, k_after=1.0), "reset")
+    assert scale.judge(cfg, WindowMetric("camera_height", k=1.2, k_after=1.0), "reset")
 
 
 def test_metric_settings_validate_themselves():

@@ -159,3 +159,25 @@ def test_compressed_depth_follows_each_depth_image_on_its_own_topic():
     refined = outputs.frame_messages(FrameOutput(frame, depth, refined=True), compressed=packed)
     assert list(refined) == [names.DEPTH_REFINED_RELATIVE_TOPIC,
                              names.DEPTH_REFINED_RELATIVE_TOPIC + "/compressedDepth"]
+
+
+@pytest.mark.parametrize("state, factor, topic, level", [
+    ("metric", 2.0, names.DEPTH_TOPIC, 0),
+    ("confirming", 2.0, names.DEPTH_TOPIC, 1),  # metres by one window's estimate: WARN
+    ("stale", 2.0, names.DEPTH_TOPIC, 1),  # the source stopped, the last factor holds: WARN
+    ("waiting", None, names.DEPTH_RELATIVE_TOPIC, 1),
+    ("not_metric", None, names.DEPTH_RELATIVE_TOPIC, 1)])
+def test_depth_scale_says_where_the_depth_goes_as_each_frame_is_routed(state, factor, topic,
+                                                                        level):
+    """~/depth_scale's depth_topic follows the rule every frame is routed by (a factor known:
+    metres), its level says whether the metres are confirmed and current."""
+    from sfm_ttr_ros.core.metric.scale import MetricStatus
+    from sfm_ttr_ros.ros import units
+
+    status = MetricStatus("camera_height", state, factor, 0.0, 1, 0, 0, reason="why")
+    msg = units.scale_status_message(status, "publish", "/refiner")
+    values = {kv.key: kv.value for kv in msg.values}
+    assert values["depth_topic"] == topic and values["state"] == state
+    assert values["reason"] == "why" and msg.level == bytes([level])
+    routed = units.route({names.DEPTH_TOPIC: "m"}, factor is not None, "publish")
+    assert list(routed) == [topic]

@@ -11,6 +11,7 @@ from sfm_ttr_ros.data.synthetic import (
     SceneParams,
     SyntheticSequence,
     _materials,
+    camera_pose,
     make_sequence,
     render_sequence,
     sample_scene_params,
@@ -98,7 +99,29 @@ def test_domains_differ_in_parameters():
         assert 1.5 < a.camera_height < 1.8 and 0.5 <= a.speed <= 1.5  # KITTI-like
         assert sample_scene_params(seed, "A") == a  # deterministic
     with pytest.raises(InputError, match="domain"):
-        sample_scene_params(0, "C")
+        sample_scene_params(0, "Z")
+
+
+def test_domain_c_is_a_road_with_real_edges():
+    """Domain C: A's camera on a cambered road of plain asphalt, a wall, a raised track bed and
+    the bonnet in view; the camera rides its lane (height over the road under it) and the
+    bottom of the image is the bonnet, at the depth its top gives."""
+    from sfm_ttr_ros.data.synthetic.scene import road_level
+
+    a, c = sample_scene_params(2, "A"), sample_scene_params(2, "C")
+    assert c.domain == "C" and (c.camera_height, c.focal_scale) == (a.camera_height,
+                                                                    a.focal_scale)
+    assert 0.02 <= c.camber <= 0.03 and c.road_contrast < 0.5 and c.wall_height > 1.5
+    assert c.tram_bed_height > c.kerb_height and c.bonnet_length > 1.5
+    assert (a.camber, a.wall_height, a.tram_bed_width, a.bonnet_length) == (0, 0, 0, 0)
+    _, C = camera_pose(c, 0.0)
+    assert road_level(c, C[0]) - C[1] == pytest.approx(c.camera_height, abs=0.011)
+    assert road_level(c, 0.0) == pytest.approx(-c.camber * c.street_width / 2)
+    seq = make_sequence(seed=2, domain="C", num_frames=1, width=320, height=96)
+    intr, depth = seq.intrinsics, seq.depths[0]
+    slope = (95 - intr.cy) / intr.fy  # the bottom row's ray, below the optical axis
+    expected = c.bonnet_drop / (slope + c.pitch)  # ~ flat: pitch and roll are small
+    assert float(np.median(depth[95, 140:180])) == pytest.approx(expected, rel=0.1)
 
 
 def test_domains_differ_in_image_statistics(seq_a, seq_b):

@@ -200,19 +200,19 @@ class SfmTTR:
 
     def _measure_metric(self, w: WindowState) -> Stop | None:
         """Metres per SfM unit of the window (``metric.source``: a ground plane under the
-        camera, or odometry) and per network unit; refused when it jumps against the stream's
-        steady factor (core/metric/scale.py). With ``metric.learn`` the supervision becomes
-        metric (the targets m·D_sfm)."""
+        camera, or odometry) and per network unit, judged against the stream's anchor
+        (core/metric/anchor.py): refused when it jumps. With ``metric.learn`` the supervision
+        becomes metric (the targets m·D_sfm; the anchor's metres when the window disagrees)."""
         cfg, res = self.config, w.result
         stamps = [f.stamp for f in w.frames if f.name in set(w.registered)]
         w.metric = res.metric = estimate(cfg.metric, res.sfm, w.registered, stamps,
                                          res.scale if w.scaled else float("nan"),
                                          self.odometry)
-        if why := self.metric.refusal(cfg.metric, w.metric, cfg.weight_policy):
+        if why := self.metric.judge(cfg.metric, w.metric, cfg.weight_policy):
             return Stop(Unrefined.CHECK_SCALE_JUMP, f"check: {why}")
         if cfg.metric.learn and w.metric.ok:  # Eq. (5)'s targets m·D_sfm: metres are learnt
-            res.alignment = dataclasses.replace(res.alignment, scale=w.metric.m)
-            res.scale = w.metric.m
+            res.alignment = dataclasses.replace(res.alignment, scale=w.metric.target_m)
+            res.scale = w.metric.target_m
         return None
 
     def _supervise(self, w: WindowState) -> None:
@@ -280,8 +280,8 @@ class SfmTTR:
             return Stop(c.reason_key, f"rejected by check: {c.reason}")
         self.checks.accept(c, res.sfm, w.registered, res.scale, w.scaled)
         self.metric.accept(cfg.metric, w.metric, cfg.weight_policy)
-        res.cloud_frame, res.cloud_xyz, res.cloud_error = window_cloud(res.sfm, w.registered,
-                                                                       res.alignment)
+        res.cloud_frame, res.cloud_xyz, res.cloud_error = window_cloud(
+            res.sfm, w.registered, res.alignment, self.metres_per_unit)
         return None
 
     def _photometric_frames(self, w: WindowState) -> list[PhotometricFrame]:

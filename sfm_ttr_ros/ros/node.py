@@ -70,6 +70,7 @@ from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, Intrinsics
 from sfm_ttr_ros.ros.containment import ThrottledLog, contained, fault_message, where
 from sfm_ttr_ros.ros.encoder_file import load_encoder, save_encoder
 from sfm_ttr_ros.ros.live_settings import LiveSettings
+from sfm_ttr_ros.ros.metric_watch import warn_if_stale
 from sfm_ttr_ros.ros.odom_output import OdomOutput
 from sfm_ttr_ros.ros.publishers import OutputPublishers
 from sfm_ttr_ros.ros.units import ScaleState
@@ -236,7 +237,8 @@ class RefinerNode(Node):
             return
         if not self.ttr.odometry.add(stamp, position):
             self.warn_every("odometry", "Odometry rejected: its stamp is not after the last "
-                            "one's, or its position is not finite")
+                            "one's (more than 1 s back restarts the track), or its position "
+                            "is not finite")
 
     def _hand_over(self, resolved: Resolved) -> None:
         """Queue the frames that have intrinsics; count the held frames pushed out."""
@@ -268,6 +270,7 @@ class RefinerNode(Node):
         self._hand_over(self.intrinsics.release())  # the fallback may have been set meanwhile
         self._report_scale()
         self.publish_diagnostics()
+        warn_if_stale(self.ttr, self.warn_every)  # the metric scale's source stopped
 
     def _report_scale(self) -> None:
         """~/depth_scale (latched) when the depth's scale changed (ros/units.py)."""

@@ -5,6 +5,9 @@ REP 118: a 32FC1 depth image is metres. ``~/depth/image``, ``~/depth_refined/ima
 ``not_metric`` or ``waiting``: :class:`~sfm_ttr_ros.core.metric.scale.MetricStatus`) goes out on
 the relative twin of its topic (:data:`~sfm_ttr_ros.ros.names.RELATIVE_TWIN`,
 ``relative_depth: publish``) or not at all (``drop``; ``~/depth_scale`` says which): :func:`route`.
+A frame is in metres when the outputs' factor was known as it was made: in states ``metric``,
+``confirming`` (one window's estimate, not yet confirmed by a second) and ``stale`` (its source
+stopped; the last factor holds), each of the last two with a WARN on ``~/depth_scale``.
 
 ``~/depth_scale`` (:class:`ScaleState`) states the scale now: a latched (transient local,
 depth 1) diagnostic_msgs/DiagnosticStatus, published at start and at every change of source,
@@ -43,29 +46,33 @@ def route(messages: Mapping[str, object], metric: bool, relative: str) -> dict[s
     return out
 
 
-def depth_topic_now(state: str, relative: str) -> str:
-    """Where the live depth goes in ``state``: the metric topic, its relative twin, or
-    ``"dropped"``."""
-    if state == "metric":
+def depth_topic_now(metres_per_unit: float | None, relative: str) -> str:
+    """Where the live depth goes with the outputs' factor ``metres_per_unit`` (None: not in
+    metres, the rule :func:`route` applies to every frame): the metric topic, its relative
+    twin, or ``"dropped"``."""
+    if metres_per_unit is not None:
         return names.DEPTH_TOPIC
     return names.DEPTH_RELATIVE_TOPIC if relative == "publish" else "dropped"
 
 
 def scale_status_message(status: MetricStatus, relative: str, hardware_id: str):
     """The ``~/depth_scale`` DiagnosticStatus of ``status``: key/values ``source``, ``state``,
-    ``factor`` (metres per network unit, ``nan`` when not metric) and ``depth_topic`` (where
-    the live depth goes now); level OK when the depth is in metres, else WARN."""
-    metric = status.state == "metric"
-    message = ("depth in metres (REP 118)" if metric else
+    ``reason``, ``factor`` (metres per network unit, ``nan`` when not metric) and
+    ``depth_topic`` (where the live depth goes now). The depth is in metres whenever a factor
+    is known (as :func:`route` decides per frame); the level is OK in state ``metric``, WARN
+    otherwise: not in metres, or in metres not yet confirmed by a second window
+    (``confirming``) or whose source stopped (``stale``: the last factor still applies)."""
+    metres = status.metres_per_unit is not None
+    message = (f"depth in metres (REP 118), state {status.state}" if metres else
                f"depth not in metres ({status.state}): relative topics"
                if relative == "publish" else
                f"depth not in metres ({status.state}): not published")
     values = {"source": status.source, "state": status.state,
-              "factor": float("nan") if status.metres_per_unit is None
-              else status.metres_per_unit,
-              "depth_topic": depth_topic_now(status.state, relative)}
+              "reason": status.reason,
+              "factor": float("nan") if not metres else status.metres_per_unit,
+              "depth_topic": depth_topic_now(status.metres_per_unit, relative)}
     array = make_diagnostic_array(None, f"{hardware_id} {SCALE_STATUS_NAME}", hardware_id,
-                                  "ok" if metric else "warn", message, values)
+                                  "ok" if status.state == "metric" else "warn", message, values)
     return array.status[0]
 
 

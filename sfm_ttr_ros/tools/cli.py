@@ -123,7 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "truck, frame for frame (a counterfactual drive)")
     g.add_argument("--width", type=int, default=1242)
     g.add_argument("--height", type=int, default=375)
-    g.add_argument("--domain", default="B", help="A (training domain) or B (held out)")
+    g.add_argument("--domain", default="B", help="A (training domain), B (held out) or C (a "
+                   "road with real edges: camber, curbs, a wall, a track bed, the bonnet)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--drive-number", type=int, default=1)
     g.set_defaults(func=cmd_generate)

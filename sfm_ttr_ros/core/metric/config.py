@@ -31,19 +31,40 @@ class MetricConfig:
     # registered cameras' heights above it within this relative spread
     max_tilt_deg: float = 20.0
     inlier_tolerance: float = 0.04
-    min_ground_points: int = 30
+    min_ground_points: int = 12
     max_height_spread: float = 0.25
     # ... and the cameras looking along it (their optical axis within this angle of the plane:
     # a vehicle's camera, not one looking down at a table), the plane's inliers spanning at
     # least this many camera heights (a ground, not a table top)
     max_pitch_deg: float = 25.0
     min_ground_extent: float = 3.0
+    # ... and, for cameras that travel, its normal within this angle of square to the travel
+    # (they move along their ground) and, across the travel, within this angle of the
+    # cameras' down axis (a camera rolls with its ground: a plane rolled further is a slope
+    # through the road and the kerb side, not the road)
+    max_slope_deg: float = 3.0
+    max_roll_deg: float = 3.0
+    # ... and only the points within this many camera heights aside of the cameras' track
+    # count for it (the road they drive on, not a track bed, a sidewalk or a wall's foot)
+    corridor: float = 1.5
     # odometry: the least travel (m) a window's frames must span
     min_travel: float = 0.2
+    # the anchor (core/metric/anchor.py): windows agree when their k lie within this relative
+    # tolerance of each other; this many agreeing windows confirm the first estimate (state
+    # ``confirming`` until then), and this many recent windows that agree with each other and
+    # not with the anchor re-anchor it
+    agreement: float = 0.15
+    confirm_windows: int = 2
+    reanchor_windows: int = 3
+    # once ``metric``, the state demotes to ``stale`` when its source stops: odometry silent
+    # for this long (s), or this many windows in a row without a camera-height estimate
+    odometry_timeout_s: float = 5.0
+    stale_windows: int = 3
 
     def __post_init__(self) -> None:
         check_choice("metric.source", self.source, METRIC_SOURCES)
-        for name in ("camera_height", "factor", "inlier_tolerance", "min_travel"):
+        for name in ("camera_height", "factor", "inlier_tolerance", "min_travel", "agreement",
+                     "odometry_timeout_s"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"metric.{name} must be a finite number > 0, got {v}")
@@ -52,5 +73,8 @@ class MetricConfig:
                              f"{self.max_jump}")
         if self.history < 1 or self.min_ground_points < 3:
             raise InputError("metric.history must be >= 1 and min_ground_points >= 3")
+        if min(self.confirm_windows, self.reanchor_windows, self.stale_windows) < 1:
+            raise InputError("metric.confirm_windows, reanchor_windows and stale_windows must "
+                             "be >= 1")
         if not 0 < self.max_tilt_deg < 90 or not self.max_height_spread > 0:
             raise InputError("metric.max_tilt_deg must lie in (0, 90) and max_height_spread > 0")

@@ -9,12 +9,20 @@ stamps (linear interpolation) over the SfM camera centres' path length is metres
 
 A path that runs along the robot's body frame and not its camera's differs by the lever arm
 under rotation; over a window's second of driving that is well under a per cent.
+
+A stamp more than :data:`JUMP_BACK_S` before the last one is a restart (a bag replayed again,
+``ros2 bag play --loop``, a driver restarted): the track starts again from it (``resets``)
+instead of refusing every later message; a stamp at or slightly before the last one is out of
+order and refused. The monotonic time of the last position kept says when the source went
+silent (:meth:`OdometryTrack.silent_for`).
 """
 
 from __future__ import annotations
 
 import bisect
+import math
 import threading
+import time
 from collections import deque
 from collections.abc import Sequence
 
@@ -22,31 +30,50 @@ import numpy as np
 
 #: Positions kept (at 100 Hz: 50 s).
 TRACK_LENGTH = 5000
+#: A stamp this far (s) before the last one restarts the track; nearer, it is out of order.
+JUMP_BACK_S = 1.0
 
 
 class OdometryTrack:
     """Positions by stamp, added from any thread (the node's odometry callback)."""
 
-    def __init__(self, length: int = TRACK_LENGTH):
+    def __init__(self, length: int = TRACK_LENGTH, clock=time.monotonic):
         self._lock = threading.Lock()
         self._stamps: deque[float] = deque(maxlen=length)
         self._positions: deque[np.ndarray] = deque(maxlen=length)
+        self._clock = clock
+        self._last_kept = math.nan  # clock() when the last position was kept
         self.received = 0
         self.rejected = 0
+        self.resets = 0  # restarts: a stamp more than JUMP_BACK_S back
 
     def add(self, stamp: float, position: Sequence[float]) -> bool:
-        """Keep a position (metres) at ``stamp`` (seconds); one out of order or non-finite is
-        rejected and counted (False)."""
+        """Keep a position (metres) at ``stamp`` (seconds); a stamp more than
+        :data:`JUMP_BACK_S` back restarts the track from it (counted in ``resets``); one
+        slightly out of order or non-finite is rejected and counted (False)."""
         p = np.asarray(position, np.float64).reshape(-1)[:3]
         with self._lock:
             self.received += 1
-            if (p.shape != (3,) or not np.isfinite(p).all() or not np.isfinite(stamp)
-                    or (self._stamps and stamp <= self._stamps[-1])):
+            if p.shape != (3,) or not np.isfinite(p).all() or not np.isfinite(stamp):
+                self.rejected += 1
+                return False
+            if self._stamps and stamp < self._stamps[-1] - JUMP_BACK_S:
+                self._stamps.clear()
+                self._positions.clear()
+                self.resets += 1
+            elif self._stamps and stamp <= self._stamps[-1]:
                 self.rejected += 1
                 return False
             self._stamps.append(float(stamp))
             self._positions.append(p)
+            self._last_kept = self._clock()
         return True
+
+    def silent_for(self) -> float:
+        """Seconds since the last position was kept (inf before any)."""
+        with self._lock:
+            last = self._last_kept
+        return math.inf if math.isnan(last) else self._clock() - last
 
     def __len__(self) -> int:
         with self._lock:

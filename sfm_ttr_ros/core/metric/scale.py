@@ -7,16 +7,19 @@ k_w = m_w / ŝ_w metres. Two ways to make the outputs metric:
 * ``learn`` (the default): the supervision targets become m_w·D_sfm (Eq. (5) with m_w in place
   of ŝ_w, and the photometric poses scaled alike): the network itself learns metres, the
   refined weights predict metres (factor 1) and the live output follows with them. Each window
-  re-anchors the scale, so it cannot drift;
+  that agrees with the stream's anchor re-anchors the scale, so it cannot drift;
 * outputs scaled (``learn`` off): the network keeps its own units and the outputs are multiplied
   by the median of the last ``history`` accepted windows' k_w. Measured worse: under the
   ``continue`` policy the network's own scale drifts (nothing anchors it), and a median of past
   windows lags the drift (docs/decisions.md).
 
-Frame-to-frame scale that wanders breaks what consumes the depth (SLAM, odometry, costmaps): a
-window whose k_w lies more than ``max_jump`` from the factor of the weights before it is refused
-like a scale jump (its reconstruction or its ground plane is wrong). ``fixed`` uses the user's
-factor from the start; ``none`` leaves the network's units (and says so).
+Frame-to-frame scale that wanders breaks what consumes the depth (SLAM, odometry, costmaps): the
+first estimates are confirmed by agreement between windows before they anchor the rest, a window
+that disagrees with the anchor is refined in the anchor's metres (targets ref·ŝ_w·D_sfm) or,
+beyond ``max_jump``, refused like a scale jump, and windows that agree with each other and not
+with the anchor move it (:mod:`.anchor`). Once metric, the state turns ``stale`` when the source
+stops (odometry silent, windows without a ground plane). ``fixed`` uses the user's factor from
+the start; ``none`` leaves the network's units (and says so).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sfm_ttr_ros.core.metric.anchor import Anchor, Verdict
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.ground import cameras, ground_plane
 from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
@@ -54,6 +58,8 @@ class WindowMetric:
     k: float = float("nan")
     k_after: float = float("nan")
     reason: str = ""
+    verdict: str = ""  # against the stream's anchor (core/metric/anchor.py)
+    target_m: float = float("nan")  # metres per SfM unit the supervision uses (m, or the anchor's)
     ground_inliers: int = 0
     height_spread: float = float("nan")
     travel_m: float = float("nan")
@@ -82,6 +88,7 @@ def estimate(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
     if math.isfinite(w.m) and alignment_scale > 0:
         w.k = w.m / alignment_scale
         w.k_after = 1.0 if cfg.learn else w.k
+        w.target_m = w.m
     return w
 
 
@@ -104,10 +111,12 @@ def _odometry_scale(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str]
 @dataclass
 class MetricStatus:
     """What the outputs' units are now (for /diagnostics and the reports): ``state``
-    ``not_metric`` (metric.source none), ``waiting`` (no accepted estimate yet) or ``metric``;
-    ``metres_per_unit`` the outputs' factor (None = not metric); the relative ``spread`` of
-    the accepted windows' estimates, how many there are, and the odometry messages taken and
-    refused."""
+    ``not_metric`` (metric.source none), ``waiting`` (no estimate yet), ``confirming`` (the
+    depth is in an estimate's metres that other windows have not confirmed yet), ``metric``, or
+    ``stale`` (it was metric, but its source stopped: the depth keeps the last metres,
+    unchecked); ``reason`` why (core/metric/anchor.py); ``metres_per_unit`` the outputs' factor
+    (None = not metric); the relative ``spread`` of the accepted windows' estimates, how many
+    there are, the odometry messages taken, refused and its restarts, and the re-anchorings."""
 
     source: str
     state: str
@@ -116,24 +125,31 @@ class MetricStatus:
     windows: int
     odometry_received: int
     odometry_rejected: int
+    reason: str = ""
+    odometry_resets: int = 0
+    re_anchors: int = 0
 
     def values(self) -> dict[str, object]:
         """The status as flat values (``metres_per_unit`` NaN when not metric)."""
         k = self.metres_per_unit
-        return {"source": self.source, "state": self.state,
+        return {"source": self.source, "state": self.state, "reason": self.reason,
                 "metres_per_unit": float("nan") if k is None else k,
                 "spread": self.spread, "windows": self.windows,
                 "odometry_received": self.odometry_received,
-                "odometry_rejected": self.odometry_rejected}
+                "odometry_rejected": self.odometry_rejected,
+                "odometry_resets": self.odometry_resets, "re_anchors": self.re_anchors}
 
 
 class MetricScale:
-    """The metres of a stream's outputs: from its accepted windows' estimates."""
+    """The metres of a stream's outputs: from its accepted windows' estimates, anchored as
+    :mod:`.anchor` says."""
 
     def __init__(self) -> None:
-        self.history: deque[float] = deque()  # k_after of the accepted windows
+        self.history: deque[float] = deque()  # k_after of the windows that anchor the scale
         self.start_up: deque[float] = deque()  # their k under reset (the start-up weights')
         self.ratios: deque[float] = deque()  # each accepted window's k over its reference
+        self.anchor = Anchor()
+        self.without_estimate = 0  # windows in a row measured without an estimate
 
     def factor(self, cfg: MetricConfig) -> float | None:
         """Metres per network unit of the outputs now; None = not metric (``none``, or no
@@ -148,9 +164,26 @@ class MetricScale:
     def status(self, cfg: MetricConfig, odometry: OdometryTrack) -> MetricStatus:
         """The outputs' units now (:class:`MetricStatus`), with ``odometry``'s counts."""
         k = self.factor(cfg)
-        state = "not_metric" if cfg.source == "none" else ("waiting" if k is None else "metric")
+        state, reason = self._state(cfg, k, odometry)
         return MetricStatus(cfg.source, state, k, self.spread(), len(self.history),
-                            odometry.received, odometry.rejected)
+                            odometry.received, odometry.rejected, reason, odometry.resets,
+                            self.anchor.re_anchors)
+
+    def _state(self, cfg: MetricConfig, k: float | None,
+               odometry: OdometryTrack) -> tuple[str, str]:
+        """(state, reason) of :class:`MetricStatus`."""
+        if cfg.source in ("none", "fixed"):
+            return ("not_metric" if cfg.source == "none" else "metric"), ""
+        if k is None:
+            return "waiting", ""
+        if not self.anchor.confirmed:
+            return "confirming", self.anchor.reason
+        silent = odometry.silent_for()
+        if cfg.source == "odometry" and silent > cfg.odometry_timeout_s:
+            return "stale", f"no odometry for {silent:.1f} s > {cfg.odometry_timeout_s:g} s"
+        if self.without_estimate >= cfg.stale_windows:
+            return "stale", f"{self.without_estimate} windows in a row without an estimate"
+        return "metric", self.anchor.reason
 
     def reference(self, cfg: MetricConfig, weight_policy: str) -> float | None:
         """What a window's k should be: the metres per unit of the weights it starts from
@@ -166,21 +199,34 @@ class MetricScale:
         fewer than two)."""
         return float(np.std(self.ratios)) if len(self.ratios) >= 2 else float("nan")
 
-    def refusal(self, cfg: MetricConfig, window: WindowMetric, weight_policy: str) -> str:
-        """Why ``window``'s estimate refuses it ("" = not refused): its k further than
-        ``max_jump`` from :meth:`reference`."""
+    def judge(self, cfg: MetricConfig, window: WindowMetric, weight_policy: str) -> str:
+        """Judge ``window``'s estimate against the anchor (:mod:`.anchor`): its ``verdict``,
+        the ``target_m`` its supervision uses (the stream's metres when it disagrees) and its
+        ``reason``; returns why it is refused ("" = not refused: beyond ``max_jump`` of a
+        confirmed anchor)."""
+        if cfg.source in ("none", "fixed"):
+            return ""
+        if not window.ok:
+            self.without_estimate += 1
+            return ""
+        self.without_estimate = 0
         ref = self.reference(cfg, weight_policy)
-        if cfg.source in ("none", "fixed") or not window.ok or ref is None or cfg.max_jump <= 0:
-            return ""
-        ratio = max(window.k / ref, ref / window.k)
-        if ratio <= cfg.max_jump:
-            return ""
-        return (f"metric scale {window.k:.4g} m per unit is {ratio:.2f}x the {ref:.4g} of the "
-                f"weights before it > metric.max_jump {cfg.max_jump:g}")
+        verdict = self.anchor.judge(cfg, window.k, ref)
+        self.anchor.record(cfg, verdict, window.k)
+        window.verdict, window.reason = verdict.kind, verdict.refusal or verdict.reason
+        if verdict.kind == "disagrees" and ref is not None:
+            window.target_m = ref * window.m / window.k  # ref·ŝ: the stream's metres
+            window.k_after = 1.0 if cfg.learn else ref
+        return verdict.refusal
 
     def accept(self, cfg: MetricConfig, window: WindowMetric, weight_policy: str) -> None:
-        if not window.ok:
+        """An accepted (refined and kept) window's estimate: anchors the scale as its verdict
+        says; a window that disagreed leaves it as it was."""
+        if not window.ok or cfg.source in ("none", "fixed") or window.verdict == "disagrees":
             return
+        if self.anchor.accepted(cfg, Verdict(window.verdict, window.reason)):
+            for h in (self.history, self.start_up, self.ratios):
+                h.clear()
         ref = self.reference(cfg, weight_policy)
         if ref is not None:
             self.ratios.append(window.k / ref)

@@ -28,7 +28,10 @@ ambient term, distance haze, exposure and gamma.
 Domains (see :func:`sample_scene_params`): ``"A"`` is a sunny KITTI-like town (wide street, low
 warm plaster/brick facades, trees, KITTI camera); ``"B"`` is an overcast dense downtown (narrow
 street, tall grey concrete/glass facades, darker asphalt, more parked cars, few trees, lower and
-wider-angle camera, more yaw wobble, flatter contrast).
+wider-angle camera, more yaw wobble, flatter contrast); ``"C"`` is a town road with real edges
+(A's camera on a cambered road of plain asphalt, a stone wall behind a raised sidewalk on the
+right, a raised tram track bed on the left, the car's bonnet in view): what makes a ground plane
+under the camera pick the wrong points (:mod:`sfm_ttr_ros.core.metric.ground`).
 
 Hard drives (:mod:`.scenario`): segments of ordinary driving, turning on the spot,
 a standing camera, cars crossing ahead, a vehicle ahead moving with the camera, a sudden

@@ -24,6 +24,7 @@ from sfm_ttr_ros.data.synthetic.materials import (
     SIGN,
     _Material,
     _materials,
+    flattened,
 )
 from sfm_ttr_ros.data.synthetic.scene import SceneParams
 from sfm_ttr_ros.data.synthetic.textures import _PALETTES
@@ -163,11 +164,49 @@ def _with_objects(scene: _Scene, extra: _Builder) -> _Scene:
     return _Scene(params=scene.params, materials=scene.materials, **cols)
 
 
+WALL_THICKNESS = 0.4  # m, domain C's stone wall
+RAIL_GAUGE, RAIL_WIDTH, RAIL_HEIGHT = 1.435, 0.07, 0.06  # m, a tram track's
+
+
+def bonnet(params: SceneParams, C: np.ndarray, C0: np.ndarray) -> _Builder | None:
+    """The car's bonnet in front of a camera at ``C`` (a box carried with it, its texture with
+    it since ``C0``, the drive's first centre): ``bonnet_length`` ahead, its top
+    ``bonnet_drop`` below the camera; None when the scene has none."""
+    if not params.bonnet_length:
+        return None
+    b = _Builder()
+    top = C[1] + params.bonnet_drop
+    b.box(CAR, (C[0] - 0.85, top, C[2] + 0.2), (C[0] + 0.85, top + 0.5, C[2] +
+                                                   params.bonnet_length),
+          (0.4, 0.41, 0.44), (0.0, 0.0), tuple(float(x) for x in C - C0))
+    return b
+
+
+def _road_edges(b: _Builder, p: SceneParams, z0: float, z1: float) -> None:
+    """Domain C's edges over ``z in [z0, z1]``: the stone wall at the back of the right
+    sidewalk, the raised track bed left of the road with its two tracks (rails on sleeper-less
+    ballast: granite-like kerb stones), nothing when the scene has none."""
+    hw = p.street_width / 2
+    if p.wall_height:
+        x = hw + p.sidewalk_width
+        b.box(KERB, (x, -p.wall_height, z0), (x + WALL_THICKNESS, -p.kerb_height, z1),
+              (0.8, 0.78, 0.72), (0.3, 0.0))
+    if p.tram_bed_width:
+        top, w = -p.tram_bed_height, p.tram_bed_width
+        b.box(SIDEWALK, (-hw - w, top, z0), (-hw, 0.0, z1), (0.62, 0.6, 0.56), (1.7, 0.4))
+        for centre in (-hw - w * 0.3, -hw - w * 0.7):
+            for rail in (-RAIL_GAUGE / 2, RAIL_GAUGE / 2):
+                x = centre + rail
+                b.box(METAL, (x - RAIL_WIDTH / 2, top - RAIL_HEIGHT, z0),
+                      (x + RAIL_WIDTH / 2, top, z1), (0.8, 0.8, 0.85))
+
+
 def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
     """Procedural objects along ``z in [z_min, z_max]``; one RNG stream per category and side so
     that a longer scene extends a shorter one with the same seed."""
     p = params
     mats = _materials(p.texture_style, p.seed)
+    mats = (flattened(mats[ROAD], p.road_contrast), *mats[ROAD + 1:])
     b = _Builder()
     # ground "objects" (ids 0, 1, 2): road, sidewalk, kerb faces
     b.add(PLANE, ROAD, (1, 1, 1), (0, 0), (0, 0, 0), (0, 0, 0))
@@ -181,8 +220,11 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
     def stream(cat, side):
         return np.random.default_rng([p.seed, 1000 + cat, 0 if side < 0 else 1, int(start) + 10**6])
 
+    _road_edges(b, p, start, z_max)
     for side in (-1, 1):
-        # front row of buildings
+        # front row of buildings (behind a track bed, a wall)
+        edge = hw + sw + (p.tram_bed_width if side < 0 else (WALL_THICKNESS if p.wall_height
+                                                             else 0.0))
         r = stream(0, side)
         z = start
         while z < z_max:
@@ -190,7 +232,7 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
             gap = r.choice([0.0, r.uniform(0.3, 2.0), r.uniform(3.0, 7.0)], p=[0.45, 0.35, 0.2])
             setback = r.uniform(0, p.facade_setback_max)
             height = r.uniform(*p.facade_height_range)
-            x_in = hw + sw + setback
+            x_in = edge + setback
             lo = (x_in if side > 0 else -x_in - 12.0, -height, z)
             hi = (x_in + 12.0 if side > 0 else -x_in, -kh, z + length)
             tint = palette[r.integers(len(palette))] * r.uniform(0.85, 1.1)
@@ -201,7 +243,7 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
         z = start
         while z < z_max:
             length = r.uniform(15, 45)
-            x_in = hw + sw + p.facade_setback_max + r.uniform(12, 25)
+            x_in = edge + p.facade_setback_max + r.uniform(12, 25)
             height = r.uniform(p.facade_height_range[0] + 4, p.facade_height_range[1] + 12)
             lo = (x_in if side > 0 else -x_in - 15.0, -height, z)
             hi = (x_in + 15.0 if side > 0 else -x_in, -kh, z + length)
@@ -214,7 +256,7 @@ def _build_scene(params: SceneParams, z_min: float, z_max: float) -> _Scene:
         mean_gap = 100.0 / max(p.num_cars, 1)
         while z < z_max:
             length, width = r.uniform(3.8, 4.9), r.uniform(1.65, 1.9)
-            if p.num_cars > 0:
+            if p.num_cars > 0 and not (side < 0 and p.tram_bed_width):  # none on the bed
                 x_out = hw - r.uniform(0.15, 0.4)
                 x0, x1 = (x_out - width, x_out) if side > 0 else (-x_out, -x_out + width)
                 col = CAR_COLOURS[r.integers(len(CAR_COLOURS))] * r.uniform(0.85, 1.05)

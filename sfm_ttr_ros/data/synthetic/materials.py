@@ -5,6 +5,7 @@ offsets that break the tile period). :func:`_materials` builds the 14 materials 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -93,6 +94,19 @@ def _materials(style: str, seed: int) -> tuple[_Material, ...]:
         _Material("sign", _pyramid(_tex_sign(rng)), 256.0),
     ]
     return tuple(mats)
+
+
+def flattened(mat: _Material, contrast: float) -> _Material:
+    """``mat`` with its texture's contrast scaled by ``contrast`` about each level's mean (plain
+    asphalt: few features for SIFT); the same material when ``contrast`` is 1."""
+    if contrast == 1.0:
+        return mat
+    levels = []
+    for lv in mat.pyramid:
+        f = lv.astype(np.float32)
+        mean = f.mean(axis=(0, 1), keepdims=True)
+        levels.append(np.clip(mean + (f - mean) * contrast + 0.5, 0, 255).astype(np.uint8))
+    return dataclasses.replace(mat, pyramid=levels)
 
 
 def _shuffle(mat: _Material, u, v, oid):

@@ -15,7 +15,13 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics
-from sfm_ttr_ros.data.synthetic.geometry import _build_scene, _Builder, _Scene, _with_objects
+from sfm_ttr_ros.data.synthetic.geometry import (
+    _build_scene,
+    _Builder,
+    _Scene,
+    _with_objects,
+    bonnet,
+)
 from sfm_ttr_ros.data.synthetic.raycast import _BATCH_AREA, _cast_batch, _intersect, _screen_rects
 from sfm_ttr_ros.data.synthetic.scene import (
     FRAME_RATE,
@@ -28,6 +34,21 @@ from sfm_ttr_ros.data.synthetic.shading import _shade
 
 if TYPE_CHECKING:
     from sfm_ttr_ros.data.synthetic.scene import SceneParams
+
+
+def _crowned(p: SceneParams, C: np.ndarray, Dx: np.ndarray, Dy: np.ndarray) -> np.ndarray:
+    """Ray parameters of the hits on a cambered road (``p.camber``: y = −camber·(hw − |x|),
+    two planes meeting at the crown x = 0), inf where a ray misses it."""
+    f32 = np.float32
+    s, hw, Cx, Cy = f32(p.camber), f32(p.street_width / 2), f32(C[0]), f32(C[1])
+    best = np.full(Dx.shape, np.inf, f32)
+    for sgn in (f32(-1), f32(1)):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            t = (s * sgn * Cx - s * hw - Cy) / (Dy - s * sgn * Dx)
+            x = Cx + t * Dx
+            hit = (t > 0) & (sgn * x >= 0) & (np.abs(x) < hw) & (t < best)
+        best = np.where(hit, t, best)
+    return best
 
 
 def _render(scene: _Scene, R_wc: np.ndarray, C: np.ndarray, intr: Intrinsics):
@@ -55,7 +76,7 @@ def _render(scene: _Scene, R_wc: np.ndarray, C: np.ndarray, intr: Intrinsics):
     hw, kh = f32(p.street_width / 2), f32(p.kerb_height)
     down = Dy > 0
     with np.errstate(invalid="ignore", over="ignore"):
-        t_road = np.where(down, -Cy * iDy, np.inf)
+        t_road = np.where(down, -Cy * iDy, np.inf) if not p.camber else _crowned(p, C, Dx, Dy)
         ok = np.abs(Cx + t_road * Dx) < hw
         T = np.where(ok, t_road, T)
         t_side = np.where(down, (-kh - Cy) * iDy, np.inf)
@@ -120,6 +141,18 @@ class SyntheticSequence:
         return len(self.images)
 
 
+def _with_bonnet(params: SceneParams, extra: _Builder | None, C: np.ndarray,
+                 C0: np.ndarray) -> _Builder | None:
+    """A frame's extra objects with the car's bonnet (:func:`geometry.bonnet`) when the scene
+    has one."""
+    hood = bonnet(params, np.asarray(C, float), np.asarray(C0, float))
+    if hood is None:
+        return extra
+    if extra is not None:
+        hood.rows = [*extra.rows, *hood.rows]
+    return hood
+
+
 def _finish(img: np.ndarray, p: SceneParams, rng, blur_sigma: float, noise_std: float):
     out = np.clip(img * p.exposure, 0, 1)
     if p.gamma != 1.0:
@@ -172,7 +205,8 @@ def render_frames(
     images, depths, cams, stamps = [], [], [], []
     prev = None  # (R_wc, C, image, depth) of a frame without extra objects
     for i, (R_wc, C) in enumerate(poses):
-        extra = objects[i] if objects is not None else None
+        extra = _with_bonnet(params, objects[i] if objects is not None else None, C,
+                             poses[0][1])
         if extra is None and prev is not None and np.array_equal(R_wc, prev[0]) and \
                 np.array_equal(C, prev[1]):
             img, depth = prev[2], prev[3].copy()
@@ -231,9 +265,12 @@ def street_frames(params: SceneParams, num_frames: int, width: int = 1242, heigh
     z_end = (num_frames - 1) * params.speed
     scene = _build_scene(params, -40.0, z_end + params.max_depth * 1.5 + 20.0)
     rng = np.random.default_rng([int(seed), 4242])
+    C0 = camera_pose(params, 0.0)[1]
     for i in range(num_frames):
         R_wc, C = camera_pose(params, i * params.speed)
-        img, depth = _render(scene, R_wc, C, intr)
+        extra = _with_bonnet(params, None, C, C0)
+        img, depth = _render(scene if extra is None else _with_objects(scene, extra), R_wc, C,
+                             intr)
         yield _finish(img, params, rng, 0.0, 0.0), depth, float(KITTI_START_STAMP + i / FRAME_RATE)
 
 

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -11,9 +12,9 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics
-from sfm_ttr_ros.data.poses import rot_x, rot_y
+from sfm_ttr_ros.data.poses import rot_x, rot_y, rot_z
 
-DOMAINS = ("A", "B")
+DOMAINS = ("A", "B", "C")
 KITTI_START_STAMP = 1317042145.964389  # 2011-09-26 13:02:25.964389 UTC, a KITTI-like epoch
 FRAME_RATE = 10.0  # Hz, like KITTI
 
@@ -58,6 +59,19 @@ class SceneParams:
     num_poles: int = 4
     num_trees: int = 4
     max_depth: float = 200.0  # hits farther than this get depth 0 (like a LiDAR's range)
+    # road edges (domain C; the defaults leave A and B as they were): the road's cross slope
+    # from its crown at x = 0 (the camera rolls with its lane), the asphalt's texture contrast
+    # (1 = as drawn), a stone wall of this height at the right sidewalk's outer edge (0 =
+    # none), a raised track bed of this width on the left instead of a sidewalk (0 = none), its
+    # top this high over the road, and the car's bonnet in view (this long ahead of the camera,
+    # its top this far below it; 0 = none)
+    camber: float = 0.0
+    road_contrast: float = 1.0
+    wall_height: float = 0.0
+    tram_bed_width: float = 0.0
+    tram_bed_height: float = 0.0
+    bonnet_length: float = 0.0
+    bonnet_drop: float = 0.5
 
 
 def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
@@ -75,9 +89,17 @@ def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
     and more downward pitch, cool "modern" concrete / glass textures with darker asphalt, weak
     sun from the right and high ambient (0.6-0.75), lower exposure and gamma 1.2 (flat contrast),
     grey sky, 10-14 cars, 5-8 poles and 0-2 trees per 100 m per side.
+
+    Domain C (a town road with real edges, :func:`_road_edges`): domain A's camera and light on
+    a cambered 9.5-11.5 m road (cross slope 2-3 %) of plain asphalt (texture contrast 0.25-0.4) with
+    its lane markings, a 1.8-3 m stone wall at the back of a 1.5-2.5 m raised sidewalk on the
+    right, a raised tram track bed (5.5-7 m, rails) on the left, parked cars on the right only,
+    and the car's bonnet in the bottom of the view.
     """
     if domain not in DOMAINS:
         raise InputError(f"unknown synthetic domain {domain!r}; expected one of {DOMAINS}")
+    if domain == "C":
+        return _road_edges(seed)
     rng = np.random.default_rng([int(seed), 0 if domain == "A" else 1, 7])
     u = rng.uniform
     if domain == "A":
@@ -157,6 +179,28 @@ def sample_scene_params(seed: int, domain: str = "A") -> SceneParams:
     )
 
 
+def _road_edges(seed: int) -> SceneParams:
+    """Domain C (:func:`sample_scene_params`): domain A's scene of ``seed`` with the road edges
+    drawn from a stream of its own."""
+    rng = np.random.default_rng([int(seed), 2, 7])
+    u = rng.uniform
+    street, kerb = u(9.5, 11.5), u(0.12, 0.16)
+    return dataclasses.replace(
+        sample_scene_params(seed, "A"), domain="C", street_width=street,
+        sidewalk_width=u(1.5, 2.5), kerb_height=kerb, facade_setback_max=u(1.0, 3.0),
+        lane_offset=street / 2 - 2.2 - u(1.4, 1.8), camber=u(0.02, 0.03),
+        road_contrast=u(0.25, 0.4), wall_height=u(1.8, 3.0), tram_bed_width=u(5.5, 7.0),
+        tram_bed_height=kerb + u(0.03, 0.1), bonnet_length=u(1.9, 2.3),
+        bonnet_drop=u(0.45, 0.55), num_trees=0)
+
+
+def road_level(params: SceneParams, x: float) -> float:
+    """The road surface's ``y`` at ``x`` (0 at the kerbs; up to camber x half-width higher at
+    the crown, y down)."""
+    hw = params.street_width / 2
+    return -params.camber * max(hw - abs(x), 0.0)
+
+
 # ---------------------------------------------------------------------------------------------
 # Camera path
 # ---------------------------------------------------------------------------------------------
@@ -173,6 +217,10 @@ def camera_pose(params: SceneParams, z: float) -> tuple[np.ndarray, np.ndarray]:
     yaw = heading + p.yaw_jitter * math.sin(0.23 * z + 1.3 * phase)
     pitch = p.pitch + 0.003 * math.sin(0.41 * z + phase)
     height = p.camera_height + 0.01 * math.sin(0.7 * z + phase)
+    if p.camber:  # over its lane of a cambered road: the car rolls with the cross slope
+        roll = math.atan(p.camber) * (1.0 if x >= 0 else -1.0)
+        R_wc = rot_y(yaw) @ rot_z(roll) @ rot_x(-pitch)
+        return R_wc, np.array([x, road_level(p, x) - height, z])
     R_wc = rot_y(yaw) @ rot_x(-pitch)  # positive pitch looks down (y is down)
     return R_wc, np.array([x, -height, z])
 
