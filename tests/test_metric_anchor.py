@@ -99,18 +99,20 @@ def test_the_state_goes_stale_when_the_source_stops():
     net.window(scale, cfg, 1.0)
     assert scale.status(cfg, odom).state == "metric"
 
-    now = [100.0]
-    track = OdometryTrack(clock=lambda: now[0])
+    # odometry silent in the data's time: its last stamp behind the images' newest
+    track = OdometryTrack()
     cfg = MetricConfig(source="odometry", odometry_timeout_s=2.0)
     scale = MetricScale()
     track.add(0.0, [0, 0, 0])
     for _ in range(2):
         Network(1.0).window(scale, cfg, 1.0)
-    now[0] += 1.0
+    scale.note_images([0.5, 1.0])
     assert scale.status(cfg, track).state == "metric"
-    now[0] += 1.5
+    scale.note_images([2.0, 2.5, float("nan")])
     s = scale.status(cfg, track)
-    assert s.state == "stale" and "no odometry for 2.5 s" in s.reason
+    assert s.state == "stale" and "no odometry for 2.5 s of images" in s.reason
+    track.add(2.5, [0, 0, 1])  # it speaks again
+    assert scale.status(cfg, track).state == "metric"
 
 
 def test_a_bag_played_twice_keeps_odometry_metres():

@@ -205,6 +205,7 @@ class SfmTTR:
         becomes metric (the targets m·D_sfm; the anchor's metres when the window disagrees)."""
         cfg, res = self.config, w.result
         stamps = [f.stamp for f in w.frames if f.name in set(w.registered)]
+        self.metric.note_images([f.stamp for f in w.frames])
         w.metric = res.metric = estimate(cfg.metric, res.sfm, w.registered, stamps,
                                          res.scale if w.scaled else float("nan"),
                                          self.odometry)

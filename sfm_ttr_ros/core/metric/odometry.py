@@ -13,16 +13,15 @@ under rotation; over a window's second of driving that is well under a per cent.
 A stamp more than :data:`JUMP_BACK_S` before the last one is a restart (a bag replayed again,
 ``ros2 bag play --loop``, a driver restarted): the track starts again from it (``resets``)
 instead of refusing every later message; a stamp at or slightly before the last one is out of
-order and refused. The monotonic time of the last position kept says when the source went
-silent (:meth:`OdometryTrack.silent_for`).
+order and refused. The stamp of the last position kept (:attr:`OdometryTrack.last_stamp`),
+against the images', says when the source went silent: in the data's time, so that a paused
+or sim-time bag and a benchmark that feeds every position at once read alike.
 """
 
 from __future__ import annotations
 
 import bisect
-import math
 import threading
-import time
 from collections import deque
 from collections.abc import Sequence
 
@@ -37,12 +36,10 @@ JUMP_BACK_S = 1.0
 class OdometryTrack:
     """Positions by stamp, added from any thread (the node's odometry callback)."""
 
-    def __init__(self, length: int = TRACK_LENGTH, clock=time.monotonic):
+    def __init__(self, length: int = TRACK_LENGTH):
         self._lock = threading.Lock()
         self._stamps: deque[float] = deque(maxlen=length)
         self._positions: deque[np.ndarray] = deque(maxlen=length)
-        self._clock = clock
-        self._last_kept = math.nan  # clock() when the last position was kept
         self.received = 0
         self.rejected = 0
         self.resets = 0  # restarts: a stamp more than JUMP_BACK_S back
@@ -66,14 +63,13 @@ class OdometryTrack:
                 return False
             self._stamps.append(float(stamp))
             self._positions.append(p)
-            self._last_kept = self._clock()
         return True
 
-    def silent_for(self) -> float:
-        """Seconds since the last position was kept (inf before any)."""
+    @property
+    def last_stamp(self) -> float | None:
+        """The stamp of the last position kept (s; None before any)."""
         with self._lock:
-            last = self._last_kept
-        return math.inf if math.isnan(last) else self._clock() - last
+            return self._stamps[-1] if self._stamps else None
 
     def __len__(self) -> int:
         with self._lock:

@@ -150,6 +150,14 @@ class MetricScale:
         self.ratios: deque[float] = deque()  # each accepted window's k over its reference
         self.anchor = Anchor()
         self.without_estimate = 0  # windows in a row measured without an estimate
+        self.images_stamp: float | None = None  # the newest stamp of the last window measured
+
+    def note_images(self, stamps) -> None:
+        """The stamps of the window being measured: the odometry is stale when its last
+        position lags the newest of them by more than ``metric.odometry_timeout_s``."""
+        finite = [float(t) for t in stamps if np.isfinite(t)]
+        if finite:
+            self.images_stamp = max(finite)
 
     def factor(self, cfg: MetricConfig) -> float | None:
         """Metres per network unit of the outputs now; None = not metric (``none``, or no
@@ -178,9 +186,12 @@ class MetricScale:
             return "waiting", ""
         if not self.anchor.confirmed:
             return "confirming", self.anchor.reason
-        silent = odometry.silent_for()
-        if cfg.source == "odometry" and silent > cfg.odometry_timeout_s:
-            return "stale", f"no odometry for {silent:.1f} s > {cfg.odometry_timeout_s:g} s"
+        last = odometry.last_stamp
+        if cfg.source == "odometry" and last is not None and self.images_stamp is not None:
+            behind = self.images_stamp - last
+            if behind > cfg.odometry_timeout_s:
+                return "stale", (f"no odometry for {behind:.1f} s of images > "
+                                 f"{cfg.odometry_timeout_s:g} s")
         if self.without_estimate >= cfg.stale_windows:
             return "stale", f"{self.without_estimate} windows in a row without an estimate"
         return "metric", self.anchor.reason
