@@ -15,6 +15,7 @@ from sfm_ttr_ros.core.camera_path import (
     WindowPoses,
     fit_similarity,
     result_poses,
+    window_poses,
 )
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.tools.benchmark.path import path_drift
@@ -96,6 +97,38 @@ def test_fresh_mapping_chains_through_shared_frames_with_its_own_scale():
     # exact poses: no residual; the shared frames' variance (the first reconstruction's units)
     # plus the frame's own, scaled by s² = (2 / 0.3)²
     assert added[0].position_var == pytest.approx(1e-4 + 1e-4 * (2 / 0.3) ** 2)
+
+
+def _observed(name: str, cam_from_world: np.ndarray):
+    from sfm_ttr_ros.core.sfm.result import FrameObservations
+
+    ones = np.ones(20)
+    return FrameObservations(name, np.zeros((20, 2), np.float32), 5.0 * ones, 0.5 * ones,
+                             0.5 * ones, np.arange(20), cam_from_world)
+
+
+def test_a_fresh_map_chains_through_its_anchors_not_its_window():
+    """A fresh mapping of a window that shares no frame with the path, mapped with the map's
+    last frames (``SfmResult.anchors``), joins it through them: no break, the right poses, and
+    the anchors, older than the path's end, are not published again."""
+    from sfm_ttr_ros.core.sfm.result import SfmResult
+
+    gt = _drive()
+    path = CameraPath()
+    path.add(_window(gt, range(0, 10), 1.0, np.eye(3), np.zeros(3), "fresh", metres=1.0))
+    R2, t2 = _rot(1, 0.7), np.array([2.0, 0.0, -1.0])
+    world = {i: _world(gt[i], 1.0, R2, t2) for i in range(7, 20)}
+    sfm = SfmResult(True, "", 10, {f"{i:04d}": _observed(f"{i:04d}", world[i])
+                                   for i in range(10, 20)})
+    stamps = {f"{i:04d}": 0.1 * i for i in range(20)}
+    alone = window_poses(sfm, stamps, "fresh", 1.0)
+    sfm.anchors = {f"{i:04d}": _observed(f"{i:04d}", world[i]) for i in range(7, 10)}
+    added = path.add(window_poses(sfm, stamps, "fresh", 1.0))
+    assert set(alone.poses) == {f"{i:04d}" for i in range(10, 20)}
+    assert [p.name for p in added] == [f"{i:04d}" for i in range(10, 20)]
+    assert {p.chain for p in added} == {"shared"} and path.summary()["breaks"] == 0
+    for p in added:
+        np.testing.assert_allclose(p.odom_from_camera, _expected(gt, int(p.name)), atol=1e-8)
 
 
 def test_a_batch_window_with_metres_keeps_metres_and_a_noisy_fit_raises_the_covariance():

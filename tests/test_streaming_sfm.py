@@ -131,6 +131,26 @@ def test_a_continuation_that_fails_maps_afresh_with_the_reason(street):
         assert sfm.rec is not None and sfm.rec.num_reg_images() == OVERLAP
 
 
+def test_a_fresh_mapping_takes_the_maps_last_frames_as_anchors(street, monkeypatch):
+    """A window mapped afresh is mapped with the map's last frames before it: they come back
+    as the result's ``anchors`` (what the camera's path chains through), never among its
+    frames, points or counts."""
+    from sfm_ttr_ros.core.sfm.streaming_map import FRESH_ANCHORS
+
+    first, second = street.frames[:WINDOW], street.frames[WINDOW:2 * WINDOW]
+    with StreamingSfm(StreamingSfmConfig(SFM)) as sfm:
+        assert sfm.reconstruct(first, street.intr).ok
+        monkeypatch.setattr(sfm, "_fit_reason", lambda result, n: "forced for the test")
+        result = sfm.reconstruct(second, street.intr)
+    names = {f.name for f in second}
+    assert sfm.last_mapping == ("fresh", "forced for the test") and result.ok
+    assert set(result.frames) <= names and result.num_frames == WINDOW
+    expected = [f.name for f in first][-min(FRESH_ANCHORS, OVERLAP):]
+    assert set(result.anchors) and set(result.anchors) <= set(expected)
+    seen = np.unique(np.concatenate([o.point_ids for o in result.frames.values()]))
+    assert set(result.point_ids.tolist()) <= set(seen.tolist())
+
+
 def test_other_intrinsics_start_the_stream_afresh(street):
     intr2 = type(street.intr)(street.intr.fx * 1.1, street.intr.fy * 1.1, street.intr.cx,
                               street.intr.cy, W, H)

@@ -116,13 +116,15 @@ class Similarity:
 
 def window_poses(sfm: SfmResult, stamps: Mapping[str, float], mapping: str = "",
                  metres_per_sfm_unit: float | None = None) -> WindowPoses:
-    """The registered frames of ``sfm`` with their stamps (frames without a stamp left out)
-    and the reconstruction's variances per frame (module docstring)."""
+    """The registered frames of ``sfm`` and its anchors (frames before the window mapped with
+    it: :attr:`SfmResult.anchors`, what a fresh map shares with the path) with their stamps
+    (frames without a stamp left out) and the reconstruction's variances per frame (module
+    docstring)."""
     f = 1.0
     if sfm.intrinsics is not None:
         f = max(1e-9, 0.5 * (sfm.intrinsics.fx + sfm.intrinsics.fy))
     out = WindowPoses({}, {}, mapping, metres_per_sfm_unit)
-    for name, obs in sfm.frames.items():
+    for name, obs in {**sfm.anchors, **sfm.frames}.items():
         if name not in stamps or len(obs) == 0:
             continue
         out.poses[name] = np.asarray(obs.cam_from_world, np.float64)

@@ -48,6 +48,9 @@ class SfmResult:
     intrinsics: Intrinsics | None = None  # as used (refined when refine_intrinsics is on)
     # one entry per mapper run (seed, registered, points, reprojection_error, seconds, kept)
     attempts: list[dict] = field(default_factory=list)
+    # frames before the window mapped with it (the streaming map's last frames, in a fresh
+    # mapping): not the window's, but their poses tie its reconstruction to the camera's path
+    anchors: dict[str, FrameObservations] = field(default_factory=dict)
 
     @property
     def num_registered(self) -> int:

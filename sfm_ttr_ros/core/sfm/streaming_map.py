@@ -39,6 +39,11 @@ from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result, point_colours
 log = logging.getLogger(__name__)
 
 
+#: frames of the map before a window mapped afresh with it (its anchors: the camera's path
+#: chains through them)
+FRESH_ANCHORS = 3
+
+
 @dataclass
 class StreamingSfmConfig:
     """Options of the streaming SfM; the SIFT, matching and mapper options are ``sfm``'s."""
@@ -219,8 +224,7 @@ class StreamingSfm:
             reason = self._fit_reason(continued, len(names))
             if not reason:
                 return self._keep_continued(continued, "")
-        fresh = self._fresh.map_best(names, timings)
-        fresh = _window_points(fresh)
+        fresh = self._fresh_with_anchors(names, timings)
         if continued is not None and rank(continued) >= rank(fresh):
             return self._keep_continued(continued, reason + "; a fresh mapping did no better")
         kept = next((a for a in fresh.attempts if a["kept"]), None)
@@ -235,6 +239,18 @@ class StreamingSfm:
         self.last_mapping = ("fresh", reason)
         log.info("window %s..%s mapped afresh: %s", names[0], names[-1], reason)
         return fresh
+
+    def _fresh_with_anchors(self, names: list[str], timings: dict[str, float]) -> SfmResult:
+        """A fresh mapping of the window with the map's last :data:`FRESH_ANCHORS` frames
+        before it: they are kept apart in ``anchors`` (the window's frames, points and checks
+        are its own), where the camera's path finds frames it already holds
+        (core/camera_path.py) instead of a break."""
+        anchors = [n for n in self._registered_names()
+                   if n not in names and n in self.frontend.features][-FRESH_ANCHORS:]
+        fresh = self._fresh.map_best(anchors + names, timings)
+        fresh.anchors = {n: fresh.frames.pop(n) for n in anchors if n in fresh.frames}
+        fresh.num_frames = len(names)
+        return _window_points(fresh)
 
     def _keep_continued(self, result: SfmResult, note: str) -> SfmResult:
         result.attempts = [{"mode": "continue", "registered": result.num_registered,
