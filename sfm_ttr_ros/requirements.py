@@ -54,7 +54,7 @@ PYCOLMAP_API = (
     "Camera", "DatabaseCache", "FeatureExtractor.create", "FeatureMatcher", "Frame", "Image",
     "IncrementalMapper", "IncrementalPipeline", "Reconstruction", "ReconstructionManager",
     "Rig", "SensorType.CAMERA", "TwoViewGeometryOptions", "data_t", "estimate_two_view_geometry",
-    "keypoints_to_matrix", "sensor_t",
+    "keypoints_to_matrix", "sensor_t", "set_random_seed",
 )
 
 #: Every torch name the CUDA path calls (core/refinement/graph_step.py, graph_cache.py,

@@ -196,6 +196,8 @@ class StreamFrontend:
         if len(matches) < MIN_PAIR_INLIERS:
             return
         t0 = time.perf_counter()
+        # RANSAC draws from COLMAP's per-thread generator: seeded, the same in any process
+        pycolmap.set_random_seed(int(self.config.seed))
         tvg = pycolmap.estimate_two_view_geometry(self.camera, a.xy, self.camera, b.xy,
                                                   matches, self._verify)
         timings.verify += time.perf_counter() - t0

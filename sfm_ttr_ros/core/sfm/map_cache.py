@@ -58,9 +58,12 @@ def continue_reconstruction(rec, cache, options) -> list[int]:
     """Register every frame of ``cache`` that ``rec`` can take, in the mapper's order, each
     triangulated and locally adjusted (COLMAP's incremental loop); ``rec`` must hold at least
     one registered frame, all of them in ``cache``. Modifies ``rec`` in place; returns the
-    newly registered image ids."""
+    newly registered image ids. COLMAP's random generator (per thread: it would carry on from
+    whatever ran before in this thread) is seeded with ``options.random_seed`` first, so a
+    continuation is the same in any process."""
     import pycolmap
 
+    pycolmap.set_random_seed(int(options.random_seed))
     mopts = options.get_mapper()
     tri = options.get_triangulation()
     local_ba = options.get_local_bundle_adjustment()
