@@ -71,10 +71,12 @@ def path_drift(path: CameraPath, gt_from_name: Mapping[str, np.ndarray]) -> dict
 
 def add_window(path: CameraPath, result, stamp_of, metres_per_unit: float | None) -> None:
     """One window's ``result`` (a WindowResult, or WindowStats' ``result``) onto ``path``,
-    each registered frame stamped ``stamp_of(name)``."""
+    each registered frame and anchor (what a fresh map shares with the path) stamped
+    ``stamp_of(name)``."""
     if result.sfm is None:
         return
-    poses = result_poses(result, {n: stamp_of(n) for n in result.sfm.frames}, metres_per_unit)
+    names = (*result.sfm.anchors, *result.sfm.frames)
+    poses = result_poses(result, {n: stamp_of(n) for n in names}, metres_per_unit)
     if poses is not None:
         path.add(poses)
 
