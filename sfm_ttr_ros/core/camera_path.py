@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sfm_ttr_ros.core.checks.measures import camera_centre
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.window import WindowResult
@@ -158,10 +159,6 @@ def result_poses(result: WindowResult, stamps: Mapping[str, float],
                         metres_per_sfm_unit(result, metres_per_unit))
 
 
-def _centre(cam_from_world: np.ndarray) -> np.ndarray:
-    return -cam_from_world[:3, :3].T @ cam_from_world[:3, 3]
-
-
 def _project_rotation(M: np.ndarray) -> np.ndarray:
     """The rotation nearest ``M`` (chordal mean of the rotations summed into it)."""
     U, _, Vt = np.linalg.svd(M)
@@ -182,7 +179,7 @@ def fit_similarity(path_poses: list[np.ndarray], cam_from_world: list[np.ndarray
         return None
     M = sum(P[:3, :3] @ T[:3, :3] for P, T in zip(path_poses, cam_from_world, strict=True))
     R = _project_rotation(M)
-    c = np.array([_centre(T) for T in cam_from_world])
+    c = np.array([camera_centre(T) for T in cam_from_world])
     p = np.array([P[:3, 3] for P in path_poses])
     rc = (c - c.mean(0)) @ R.T
     if scale is None:
@@ -288,7 +285,7 @@ class CameraPath:
         T = window.poses[first]
         R = BODY_FROM_OPTICAL @ T[:3, :3]
         s = 1.0 if scale is None else scale
-        return _Segment(Similarity(s, R, -s * R @ _centre(T)), 0.0, 0.0)
+        return _Segment(Similarity(s, R, -s * R @ camera_centre(T)), 0.0, 0.0)
 
     def _guess(self, window: WindowPoses, scale: float | None) -> _Segment:
         """A break: the window's earliest frame where the last velocity carries the path's end
@@ -302,14 +299,14 @@ class CameraPath:
         if s is None:
             s = self._segment.S.s
             if velocity is not None and len(order) > 1:
-                a, b = (_centre(window.poses[n]) for n in order[:2])
+                a, b = (camera_centre(window.poses[n]) for n in order[:2])
                 seconds = window.stamps[order[1]] - window.stamps[order[0]]
                 length = float(np.linalg.norm(b - a))
                 if length > 1e-12 and seconds > 0:
                     s = float(np.linalg.norm(velocity)) * seconds / length
         T = window.poses[order[0]]
         R = end.odom_from_camera[:3, :3] @ T[:3, :3]
-        t = end.position + step - s * R @ _centre(T)
+        t = end.position + step - s * R @ camera_centre(T)
         if velocity is None:  # nothing to guess from: position and heading unknown
             return _Segment(Similarity(s, R, t), end.position_var + UNKNOWN_VARIANCE,
                             end.rotation_var + UNKNOWN_ROTATION_VARIANCE)
@@ -340,7 +337,7 @@ class CameraPath:
                             index, chain)
             self.poses[name] = pose
             added.append(pose)
-            segment.anchor = (pose.position.copy(), _centre(window.poses[name]))
+            segment.anchor = (pose.position.copy(), camera_centre(window.poses[name]))
         while len(self.poses) > self.max_poses:
             del self.poses[next(iter(self.poses))]
         return added

@@ -17,14 +17,14 @@ import time
 
 import numpy as np
 
+from sfm_ttr_ros.core.checks.measures import camera_centre
 from sfm_ttr_ros.core.metric.ground import cameras
 
 
 def true_metres_per_unit(sfm, registered, cam_from_world, index) -> float:
     """The similarity scale between the drive's camera centres and SfM's (metres per unit)."""
     sfm_c = cameras(sfm, registered)[0]
-    true_c = np.stack([-(cam_from_world[index[n]][:3, :3].T @ cam_from_world[index[n]][:3, 3])
-                       for n in registered])
+    true_c = np.stack([camera_centre(cam_from_world[index[n]]) for n in registered])
     a, b = true_c - true_c.mean(0), sfm_c - sfm_c.mean(0)
     return float(math.sqrt((a * a).sum() / (b * b).sum()))
 
