@@ -19,13 +19,10 @@ the start with a clear error (:func:`msg_adapters.odometry.tf_message_class`).
 
 from __future__ import annotations
 
-import copy
 import threading
 from collections import OrderedDict
 
 from nav_msgs.msg import Odometry
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from msg_adapters.odometry import odometry_msg, tf_message_class, transform_msg
 from msg_adapters.stamp import stamp_to_ns
@@ -34,6 +31,7 @@ from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.params.node import NodeSettings
 from sfm_ttr_ros.core.stream.records import WindowStats
 from sfm_ttr_ros.ros import names
+from sfm_ttr_ros.ros.publishers import output_publisher, output_qos
 
 TF_TOPIC = "/tf"
 TF_QOS_DEPTH = 100
@@ -47,17 +45,12 @@ class OdomOutput:
     """``~/odom`` (and ``/tf``) of ``node`` from the windows' camera poses (module docstring)."""
 
     def __init__(self, node, settings: NodeSettings, qos_depth: int) -> None:
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
-                         reliability=ReliabilityPolicy.RELIABLE)
         self.frame_id = settings.odom_frame_id
         self.child_frame_id = settings.odom_child_frame_id
         self.tf = None
         if settings.odom_publish_tf:
             self.tf = node.create_publisher(tf_message_class(), TF_TOPIC, TF_QOS_DEPTH)
-        overrides = QoSOverridingOptions.with_default_policies()
-        # a profile each: rclpy writes a topic's overrides into the one it is given
-        self.publishers = {units: node.create_publisher(Odometry, topic, copy.copy(qos),
-                                                        qos_overriding_options=overrides)
+        self.publishers = {units: output_publisher(node, Odometry, topic, output_qos(qos_depth))
                            for units, topic in (("m", names.ODOM_OUTPUT_TOPIC),
                                                 ("sfm", names.ODOM_RELATIVE_TOPIC))}
         self.path = CameraPath()

@@ -39,6 +39,27 @@ LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def output_qos(qos_depth: int) -> QoSProfile:
+    """The outputs' QoS: KEEP_LAST ``qos_depth``, reliable (overridable per topic)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+def output_publisher(node, msg_type, topic: str, qos: QoSProfile | int,
+                     on_incompatible_qos: Callable[[str, object], None] | None = None,
+                     overridable: bool = True):
+    """A publisher of ``node`` on ``topic``: ``qos_overrides`` apply when ``overridable``,
+    each on a profile of its own (rclpy writes a topic's overrides into the one given); an
+    incompatible QoS calls ``on_incompatible_qos(topic, event)``."""
+    profile = copy.copy(qos) if isinstance(qos, QoSProfile) else qos
+    events = (PublisherEventCallbacks(incompatible_qos=partial(on_incompatible_qos, topic))
+              if on_incompatible_qos is not None else None)
+    return node.create_publisher(
+        msg_type, topic, profile, event_callbacks=events,
+        qos_overriding_options=(QoSOverridingOptions.with_default_policies() if overridable
+                                else None))
+
+
 class OutputPublishers:
     """One publisher per output topic of ``node`` (``by_topic``), ``depth_scale`` and
     ``diagnostics``; an incompatible QoS on any of them calls ``on_incompatible_qos(topic,
@@ -46,17 +67,11 @@ class OutputPublishers:
 
     def __init__(self, node, qos_depth: int,
                  on_incompatible_qos: Callable[[str, object], None]) -> None:
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
-                         reliability=ReliabilityPolicy.RELIABLE)
-        overrides = QoSOverridingOptions.with_default_policies()
+        qos = output_qos(qos_depth)
 
         def pub(msg_type, topic, depth_qos=qos, overridable=True):
-            # a profile of its own: rclpy writes the topic's overrides into the one given
-            profile = copy.copy(depth_qos) if isinstance(depth_qos, QoSProfile) else depth_qos
-            return node.create_publisher(
-                msg_type, topic, profile, event_callbacks=PublisherEventCallbacks(
-                    incompatible_qos=partial(on_incompatible_qos, topic)),
-                qos_overriding_options=overrides if overridable else None)
+            return output_publisher(node, msg_type, topic, depth_qos, on_incompatible_qos,
+                                    overridable)
 
         self.by_topic = {topic: pub(Image, topic) for topic in IMAGE_TOPICS}
         # image_transport's naming: <the depth image topic, resolved and remapped>/compressedDepth
