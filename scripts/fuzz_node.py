@@ -51,7 +51,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # msg_adapters / sfm_ttr_ros from this checkout (the client side)
 
-from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
+from sfm_ttr_ros.tools.demo import EVERY_FRAME_COUNTS, node_arguments  # noqa: E402
 from sfm_ttr_ros.tools.process import rss_mib  # noqa: E402
 
 # the node under test: cheap windows on top of params/kitti.yaml, a deep input history so DDS
@@ -408,10 +408,7 @@ def run(args: argparse.Namespace) -> dict:
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / "refiner.log"
     cmd = [args.exe, "--ros-args", "--params-file", args.params_file]
-    # every frame counts here: a reliable reader repairs what the transport loses (the
-    # default best-effort input takes any driver; --set qos_reliability=best_effort to try it)
-    cmd += ["-p", "qos_reliability:=reliable"]
-    cmd += node_arguments(LIGHT + list(args.set or []))
+    cmd += node_arguments([*EVERY_FRAME_COUNTS, *LIGHT, *(args.set or [])])
     t0 = time.monotonic()
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=log_dir,
