@@ -159,7 +159,7 @@ def result_poses(result: WindowResult, stamps: Mapping[str, float],
                         metres_per_sfm_unit(result, metres_per_unit))
 
 
-def _project_rotation(M: np.ndarray) -> np.ndarray:
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
     """The rotation nearest ``M`` (chordal mean of the rotations summed into it)."""
     U, _, Vt = np.linalg.svd(M)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
@@ -178,7 +178,7 @@ def fit_similarity(path_poses: list[np.ndarray], cam_from_world: list[np.ndarray
     if not path_poses:
         return None
     M = sum(P[:3, :3] @ T[:3, :3] for P, T in zip(path_poses, cam_from_world, strict=True))
-    R = _project_rotation(M)
+    R = nearest_rotation(M)
     c = np.array([camera_centre(T) for T in cam_from_world])
     p = np.array([P[:3, 3] for P in path_poses])
     rc = (c - c.mean(0)) @ R.T

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from sfm_ttr_ros.core.camera_path import CameraPath, result_poses
+from sfm_ttr_ros.core.camera_path import CameraPath, nearest_rotation, result_poses
 
 
 def _relative(poses: list[np.ndarray]) -> np.ndarray:
@@ -29,9 +29,7 @@ def _relative(poses: list[np.ndarray]) -> np.ndarray:
 def _kabsch_rmse(a: np.ndarray, b: np.ndarray) -> float:
     """RMS of ||R·a_i + t − b_i|| for the best rigid (R, t)."""
     ca, cb = a - a.mean(0), b - b.mean(0)
-    U, _, Vt = np.linalg.svd(ca.T @ cb)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-    R = Vt.T @ D @ U.T
+    R = nearest_rotation(cb.T @ ca)  # Kabsch: the rotation nearest Σ b_i a_iᵀ
     return float(np.sqrt(np.mean(np.sum((ca @ R.T - cb) ** 2, 1))))
 
 
