@@ -8,17 +8,13 @@ import torch
 from conftest import tiny_model
 
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
 from sfm_ttr_ros.core.models.monodepth2 import Monodepth2
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import frozen_stage_count, refine_encoder
-from sfm_ttr_ros.core.refinement.supervision import (
-    FrameSupervision,
-    normalized_grid,
-    sample_depth,
-    weighted_l1,
-)
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, weighted_l1
 
 
 def mobile(seed: int = 0) -> MobileDepthNet:

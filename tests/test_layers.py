@@ -178,40 +178,84 @@ def test_no_import_goes_up_a_layer():
     assert not wrong, "imports against the layering:\n" + "\n".join(wrong)
 
 
-#: The core's own order, lowest first: a module may import only from its own rank or below.
-#: The stages of the method use the basics; prediction and the orchestrator use the stages;
-#: the stream uses the orchestrator; the schema reads every config.
+#: The core's own order, lowest first (docs/architecture.md, "The core"): a module imports from
+#: its own package (``core/sfm/*`` from ``core/sfm``) or from a lower rank, never from another
+#: package of its own rank (sideways) nor from a higher one (up). The basics (errors, outcomes
+#: and threads below frames, the geometry, the networks, the colour maps and the evaluation);
+#: the two branches of Fig. 2 that read the images (SfM, the network's prediction); the
+#: alignment of the two; the stages that use the alignment (refinement, checks, metres); what a
+#: window takes and gives; the camera path chaining windows; the orchestrator; the stream; the
+#: schema reading every config.
 CORE_RANKS = (
-    ("errors", "frames", "outcomes", "threads", "models", "visualize", "evaluation"),
-    ("sfm", "alignment", "refinement", "checks", "metric", "prediction"),
-    ("pipeline", "window", "camera_path"),
+    ("errors", "outcomes", "threads"),
+    ("frames", "geometry", "models", "visualize", "evaluation"),
+    ("sfm", "prediction"),
+    ("alignment",),
+    ("refinement", "checks", "metric"),
+    ("window",),
+    ("camera_path",),
+    ("pipeline",),
     ("stream",),
     ("params",),
 )
 
 
-def core_rank(module: str) -> int | None:
+def core_package(module: str) -> str | None:
+    """The core package (``sfm``, ``frames``, ...) of a module of the core; None outside it."""
     parts = module.split(".")
     if parts[:2] != ["sfm_ttr_ros", "core"] or len(parts) < 3:
         return None
-    return next(i for i, names in enumerate(CORE_RANKS) if parts[2] in names)
+    return parts[2]
+
+
+def core_rank(module: str) -> int | None:
+    package = core_package(module)
+    if package is None:
+        return None
+    return next(i for i, names in enumerate(CORE_RANKS) if package in names)
+
+
+def core_order_wrong(module: str, target: str) -> str | None:
+    """``"up"`` when ``module`` imports ``target`` from a higher rank of the core, ``"sideways"``
+    from another package of its own rank, None when the import follows the order (or either is
+    outside the core)."""
+    mine, theirs = core_rank(module), core_rank(target)
+    if mine is None or theirs is None:
+        return None
+    if theirs > mine:
+        return "up"
+    if theirs == mine and core_package(target) != core_package(module):
+        return "sideways"
+    return None
+
+
+def core_imports_against_the_order(way: str) -> list[str]:
+    """Every import of the core that goes ``way`` (``up`` or ``sideways``), as file:line."""
+    return [f"{MODULES[module].relative_to(REPO)}:{line} imports {target}"
+            for module in MODULES for target, line in imports_of(module)
+            if core_order_wrong(module, target) == way]
+
+
+def test_every_core_module_has_a_rank():
+    """A new core module or package gets a rank here (else the order tests skip it)."""
+    top = {core_package(m) for m in MODULES if m.startswith("sfm_ttr_ros.core.")}
+    ranked = [n for names in CORE_RANKS for n in names]
+    assert len(ranked) == len(set(ranked)), "a core package in two ranks"
+    assert top == set(ranked), "a core module without a rank, or a rank without a module"
 
 
 def test_the_core_imports_downwards_stage_by_stage():
     """A stage never imports the orchestrator, the stream or the schema; the orchestrator never
     the stream; so each folder can be read without the ones above it."""
-    top = {m.split(".")[2] for m in MODULES if m.startswith("sfm_ttr_ros.core.")}
-    assert top == {n for names in CORE_RANKS for n in names}, "a core module without a rank"
-    wrong = []
-    for module in MODULES:
-        mine = core_rank(module)
-        if mine is None:
-            continue
-        for target, line in imports_of(module):
-            theirs = core_rank(target)
-            if theirs is not None and theirs > mine:
-                wrong.append(f"{MODULES[module].relative_to(REPO)}:{line} imports {target}")
-    assert not wrong, "core imports against its order:\n" + "\n".join(wrong)
+    wrong = core_imports_against_the_order("up")
+    assert not wrong, "core imports up against its order:\n" + "\n".join(wrong)
+
+
+def test_no_core_import_goes_sideways():
+    """Packages of one rank never import each other (the SfM not the prediction, the checks not
+    the refinement): what two of them share sits below both."""
+    wrong = core_imports_against_the_order("sideways")
+    assert not wrong, "core imports sideways within a rank:\n" + "\n".join(wrong)
 
 
 def test_no_import_cycles():
@@ -232,6 +276,14 @@ def test_the_checks_see_what_they_check():
     render = "sfm_ttr_ros.data.synthetic.render"
     typing_only = set(imports_of(render)) - set(imports_of(render, runtime_only=True))
     assert {target for target, _ in typing_only} == {"sfm_ttr_ros.data.synthetic.scene"}
+    # the core's order: up, sideways, within a package, down; outside the core not its business
+    core = "sfm_ttr_ros.core."
+    assert core_order_wrong(core + "sfm.cloud", core + "alignment.scale") == "up"
+    assert core_order_wrong(core + "checks.window", core + "refinement.encoder") == "sideways"
+    assert core_order_wrong(core + "frames", core + "geometry") == "sideways"
+    assert core_order_wrong(core + "checks.window", core + "checks.measures") is None
+    assert core_order_wrong(core + "pipeline", core + "geometry") is None
+    assert core_order_wrong(core + "sfm.result", "numpy") is None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,10 +12,9 @@ import pytest
 import torch
 from conftest import tiny_model
 
-from sfm_ttr_ros.core.frames import Frame
+from sfm_ttr_ros.core.frames import Frame, image_digest
 from sfm_ttr_ros.core.prediction import LiveDepths, Predictor, same_weights
 from sfm_ttr_ros.core.refinement.encoder import snapshot_encoder
-from sfm_ttr_ros.core.sfm.reconstruction import image_digest
 from sfm_ttr_ros.core.stream.live import LiveServer
 from sfm_ttr_ros.core.stream.serving import ServingModel
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from test_metric import street
 
+from sfm_ttr_ros.core.alignment.cloud import window_cloud
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.odometry import OdometryTrack
 from sfm_ttr_ros.core.metric.scale import MetricScale, WindowMetric, estimate
-from sfm_ttr_ros.core.sfm.cloud import window_cloud
 
 
 class Network:

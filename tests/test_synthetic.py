@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.geometry import camera_centre
 from sfm_ttr_ros.data.synthetic import (
     SceneParams,
     SyntheticSequence,
@@ -60,7 +61,7 @@ def test_shapes_dtypes_and_poses(seq_a):
         assert np.isfinite(d).all() and (d >= 0).all()
     np.testing.assert_allclose(np.diff(seq.stamps), 0.1, atol=1e-6)  # 10 Hz (float64 epoch)
     # the camera drives forward at params.speed metres per frame, ~camera_height above the road
-    centres = [-T[:3, :3].T @ T[:3, 3] for T in seq.cam_from_world]
+    centres = [camera_centre(T) for T in seq.cam_from_world]
     step = np.linalg.norm(centres[1] - centres[0])
     assert step == pytest.approx(seq.params.speed, rel=0.01)
     assert -centres[0][1] == pytest.approx(seq.params.camera_height, abs=0.02)
@@ -212,7 +213,7 @@ def test_long_drive_has_scenery_all_along():
         assert (d[24:] > 0).mean() > 0.99
         # buildings / cars close by on both sides, not an empty plane
         assert np.median(d[8:30, :20]) < 40 and np.median(d[8:30, -20:]) < 40
-    centre = -seq.cam_from_world[0][:3, :3].T @ seq.cam_from_world[0][:3, 3]
+    centre = camera_centre(seq.cam_from_world[0])
     assert centre[2] == pytest.approx(900.0)
 
 

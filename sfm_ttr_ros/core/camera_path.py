@@ -45,8 +45,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.checks.measures import camera_centre
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.geometry import Similarity, camera_centre, fit_similarity
 from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.window import WindowResult
 
@@ -96,25 +96,6 @@ class PathPose:
         return np.diag([self.position_var] * 3 + [self.rotation_var] * 3)
 
 
-@dataclass
-class Similarity:
-    """x_odom = s·R·x_world + t, and the mean squared residuals of the fit that chose it."""
-
-    s: float
-    R: np.ndarray
-    t: np.ndarray
-    position_res2: float = 0.0
-    rotation_res2: float = 0.0
-
-    def apply(self, cam_from_world: np.ndarray) -> np.ndarray:
-        """odom_from_camera of a camera whose pose in the world is ``cam_from_world``."""
-        R_cw, t_cw = cam_from_world[:3, :3], cam_from_world[:3, 3]
-        out = np.eye(4)
-        out[:3, :3] = self.R @ R_cw.T
-        out[:3, 3] = self.s * self.R @ (-R_cw.T @ t_cw) + self.t
-        return out
-
-
 def window_poses(sfm: SfmResult, stamps: Mapping[str, float], mapping: str = "",
                  metres_per_sfm_unit: float | None = None) -> WindowPoses:
     """The registered frames of ``sfm`` and its anchors (frames before the window mapped with
@@ -157,44 +138,6 @@ def result_poses(result: WindowResult, stamps: Mapping[str, float],
         return None
     return window_poses(result.sfm, stamps, result.sfm_mapping,
                         metres_per_sfm_unit(result, metres_per_unit))
-
-
-def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest ``M`` (chordal mean of the rotations summed into it)."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ D @ Vt
-
-
-def _angle(R: np.ndarray) -> float:
-    return math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
-
-
-def fit_similarity(path_poses: list[np.ndarray], cam_from_world: list[np.ndarray],
-                   scale: float | None) -> Similarity | None:
-    """S with S·world_from_cam_i ≈ path_pose_i over the shared frames (module docstring);
-    ``scale`` fixed (metres) or fitted; None when it cannot be fitted (no frames, or a fitted
-    scale from fewer than two distinct centres)."""
-    if not path_poses:
-        return None
-    M = sum(P[:3, :3] @ T[:3, :3] for P, T in zip(path_poses, cam_from_world, strict=True))
-    R = nearest_rotation(M)
-    c = np.array([camera_centre(T) for T in cam_from_world])
-    p = np.array([P[:3, 3] for P in path_poses])
-    rc = (c - c.mean(0)) @ R.T
-    if scale is None:
-        denom = float(np.sum(rc * rc))
-        if len(path_poses) < 2 or denom <= 1e-12:
-            return None
-        scale = float(np.sum(rc * (p - p.mean(0)))) / denom
-        if not (math.isfinite(scale) and scale > 0):
-            return None
-    t = p.mean(0) - scale * R @ c.mean(0)
-    res = p - (scale * c @ R.T + t)
-    rot = [_angle(P[:3, :3] @ (R @ T[:3, :3].T).T)
-           for P, T in zip(path_poses, cam_from_world, strict=True)]
-    return Similarity(scale, R, t, float(np.mean(np.sum(res * res, 1))),
-                      float(np.mean(np.square(rot))))
 
 
 @dataclass

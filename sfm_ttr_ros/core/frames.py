@@ -8,6 +8,7 @@ between consecutive windows).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -161,6 +162,14 @@ def check_window(frames: Sequence[Frame], intrinsics: Intrinsics) -> None:
     names = [f.name for f in frames]
     if len(set(names)) != len(names):
         raise InputError("frame names in a window must be unique")
+
+
+def image_digest(image: np.ndarray) -> bytes:
+    """Identity of a frame's pixels (a few ms for a full KITTI frame)."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(repr((image.shape, image.dtype.str)).encode())
+    h.update(np.ascontiguousarray(image).data)
+    return h.digest()
 
 
 def load_rgb(path: str | Path) -> np.ndarray:

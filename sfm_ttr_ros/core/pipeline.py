@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from sfm_ttr_ros.core.alignment.affine import is_affine_output
+from sfm_ttr_ros.core.alignment.cloud import window_cloud
 from sfm_ttr_ros.core.alignment.window import align_window
 from sfm_ttr_ros.core.checks.window import WindowJudge
 from sfm_ttr_ros.core.errors import InputError
@@ -47,7 +48,6 @@ from sfm_ttr_ros.core.refinement.supervision import (
 )
 from sfm_ttr_ros.core.refinement.trainable import check_trainable
 from sfm_ttr_ros.core.refinement.weights import WeightPolicy
-from sfm_ttr_ros.core.sfm.cloud import window_cloud
 from sfm_ttr_ros.core.sfm.source import SfmSource
 from sfm_ttr_ros.core.window import TTRConfig, WindowResult, WindowState, unrefined
 

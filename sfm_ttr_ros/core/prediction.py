@@ -27,8 +27,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from sfm_ttr_ros.core.frames import image_digest
 from sfm_ttr_ros.core.models.base import DepthModel
-from sfm_ttr_ros.core.sfm.reconstruction import image_digest
 
 #: Predictions kept for reuse (at least; a larger predict call keeps all of its frames).
 PREDICTION_CACHE_FRAMES = 16

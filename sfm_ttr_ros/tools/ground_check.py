@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from sfm_ttr_ros.core.checks.measures import camera_centre
+from sfm_ttr_ros.core.geometry import camera_centre
 from sfm_ttr_ros.core.metric.ground import cameras
 
 

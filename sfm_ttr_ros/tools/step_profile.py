@@ -194,8 +194,8 @@ def synthetic_supervision(model, frames: int, points: int, seed: int = 0
                           ) -> list[FrameSupervision]:
     """``frames`` random images at the network's input size, each with ``points`` random
     pixels whose targets are the network's depth there times 1.1 (Eq. (5) has a gradient)."""
+    from sfm_ttr_ros.core.geometry import sample_at
     from sfm_ttr_ros.core.models.base import warm_up_image
-    from sfm_ttr_ros.core.refinement.supervision import sample_at
 
     rng = np.random.default_rng(seed)
     h, w = warm_up_image(model).shape[:2]

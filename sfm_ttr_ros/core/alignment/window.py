@@ -11,7 +11,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.alignment.affine import AffineAlignmentResult, align_output, is_affine_output
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig, AlignmentResult
-from sfm_ttr_ros.core.refinement.supervision import sample_at
+from sfm_ttr_ros.core.geometry import sample_at
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
 

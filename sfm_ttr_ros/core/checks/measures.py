@@ -74,6 +74,7 @@ import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.geometry import camera_centre
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
@@ -157,12 +158,6 @@ class PathReference:
 
 
 # -- 1. sanity checks ------------------------------------------------------------------------
-def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
-    """C = −Rᵀt of a 4 x 4 (or 3 x 4) cam_from_world."""
-    T = np.asarray(cam_from_world, np.float64)
-    return -T[:3, :3].T @ T[:3, 3]
-
-
 def path_reference(sfm: SfmResult, registered: Sequence[str], scale: float) -> PathReference:
     """The registered frames' camera centres times ŝ (network units)."""
     return PathReference({n: camera_centre(sfm.frames[n].cam_from_world) * scale

@@ -44,8 +44,8 @@ from sfm_ttr_ros.core.checks.measures import (
     unsupported_change,
     unsupported_refusal,
 )
+from sfm_ttr_ros.core.models.base import finite_state
 from sfm_ttr_ros.core.outcomes import Unrefined
-from sfm_ttr_ros.core.refinement.encoder import finite_state
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
 Depths = Mapping[str, np.ndarray]

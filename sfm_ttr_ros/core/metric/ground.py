@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sfm_ttr_ros.core.geometry import camera_centre
 from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
@@ -58,9 +59,7 @@ class GroundPlane:
 def cameras(sfm: SfmResult, registered: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """(centres N x 3, down axes N x 3) of the registered cameras in SfM world coordinates."""
     T = np.stack([np.asarray(sfm.frames[n].cam_from_world, np.float64) for n in registered])
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    centres = -np.einsum("nji,nj->ni", R, t)
-    return centres, R[:, 1, :]  # R_jᵀ·(0, 1, 0) is R_j's second row
+    return camera_centre(T), T[:, 1, :3]  # R_jᵀ·(0, 1, 0) is R_j's second row
 
 
 def ground_plane(sfm: SfmResult, registered: Sequence[str], cfg: MetricConfig,

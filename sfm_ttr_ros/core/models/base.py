@@ -131,6 +131,12 @@ def warm_up_image(model: DepthModel) -> np.ndarray:
     return np.full((h, w, 3), 128, np.uint8)
 
 
+def finite_state(state: dict[str, torch.Tensor]) -> bool:
+    """True when every floating-point tensor of a state dict is finite."""
+    return all(bool(torch.isfinite(t).all()) for t in state.values()
+               if torch.is_tensor(t) and t.is_floating_point())
+
+
 class EncoderDecoder(DepthModel):
     """Any encoder and decoder whose decoder outputs Monodepth2-style sigmoid disparity.
 

@@ -289,9 +289,3 @@ def snapshot_encoder(model: DepthModel) -> dict[str, torch.Tensor]:
 
 def restore_encoder(model: DepthModel, state: dict[str, torch.Tensor]) -> None:
     model.encoder.load_state_dict(state)
-
-
-def finite_state(state: dict[str, torch.Tensor]) -> bool:
-    """True when every floating-point tensor of a state dict is finite."""
-    return all(bool(torch.isfinite(t).all()) for t in state.values()
-               if torch.is_tensor(t) and t.is_floating_point())

@@ -53,6 +53,7 @@ from collections.abc import Callable, Iterator, Sequence
 import numpy as np
 import torch
 
+from sfm_ttr_ros.core.geometry import sample_depth
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.graph_cache import (
@@ -74,7 +75,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     photometric_objective,
     ssim_target,
 )
-from sfm_ttr_ros.core.refinement.supervision import padded_weighted_l1, sample_depth
+from sfm_ttr_ros.core.refinement.supervision import padded_weighted_l1
 
 #: Eager steps on a side stream before the capture (PyTorch's whole-network capture recipe; the
 #: measured capture of the notes used three).

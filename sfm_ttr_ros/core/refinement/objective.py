@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.photometric import (
@@ -46,12 +47,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     photometric_objective,
     scale_outputs,
 )
-from sfm_ttr_ros.core.refinement.supervision import (
-    FrameSupervision,
-    normalized_grid,
-    sample_depth,
-    weighted_l1,
-)
+from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, weighted_l1
 
 LOG = logging.getLogger(__name__)
 _WARNED: set[str] = set()

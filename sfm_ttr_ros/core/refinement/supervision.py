@@ -2,8 +2,9 @@
 
 After the scale alignment (Sec. 3.2, :mod:`sfm_ttr_ros.core.alignment.scale`) every selected SfM
 observation of frame j gives a pixel p_lj, a target depth ŝ·D_sfm(l, j) in the network's units
-and the confidence weight exp(−r_lj²) of Eq. (5). This module holds that per-frame record, the
-sampling of a depth map at those pixels (D_nn(p_lj)) and Eq. (5) itself, so the refinement
+and the confidence weight exp(−r_lj²) of Eq. (5). This module holds that per-frame record and
+Eq. (5) itself (the depth read at those pixels, D_nn(p_lj), is
+:func:`~sfm_ttr_ros.core.geometry.sample_depth`), so the refinement
 (:mod:`sfm_ttr_ros.core.refinement.encoder`), the pipeline and the checks all read the same numbers.
 """
 
@@ -14,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from sfm_ttr_ros.core.alignment.affine import (
     AffineAlignmentResult,
@@ -22,6 +22,7 @@ from sfm_ttr_ros.core.alignment.affine import (
     affine_targets,
 )
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
+from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
 
@@ -45,20 +46,6 @@ def observation_weights(reproj_errors: np.ndarray) -> np.ndarray:
     return np.exp(-np.square(np.asarray(reproj_errors, np.float64)))
 
 
-def normalized_grid(pixels: np.ndarray, width: int, height: int) -> torch.Tensor:
-    """Pixel centres (OpenCV convention) of an image of width x height → grid_sample coords."""
-    g = np.empty((1, 1, len(pixels), 2), np.float32)
-    g[0, 0, :, 0] = (pixels[:, 0] + 0.5) / width * 2.0 - 1.0
-    g[0, 0, :, 1] = (pixels[:, 1] + 0.5) / height * 2.0 - 1.0
-    return torch.from_numpy(g)
-
-
-def sample_depth(depth: torch.Tensor, grid: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Read a 1 x 1 x h x w depth map at grid points (any resolution: coords are normalised)."""
-    return F.grid_sample(depth, grid, mode=mode, padding_mode="border",
-                         align_corners=False).reshape(-1)
-
-
 def weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Eq. (5): mean of exp(−r²)·|ŝ·D_sfm − D_nn| over a frame's selected points."""
     return (weights * (pred - target).abs()).mean()
@@ -71,12 +58,6 @@ def padded_weighted_l1(pred: torch.Tensor, target: torch.Tensor, weights: torch.
     for a CUDA graph). :func:`weighted_l1` of the unpadded points up to the order of the sum;
     the gradients are the same (a padded point adds 0)."""
     return (weights * (pred - target).abs()).sum() / count
-
-
-def sample_at(depth: np.ndarray, pixels: np.ndarray, mode: str = "bilinear") -> np.ndarray:
-    """An image-resolution depth map read at pixels (OpenCV convention)."""
-    d = torch.from_numpy(np.ascontiguousarray(depth, np.float32))[None, None]
-    return sample_depth(d, normalized_grid(pixels, depth.shape[1], depth.shape[0]), mode).numpy()
 
 
 def frame_loss(depth: np.ndarray, s: FrameSupervision, mode: str = "bilinear") -> float:

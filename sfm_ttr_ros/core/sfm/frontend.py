@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window, image_digest
 from sfm_ttr_ros.core.sfm.config import SfmConfig
-from sfm_ttr_ros.core.sfm.reconstruction import image_digest, quiet_pycolmap
+from sfm_ttr_ros.core.sfm.reconstruction import quiet_pycolmap
 
 log = logging.getLogger(__name__)
 

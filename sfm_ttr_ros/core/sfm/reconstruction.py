@@ -21,16 +21,13 @@ window's mean reprojection error is high, and the best-fitting reconstruction is
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
-from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window, image_digest
 from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.extraction import FeatureMatcher
 from sfm_ttr_ros.core.sfm.mapping import Mapper
@@ -178,11 +175,3 @@ class SfmReconstructor:
     def _check_cancel(self, token) -> None:
         if self._cancelled or token.is_cancelled:
             raise SfmCancelled("SfM cancelled")
-
-
-def image_digest(image: np.ndarray) -> bytes:
-    """Identity of a frame's pixels (a few ms for a full KITTI frame)."""
-    h = hashlib.blake2b(digest_size=16)
-    h.update(repr((image.shape, image.dtype.str)).encode())
-    h.update(np.ascontiguousarray(image).data)
-    return h.digest()

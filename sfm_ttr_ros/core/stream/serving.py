@@ -38,8 +38,7 @@ import numpy as np
 import torch
 
 from sfm_ttr_ros.core.metric.scale import in_metres
-from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
-from sfm_ttr_ros.core.refinement.encoder import finite_state
+from sfm_ttr_ros.core.models.base import DepthModel, finite_state, warm_up_image
 
 #: The live stream's priority (CUDA: lower is more urgent; the default stream's is 0)
 LIVE_STREAM_PRIORITY = -1

@@ -17,7 +17,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from sfm_ttr_ros.core.camera_path import CameraPath, nearest_rotation, result_poses
+from sfm_ttr_ros.core.camera_path import CameraPath, result_poses
+from sfm_ttr_ros.core.geometry import nearest_rotation
 
 
 def _relative(poses: list[np.ndarray]) -> np.ndarray:

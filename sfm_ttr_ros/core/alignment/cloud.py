@@ -1,5 +1,6 @@
 """The window's sparse cloud as an output (``~/points``): every 3D point of the reconstruction
-in the optical frame of the newest registered frame, in the depth outputs' units."""
+in the optical frame of the newest registered frame, in the depth outputs' units (the window's
+fit ŝ: why it sits with the alignment, not the SfM)."""
 
 from __future__ import annotations
 
