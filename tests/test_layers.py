@@ -8,6 +8,8 @@
   import and run with rclpy and every ROS message package blocked;
 * (b) no module imports from a layer above its own (read from the source, every import,
   top-level and inside functions);
+* (b') inside the core, a module imports from its own package or a lower rank of
+  :data:`CORE_RANKS`, never up nor sideways (another package of its rank);
 * (c) no import cycle between the package's modules (every import counts, ``if
   TYPE_CHECKING:`` ones too: a module that names another only for typing still couples them).
 """
