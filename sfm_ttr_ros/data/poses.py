@@ -1,7 +1,7 @@
 """A drive's camera poses and camera height, and real KITTI's OXTS as poses (ROS-free).
 
 Files beside a drive's images (``<raw>/<date>/<drive>/``; also the layout of an image folder
-such as ``../shared/data/hololens_000``, ``poses.txt`` beside ``images/``):
+of a recorded video with poses, ``poses.txt`` beside ``images/``):
 
 * ``poses.txt``: one row per frame, in frame order: the 4x4 camera-to-world matrix, row-major,
   16 numbers, metres (:func:`read_poses`, :func:`write_poses`);

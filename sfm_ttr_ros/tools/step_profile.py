@@ -1,9 +1,8 @@
 """Where a window's refinement step spends its time, per step mode
 (``refinement.step_mode``, core/refinement/graph_step.py), with ``torch.profiler``.
 
-The GPU facts it checks (``shared/notes/gpu-refinement-facts.md``): on an H200 a window's
-refinement was host-bound, ~1,000 kernel launches a step and 35-60 ms a step with the GPU busy
-0.28 s of a 7.6-s window; the whole step as one CUDA graph ran 3.7 ms. Measured here, per mode,
+What it checks: that a window's refinement on a GPU is host-bound eagerly and not as one CUDA
+graph (docs/decisions.md, "The refinement step on CUDA"). Measured here, per mode,
 on one window of a sequence (SfM, alignment and supervision as the pipeline makes them:
 :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.refinement_inputs`), every mode from the same weights:
 

@@ -13,9 +13,9 @@ served or kept. Not in the paper.
      relative to the stream (``max_reprojection_ratio`` k > 0, :func:`reprojection_refusal`):
      r̄ ≤ k · median r̄ of its last REPROJECTION_HISTORY accepted windows (at least
      REPROJECTION_MIN_HISTORY of them): a reconstruction that stays wrong after the mapper's
-     retries fits its observations worse than the stream's right ones (hololens_000: 1.31–1.40x
-     against ≤ 1.18x for right ones, indoors and driving), and refined on it the network gets
-     worse, while the window's frames keep the weights before it;
+     retries fits its observations worse than the stream's right ones (docs/decisions.md,
+     "Window checks"), and refined on it the network gets worse, while the window's frames keep
+     the weights before it;
    * parallax: the diameter of the registered camera centres over the median SfM depth,
      max_jk ‖C_j − C_k‖ / median D_sfm  ≥ min (scale-free; the paper's low-parallax weak spot:
      a creeping or turning camera triangulates depth from a baseline far shorter than the scene,
@@ -35,7 +35,7 @@ served or kept. Not in the paper.
    points can see a region that has no points, e.g. a vehicle moving with the camera (its
    features are static in the image, so SfM triangulates none on it) while the static street
    around it is reconstructed right. Refined on the street, the network may still move that
-   region far away (measured: the hard drive's truck window, abs rel 0.23 → 0.35). Per
+   region far away (docs/decisions.md, "Window checks"). Per
    registered frame j, with L(p) = log(D_after(p) / D_before(p)) and the frame's change at its
    own SfM observations g_j = median_l L(p_lj) (a global scale change is no error: the depth is
    up to scale),
@@ -48,8 +48,8 @@ served or kept. Not in the paper.
    scene where SfM supervises it; a large change where it says nothing is a guess.
 
    How much depth may move far from the points depends on the scene and on how wrong the
-   network is there (measured: U ≤ 0.016 on every helpful driving window, 0.011–0.36 on helpful
-   windows of an indoor video whose network is far off and whose walls carry no point), so with
+   network is there (an indoor video's bare walls carry no point; docs/decisions.md, "Window
+   checks"), so with
    ``unsupported_change_ratio`` k > 0 the threshold is relative to this stream's own accepted
    windows: refused when
 
@@ -85,9 +85,8 @@ UNSUPPORTED_FACTOR = 1.5
 UNSUPPORTED_STEP = 4
 #: accepted windows whose U forms the reference of ``unsupported_change_ratio``
 UNSUPPORTED_HISTORY = 10
-#: accepted windows the ratio needs before it refuses any (measured: a helpful second window of
-#: the demo drive moved 4-10x the first's U, 0.025-0.046 against 0.0046-0.0063, and was refused
-#: when the reference was that one window; BENCHMARKS.md "Window checks")
+#: accepted windows the ratio needs before it refuses any (one window's U is no reference:
+#: docs/decisions.md, "Window checks")
 UNSUPPORTED_MIN_HISTORY = 3
 #: accepted windows whose mean reprojection error is the reference of max_reprojection_ratio
 REPROJECTION_HISTORY = 10

@@ -14,8 +14,7 @@ Feature taps (input H x W): ``features.1`` 16 ch at 1/2, ``features.3`` 24 ch at
 ``features.18`` (the 320 → 1280 1×1 expansion that only feeds ImageNet's classifier) is left out
 by default: it adds no spatial context, and with it the decoder's first 3×3 convolution reads
 1280 channels (2.9 M instead of 0.74 M weights): the network grows from 4.0 M to 6.6 M parameters
-(Adam state and file size grow with it) for no measured speed gain (2 CPU threads, 192×640:
-forward 77 vs 77 ms, encoder-only training step 236 vs 256 ms). ``use_last_conv=True`` keeps it
+(Adam state and file size grow with it) for no speed gain. ``use_last_conv=True`` keeps it
 (the 1/32 tap is then 1280 ch and the ImageNet file loads with no key left over).
 """
 

@@ -74,8 +74,8 @@ class RefinementConfig:
     # = Eq. (5) as it is. Loss "sfm" is always the paper's Eq. (5).
     sfm_residual: str = "relative"
     # How a step runs (STEP_MODES; a config field, not a node parameter): "auto" = one CUDA
-    # graph per window on CUDA (the host launches ~1,000 kernels a step eagerly: measured
-    # 35-60 ms a step on an H200 against 3.7 ms for the captured step), eager elsewhere.
+    # graph per window on CUDA (eagerly the host launches every kernel of a step:
+    # core/refinement/graph_step.py), eager elsewhere.
     step_mode: str = "auto"
     # The forward pass's number format (PRECISIONS): "bf16" runs the network under bfloat16
     # autocast in the eager and the static / graph step alike; fp32 where the device lacks it.

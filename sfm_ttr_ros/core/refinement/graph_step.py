@@ -5,9 +5,9 @@ the encoder) on static input buffers, captured once per model, CUDA stream and l
 ``torch.cuda.CUDAGraph`` and replayed in every window of that layout
 (:mod:`~sfm_ttr_ros.core.refinement.graph_cache`).
 
-Why (measured on an H200, ``shared/notes/gpu-refinement-facts.md``): a window's refinement is
-host-bound there, ~1,000 kernel launches a step, 35-60 ms a step, the GPU busy 0.28 s of a
-7.6-s window; the whole step captured as one graph with ``Adam(capturable=True)`` ran 3.7 ms.
+Why: on a GPU a window's refinement is host-bound (about a thousand kernel launches a step);
+captured as one graph with ``Adam(capturable=True)`` the step is launched once
+(docs/decisions.md, "The refinement step on CUDA").
 
 How:
 
@@ -40,7 +40,6 @@ How:
   adapters, frames of different shapes, too few steps or a model off CUDA run the eager loop
   (:func:`plan_step_mode`).
 
-Not measured yet on a GPU (scripts/gpu_window_check.sh measures it).
 """
 
 from __future__ import annotations
@@ -77,8 +76,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
 )
 from sfm_ttr_ros.core.refinement.supervision import padded_weighted_l1
 
-#: Eager steps on a side stream before the capture (PyTorch's whole-network capture recipe; the
-#: measured capture of the notes used three).
+#: Eager steps on a side stream before the capture (PyTorch's whole-network capture recipe).
 GRAPH_WARM_UP_STEPS = 3
 #: T_{s<-t} of a padded photometric source: a half turn about x puts every point behind the
 #: camera (z -> -z), so its warped error is +inf everywhere and never the minimum.

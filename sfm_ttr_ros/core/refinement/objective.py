@@ -180,8 +180,8 @@ def forward(model: DepthModel, x, frozen_stages: int) -> torch.Tensor:
 
 def bf16_unsupported(device: torch.device) -> str:
     """Why ``device`` cannot run a bf16 forward pass natively ("" = it can): on the CPU, torch
-    must report AVX-512 BF16 or AMX (without them bf16 is emulated; measured on an AVX2-only
-    CPU: a step ~10x slower than fp32); on CUDA, ``torch.cuda.is_bf16_supported``."""
+    must report AVX-512 BF16 or AMX (without them bf16 is emulated, far slower than fp32:
+    docs/decisions.md, "Refinement"); on CUDA, ``torch.cuda.is_bf16_supported``."""
     if device.type == "cuda":
         return "" if torch.cuda.is_bf16_supported() else "this GPU has no native bf16"
     if device.type != "cpu":
