@@ -14,6 +14,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.sfm.config import SfmConfig
+from sfm_ttr_ros.core.sfm.names import image_name
 
 
 @dataclass
@@ -86,7 +87,7 @@ def collect_result(recs, names: Sequence[str], timings: dict[str, float],
     cam = next(iter(rec.cameras.values()))
     fx, fy, cx, cy = (float(v) for v in cam.params[:4])
     result.intrinsics = Intrinsics(fx, fy, cx - 0.5, cy - 0.5, cam.width, cam.height)
-    wanted = {f"{n}.png": n for n in names}
+    wanted = {image_name(n): n for n in names}
     for image in rec.images.values():
         if not image.has_pose or image.name not in wanted:
             continue
