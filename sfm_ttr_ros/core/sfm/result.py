@@ -52,6 +52,11 @@ class SfmResult:
     # frames before the window mapped with it (the streaming map's last frames, in a fresh
     # mapping): not the window's, but their poses tie its reconstruction to the camera's path
     anchors: dict[str, FrameObservations] = field(default_factory=dict)
+    # how it was mapped: "continued" (the streaming SfM's carried map) or "fresh" (the window
+    # mapped anew), with the reason a fresh mapping replaced the continuation; "" for the
+    # batch reconstructor's (each window mapped on its own) and a window that was not mapped
+    mapping: str = ""
+    mapping_reason: str = ""
 
     @property
     def num_registered(self) -> int:
