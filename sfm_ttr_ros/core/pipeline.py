@@ -62,7 +62,7 @@ class SfmTTR:
             p.requires_grad_(False)
         self.config = self._concrete(config or TTRConfig())
         self.check_config(self.config)
-        self.sfm = make_sfm_source(self.config.sfm, workspace)  # stage 1 (sfm.mode's source)
+        self.sfm = make_sfm_source(self.config.sfm, workspace)  # stage 1, of the configured kind
         # D_nn = h(g(I)) with a cache of the latest predictions (core/prediction.py)
         self.predictor = Predictor(self.model, self.config.predict_batch,
                                    self.config.reuse_predictions, self.config.predict_batch_cuda,
