@@ -191,6 +191,7 @@ class _FakeSfm:
         self.reprojection_error = 0.0
         self.attempts = [{"seed": 0, "registered": len(names), "points": 300,
                           "reprojection_error": 0.0, "seconds": 0.0, "kept": True}]
+        self.mapping, self.mapping_reason = "", ""  # a batch window's (mapped on its own)
 
     def points_in_frame(self, name):
         return np.zeros((300, 3))

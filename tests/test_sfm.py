@@ -18,6 +18,7 @@ from conftest import open_hololens
 from helpers import reconstruct_window
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.sfm.names import frame_name
 from sfm_ttr_ros.core.sfm.reconstruction import (
     SfmConfig,
     SfmReconstructor,
@@ -68,7 +69,7 @@ def windows(street):
     real = pycolmap.extract_features
 
     def spy(*args, image_names=None, **kwargs):
-        extracted.append([n.removesuffix(".png") for n in image_names])
+        extracted.append([frame_name(n) for n in image_names])
         return real(*args, image_names=image_names, **kwargs)
 
     f = street.frames

@@ -53,8 +53,15 @@ class ScriptedTTR:
         self.prefetched.append([f.name for f in frames])
         return True
 
+    def admit(self, frame, intrinsics):  # as the batch source: the window does it all
+        return False
+
+    def retain(self, names):
+        pass
+
     def counters(self):
-        return {"started": len(self.prefetched), "used": 0, "discarded": 0}
+        return {"sfm_ahead": {"started": len(self.prefetched), "used": 0, "discarded": 0},
+                "sfm_streaming": {}}
 
     def metric_status(self):
         return MetricStatus("fixed", "metric", self.metres_per_unit, float("nan"), 0, 0, 0)

@@ -1,7 +1,8 @@
-"""Streaming SfM (core/sfm/frontend.py, map_cache.py, streaming_map.py, streaming_compare.py):
-the front end's matcher against pycolmap's, windows continued on one map (same SfmResult as the
-batch reconstructor, one scale across windows), the fresh mapping with its reason, the store
-that drops frames, bad input.
+"""Streaming SfM (core/sfm/frontend.py, map_cache.py, streaming_map.py, source.py; compared with
+the batch reconstructor by tests/streaming_compare.py): the front end's matcher against
+pycolmap's, windows continued on one map (same SfmResult as the batch reconstructor, one scale
+across windows), the fresh mapping with its reason, the store that drops frames, bad input, the
+SfM source of each ``sfm.mode``.
 
 Depth error and scale as in tests/test_sfm.py: s = median(D_gt / D_sfm) per window.
 """
@@ -15,14 +16,20 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from streaming_compare import compare_streaming_with_batch
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.frontend import sift_matches
 from sfm_ttr_ros.core.sfm.result import SfmResult
-from sfm_ttr_ros.core.sfm.streaming_compare import compare_streaming_with_batch
-from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm, StreamingSfmConfig
+from sfm_ttr_ros.core.sfm.source import (
+    BatchSfmSource,
+    StreamingSfmSource,
+    make_sfm_source,
+    reconfigure_sfm_source,
+)
+from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
 W, H = 640, 192  # the smallest size tests/test_sfm.py found every window registered at
 WINDOW, OVERLAP = 4, 3
@@ -47,8 +54,7 @@ def street():
 @pytest.fixture(scope="module")
 def compared(street):
     """Three windows of 4 frames side by side, streamed and batch, interleaved."""
-    return compare_streaming_with_batch(street.frames, street.intr, WINDOW, street.gt,
-                                        StreamingSfmConfig(SFM))
+    return compare_streaming_with_batch(street.frames, street.intr, WINDOW, street.gt, SFM)
 
 
 def test_sift_matches_are_pycolmaps(street):
@@ -120,10 +126,10 @@ def test_a_continuation_that_fails_maps_afresh_with_the_reason(street):
     """A window from another scene cannot continue the map: it is mapped afresh, and the
     result says why; the map then continues from the fresh one."""
     other = _frames(3, WINDOW, first_index=100)
-    with StreamingSfm(StreamingSfmConfig(SFM)) as sfm:
+    with StreamingSfm(SFM) as sfm:
         assert sfm.reconstruct(street.frames[:WINDOW], street.intr).ok
         result = sfm.reconstruct(other.frames, street.intr)  # one camera
-        mode, reason = sfm.last_mapping
+        mode, reason = result.mapping, result.mapping_reason
         assert result.ok and mode == "fresh"
         assert "continuation" in reason
         assert result.attempts[0] == {"mode": "continue", "rejected": reason}
@@ -138,12 +144,13 @@ def test_a_fresh_mapping_takes_the_maps_last_frames_as_anchors(street, monkeypat
     from sfm_ttr_ros.core.sfm.streaming_map import FRESH_ANCHORS
 
     first, second = street.frames[:WINDOW], street.frames[WINDOW:2 * WINDOW]
-    with StreamingSfm(StreamingSfmConfig(SFM)) as sfm:
+    with StreamingSfm(SFM) as sfm:
         assert sfm.reconstruct(first, street.intr).ok
         monkeypatch.setattr(sfm, "_fit_reason", lambda result, n: "forced for the test")
         result = sfm.reconstruct(second, street.intr)
     names = {f.name for f in second}
-    assert sfm.last_mapping == ("fresh", "forced for the test") and result.ok
+    assert (result.mapping, result.mapping_reason) == ("fresh", "forced for the test")
+    assert result.ok
     assert set(result.frames) <= names and result.num_frames == WINDOW
     expected = [f.name for f in first][-min(FRESH_ANCHORS, OVERLAP):]
     assert set(result.anchors) and set(result.anchors) <= set(expected)
@@ -154,7 +161,7 @@ def test_a_fresh_mapping_takes_the_maps_last_frames_as_anchors(street, monkeypat
 def test_other_intrinsics_start_the_stream_afresh(street):
     intr2 = type(street.intr)(street.intr.fx * 1.1, street.intr.fy * 1.1, street.intr.cx,
                               street.intr.cy, W, H)
-    with StreamingSfm(StreamingSfmConfig(SFM)) as sfm:
+    with StreamingSfm(SFM) as sfm:
         sfm.admit(street.frames[0], street.intr)
         generation = sfm.frontend.generation
         sfm.admit(street.frames[1], intr2)
@@ -163,15 +170,8 @@ def test_other_intrinsics_start_the_stream_afresh(street):
         assert sfm.frontend.pairs == {}
 
 
-@pytest.mark.parametrize("kwargs", [{"keep_frames": -1}, {"min_registered_fraction": 1.5},
-                                    {"sfm": {"overlap": 3}}])
-def test_bad_config_is_an_input_error(kwargs):
-    with pytest.raises(InputError):
-        StreamingSfmConfig(**kwargs)
-
-
 def test_bad_input_is_an_input_error(street):
-    with StreamingSfm(StreamingSfmConfig(SFM)) as sfm:
+    with StreamingSfm(SFM) as sfm:
         with pytest.raises(InputError):
             sfm.admit(Frame(0, np.zeros((10, 10, 3), np.uint8)), street.intr)
         with pytest.raises(InputError):
@@ -278,7 +278,8 @@ def test_batch_mode_is_the_batch_reconstructors(street):
         return results[-1]
     ttr.sfm.reconstructor.reconstruct = spy
     try:
-        assert ttr.sfm.streaming is None and not ttr.sfm.admit(street.frames[0], street.intr)
+        assert isinstance(ttr.sfm, BatchSfmSource)
+        assert not ttr.sfm.admit(street.frames[0], street.intr)
         stream, _, diag = _run_stream(ttr, street.frames[:2 * WINDOW], street.intr)
     finally:
         ttr.close()
@@ -297,6 +298,36 @@ def test_sfm_mode_is_validated():
         SfmConfig(mode="streaming", features="torch")
 
 
+def test_one_source_per_mode_made_anew_when_the_mode_changes(street, tmp_path):
+    """The factory makes the source ``sfm.mode`` says; options of the same mode keep the source,
+    another mode closes it and makes one of that mode (workspace and ``nice`` carried over),
+    also through the pipeline's set_config."""
+    zeros = {"started": 0, "used": 0, "discarded": 0}
+    batch = make_sfm_source(SFM, tmp_path)
+    batch.nice = 5
+    assert isinstance(batch, BatchSfmSource)
+    assert reconfigure_sfm_source(batch, dataclasses.replace(SFM, seed=3)) is batch
+    assert batch.config.seed == batch.reconstructor.config.seed == 3
+    streaming = reconfigure_sfm_source(batch, dataclasses.replace(SFM, mode="streaming"))
+    assert isinstance(streaming, StreamingSfmSource)
+    assert (streaming.nice, streaming.workspace) == (5, tmp_path)
+    assert not batch.prefetch(street.frames[:WINDOW], street.intr)  # closed: nothing ahead
+    assert not streaming.prefetch(street.frames[:WINDOW], street.intr)
+    assert streaming.counters() == {"sfm_ahead": zeros, "sfm_streaming": {
+        "continued": 0, "fresh": 0, "admitted_unmapped": 0}}
+    back = reconfigure_sfm_source(streaming, SFM)
+    assert isinstance(back, BatchSfmSource)
+    assert back.counters() == {"sfm_ahead": zeros, "sfm_streaming": {}}
+    back.close()
+    ttr = _stream_ttr("batch")
+    try:
+        ttr.set_config(dataclasses.replace(ttr.config, sfm=dataclasses.replace(SFM,
+                                                                             mode="streaming")))
+        assert isinstance(ttr.sfm, StreamingSfmSource)
+    finally:
+        ttr.close()
+
+
 def test_the_stream_admits_keyframes_only_while_no_frame_waits():
     """A keyframe's front end costs more than a 10-Hz frame interval on 2 cores: admitted as
     they arrive, the worker fell behind and the keyframe rule skipped every window's frames.
@@ -306,9 +337,11 @@ def test_the_stream_admits_keyframes_only_while_no_frame_waits():
 
     admitted: list[str] = []
     waiting = [0]
-    sfm = SimpleNamespace(admit=lambda f, intr: admitted.append(f.name),
-                          retain=lambda names: None)
-    ttr = SimpleNamespace(config=SimpleNamespace(sfm=SimpleNamespace(mode="streaming")), sfm=sfm)
+
+    def admit(frame, intr):  # the streaming source: takes every keyframe
+        admitted.append(frame.name)
+        return True
+    ttr = SimpleNamespace(sfm=SimpleNamespace(admit=admit, retain=lambda names: None))
     feed = SfmFeed(ttr, SimpleNamespace(queued=lambda: waiting[0]), lambda k, m: None)
     frames = [Frame(i, np.zeros((4, 4, 3), np.uint8)) for i in range(4)]
     waiting[0] = 3
@@ -320,6 +353,8 @@ def test_the_stream_admits_keyframes_only_while_no_frame_waits():
     feed.retain([frames[2].name])  # 0 and 1 left every future window
     feed.admit_while_idle(frames[2:], None)
     assert admitted == [f.name for f in frames]  # 2 not twice
-    ttr.config.sfm.mode = "batch"
-    feed.admit_while_idle([Frame(9, frames[0].image)], None)
-    assert len(admitted) == 4  # batch: the window does it all
+    asked: list[str] = []  # the batch source: takes none (the window does it all)
+    ttr.sfm = SimpleNamespace(admit=lambda f, intr: asked.append(f.name) or False,
+                              retain=lambda names: None)
+    feed.admit_while_idle([Frame(9, frames[0].image), Frame(10, frames[0].image)], None)
+    assert len(admitted) == 4 and asked == [Frame(9, frames[0].image).name]  # asked once

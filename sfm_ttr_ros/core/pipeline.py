@@ -48,7 +48,7 @@ from sfm_ttr_ros.core.refinement.supervision import (
 )
 from sfm_ttr_ros.core.refinement.trainable import check_trainable
 from sfm_ttr_ros.core.refinement.weights import WeightPolicy
-from sfm_ttr_ros.core.sfm.source import SfmSource
+from sfm_ttr_ros.core.sfm.source import make_sfm_source, reconfigure_sfm_source
 from sfm_ttr_ros.core.window import TTRConfig, WindowResult, WindowState, unrefined
 
 
@@ -62,7 +62,7 @@ class SfmTTR:
             p.requires_grad_(False)
         self.config = self._concrete(config or TTRConfig())
         self.check_config(self.config)
-        self.sfm = SfmSource(self.config.sfm, workspace)  # stage 1, and SfM begun ahead
+        self.sfm = make_sfm_source(self.config.sfm, workspace)  # stage 1, of the configured kind
         # D_nn = h(g(I)) with a cache of the latest predictions (core/prediction.py)
         self.predictor = Predictor(self.model, self.config.predict_batch,
                                    self.config.reuse_predictions, self.config.predict_batch_cuda,
@@ -159,8 +159,9 @@ class SfmTTR:
             names, dict(before), before, refined=False, timings=t, predictions=counts))
 
     def _reconstruct(self, w: WindowState) -> Stop | None:
-        """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj): its own, begun ahead, or the carried
-        map's (``sfm.mode``); why the window stops here (None = it goes on)."""
+        """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj) from the SfM source: its own, begun
+        ahead, or the streaming SfM's carried map, how it was mapped in the result; why the
+        window stops here (None = it goes on)."""
         t = w.timings
         t0 = time.perf_counter()
         sfm, ahead = self.sfm.reconstruct(w.frames, w.intrinsics)
@@ -169,7 +170,6 @@ class SfmTTR:
         t["sfm"] = time.perf_counter() - t0
         t.update({f"sfm_{k}": v for k, v in sfm.timings.items()})
         w.result.sfm = sfm
-        w.result.sfm_mapping, w.result.sfm_mapping_reason = self.sfm.last_mapping
         return None if sfm.ok else Stop(Unrefined.SFM_FAILED, f"SfM failed: {sfm.reason}")
 
     def _align(self, w: WindowState) -> Stop | None:
@@ -317,7 +317,7 @@ class SfmTTR:
         config = self._concrete(config)
         self.check_config(config)
         self.config = config
-        self.sfm.set_config(config.sfm)
+        self.sfm = reconfigure_sfm_source(self.sfm, config.sfm)
         self.predictor.batch, self.predictor.reuse = config.predict_batch, config.reuse_predictions
         self.predictor.cuda_batch, self.predictor.reuse_live = (config.predict_batch_cuda,
                                                                 config.reuse_live_predictions)

@@ -85,10 +85,6 @@ class WindowResult:
     # the refined weights' depths of a window a check refused after refining (for evaluation)
     depths_candidate: dict[str, np.ndarray] = field(default_factory=dict)
     sfm: SfmResult | None = None
-    # sfm.mode streaming: "continued" (the carried map) or "fresh" (mapped anew), and why a
-    # fresh mapping replaced the continuation; "" in batch mode or before SfM ran
-    sfm_mapping: str = ""
-    sfm_mapping_reason: str = ""
     alignment: AlignmentResult | None = None
     refinement: RefinementResult | None = None
     metric: WindowMetric | None = None  # the window's metric estimate (core/metric/)
@@ -101,6 +97,18 @@ class WindowResult:
     timings: dict[str, float] = field(default_factory=dict)
     # the predictions before refining: computed, reused (the cache), reused_live (served live)
     predictions: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def sfm_mapping(self) -> str:
+        """How the window's SfM was mapped (its result's ``mapping``): "continued" (the
+        streaming SfM's carried map) or "fresh" (mapped anew); "" in batch mode or before SfM
+        ran."""
+        return self.sfm.mapping if self.sfm is not None else ""
+
+    @property
+    def sfm_mapping_reason(self) -> str:
+        """Why a fresh mapping replaced the continuation (its result's ``mapping_reason``)."""
+        return self.sfm.mapping_reason if self.sfm is not None else ""
 
     def summary(self) -> dict:
         """The window's outcome as plain numbers (for JSON reports): ``reason_key`` the

@@ -10,6 +10,9 @@ from sfm_ttr_ros.core.errors import InputError
 MIN_MAX_IMAGE_SIZE = 16  # smallest SIFT downscale accepted (1 crashes pycolmap 4.2.1)
 FEATURE_BACKENDS = ("colmap", "torch")  # sfm.features
 SFM_MODES = ("batch", "streaming")  # sfm.mode
+#: a verified pair with fewer inliers is not kept (the streaming front end) nor counted by
+#: the batch mapper's prechecks
+MIN_PAIR_INLIERS = 15
 RETRY_HISTORY = 10  # reconstructions of the stream whose median error sfm.retry_above_ratio scales
 
 

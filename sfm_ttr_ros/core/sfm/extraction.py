@@ -19,6 +19,7 @@ import cv2
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.sfm.config import SfmConfig
+from sfm_ttr_ros.core.sfm.names import image_name
 from sfm_ttr_ros.core.sfm.workspace import SfmWorkspace
 
 
@@ -47,7 +48,7 @@ class FeatureMatcher:
         ws = self.workspace
         ws.image_dir.mkdir(parents=True, exist_ok=True)
         for f in frames:
-            cv2.imwrite(str(ws.image_dir / f"{f.name}.png"),
+            cv2.imwrite(str(ws.image_dir / image_name(f.name)),
                         cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR),
                         [cv2.IMWRITE_PNG_COMPRESSION, 1])
         reader = pycolmap.ImageReaderOptions()
@@ -61,7 +62,7 @@ class FeatureMatcher:
         else:
             self._extract_colmap(config, frames, reader, token)
         for f in frames:
-            (ws.image_dir / f"{f.name}.png").unlink(missing_ok=True)  # keypoints suffice now
+            (ws.image_dir / image_name(f.name)).unlink(missing_ok=True)  # keypoints suffice now
         with pycolmap.Database.open(ws.database_path) as db:
             if ws.camera_id is None:
                 ws.camera_id = int(db.read_all_cameras()[0].camera_id)
@@ -75,7 +76,7 @@ class FeatureMatcher:
         if config.features == "torch":
             # sequential matching in stream order, each pair verified by pycolmap
             self._torch_features(config).match(
-                [f"{n}.png" for n in self.workspace.names], config.overlap, config.num_threads,
+                [image_name(n) for n in self.workspace.names], config.overlap, config.num_threads,
                 token, check=check)
             return
         matching = pycolmap.FeatureMatchingOptions()
@@ -115,8 +116,8 @@ class FeatureMatcher:
             pass  # import_images needs the database file to exist
         pycolmap.import_images(ws.database_path, ws.image_dir,
                                camera_mode=pycolmap.CameraMode.SINGLE,
-                               image_names=[f"{f.name}.png" for f in frames], options=reader)
-        self._torch_features(config).extract([(f"{f.name}.png", f.image) for f in frames],
+                               image_names=[image_name(f.name) for f in frames], options=reader)
+        self._torch_features(config).extract([(image_name(f.name), f.image) for f in frames],
                                              config.max_image_size)
 
     def _extract_colmap(self, config: SfmConfig, frames: Sequence[Frame], reader,
@@ -130,7 +131,7 @@ class FeatureMatcher:
         ext.sift.first_octave = config.first_octave
         pycolmap.extract_features(
             self.workspace.database_path, self.workspace.image_dir,
-            image_names=[f"{f.name}.png" for f in frames],
+            image_names=[image_name(f.name) for f in frames],
             camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
             extraction_options=ext, device=pycolmap.Device.cpu, cancellation_token=token,
         )

@@ -28,14 +28,13 @@ import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window, image_digest
-from sfm_ttr_ros.core.sfm.config import SfmConfig
+from sfm_ttr_ros.core.sfm.config import MIN_PAIR_INLIERS, SfmConfig
 from sfm_ttr_ros.core.sfm.reconstruction import quiet_pycolmap
 
 log = logging.getLogger(__name__)
 
 CAMERA_ID = 1  # the stream's one camera (and its trivial rig) in every map cache
 GREY_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])  # RGB -> grey as COLMAP reads images
-MIN_PAIR_INLIERS = 15  # a verified pair with fewer inliers is not kept (the mapper's min)
 
 
 @dataclass

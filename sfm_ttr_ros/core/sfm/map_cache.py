@@ -3,7 +3,7 @@ incremental mapper's steps that continue a reconstruction over it.
 
 A cache cannot be refreshed once its correspondence graph is finalised, so every mapping step
 gets a new cache (and a new ``IncrementalMapper``) over exactly the frames it may use: no SQLite,
-no pairs outside those frames (``../shared/notes/pycolmap-incremental-facts.md``, Sec. 0-1).
+no pairs outside those frames.
 The continuation is COLMAP's own per-image loop (``IncrementalPipeline::ReconstructSubModel``):
 next image by the mapper's ranking, 2D-3D registration, triangulation, iterative local bundle
 adjustment; no global adjustment and no normalisation, so the map keeps its coordinates and its
@@ -15,11 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from sfm_ttr_ros.core.sfm.frontend import CAMERA_ID, StreamFrontend
-
-
-def image_name(name: str) -> str:
-    """The image name a frame has in the map (the batch reconstructor's: ``<name>.png``)."""
-    return f"{name}.png"
+from sfm_ttr_ros.core.sfm.names import image_name
 
 
 def build_cache(frontend: StreamFrontend, names: Iterable[str]):

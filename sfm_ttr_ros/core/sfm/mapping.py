@@ -1,6 +1,6 @@
 """Incremental mapping of a window (Sec. 3.1) from the matches in the workspace's database:
 cheap prechecks first, then pycolmap's mapper with thresholds that accept forward driving
-(COLMAP's defaults reject it; see ``../shared/notes/pycolmap-on-these-machines.md``), run again
+(COLMAP's defaults reject it), run again
 with another seed while the reconstruction fits badly, the best kept
 (``SfmConfig.mapping_attempts``)."""
 
@@ -14,7 +14,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from sfm_ttr_ros.core.sfm.config import RETRY_HISTORY, SfmConfig
+from sfm_ttr_ros.core.sfm.config import MIN_PAIR_INLIERS, RETRY_HISTORY, SfmConfig
+from sfm_ttr_ros.core.sfm.names import image_name
 from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result
 from sfm_ttr_ros.core.sfm.workspace import SfmWorkspace
 
@@ -88,7 +89,7 @@ class Mapper:
 
         with pycolmap.Database.open(self.workspace.database_path) as db:
             ids = {img.name: int(img.image_id) for img in db.read_all_images()}
-            window_ids = {ids[f"{n}.png"] for n in names if f"{n}.png" in ids}
+            window_ids = {ids[image_name(n)] for n in names if image_name(n) in ids}
             nkp = [db.num_keypoints_for_image(i) for i in window_ids]
             if sum(k >= 50 for k in nkp) < 2:
                 return f"too few features (keypoints per frame: {nkp})"
@@ -99,7 +100,7 @@ class Mapper:
                 if i1 not in window_ids or i2 not in window_ids:
                     continue
                 m = g.inlier_matches
-                if m is None or len(m) < 15:
+                if m is None or len(m) < MIN_PAIR_INLIERS:
                     continue
                 verified += 1
                 k1 = db.read_keypoints(i1)[m[:, 0], :2]
@@ -140,7 +141,7 @@ def mapper_options(config: SfmConfig, names: list[str], seed: int):
     import pycolmap
 
     opts = pycolmap.IncrementalPipelineOptions()
-    opts.image_names = [f"{n}.png" for n in names]
+    opts.image_names = [image_name(n) for n in names]
     opts.multiple_models = False
     opts.min_model_size = 2
     opts.num_threads = config.num_threads

@@ -9,7 +9,7 @@ For each registered frame j and each 3D point X_l it observes the reconstruction
 
 One PINHOLE camera with the known intrinsics held fixed, SIFT features, sequential matching and
 incremental mapping with initialisation thresholds that accept forward driving (COLMAP's
-defaults reject it; see ``../shared/notes/pycolmap-on-these-machines.md``).
+defaults reject it).
 
 Features are extracted once per frame and pairs matched once: a :class:`SfmReconstructor`
 keeps one COLMAP database across the windows of a stream (:mod:`.workspace`), so overlapping

@@ -14,6 +14,7 @@ import numpy as np
 
 from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.sfm.config import SfmConfig
+from sfm_ttr_ros.core.sfm.names import image_name
 
 
 @dataclass
@@ -51,6 +52,11 @@ class SfmResult:
     # frames before the window mapped with it (the streaming map's last frames, in a fresh
     # mapping): not the window's, but their poses tie its reconstruction to the camera's path
     anchors: dict[str, FrameObservations] = field(default_factory=dict)
+    # how it was mapped: "continued" (the streaming SfM's carried map) or "fresh" (the window
+    # mapped anew), with the reason a fresh mapping replaced the continuation; "" for the
+    # batch reconstructor's (each window mapped on its own) and a window that was not mapped
+    mapping: str = ""
+    mapping_reason: str = ""
 
     @property
     def num_registered(self) -> int:
@@ -86,7 +92,7 @@ def collect_result(recs, names: Sequence[str], timings: dict[str, float],
     cam = next(iter(rec.cameras.values()))
     fx, fy, cx, cy = (float(v) for v in cam.params[:4])
     result.intrinsics = Intrinsics(fx, fy, cx - 0.5, cy - 0.5, cam.width, cam.height)
-    wanted = {f"{n}.png": n for n in names}
+    wanted = {image_name(n): n for n in names}
     for image in rec.images.values():
         if not image.has_pose or image.name not in wanted:
             continue

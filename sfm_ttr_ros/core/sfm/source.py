@@ -1,19 +1,23 @@
-"""Where a window's reconstruction comes from: its own SfM, the one begun ahead of it, or the
-stream's carried map (``sfm.mode``).
+"""Where a window's reconstruction comes from: one interface (:class:`SfmSource`), two kinds,
+chosen once from ``sfm.mode`` by :func:`make_sfm_source`.
 
-Batch (``sfm.mode: batch``): :class:`SfmSource` holds the window worker's reconstructor and the
-reconstructions begun ahead (:class:`~sfm_ttr_ros.core.sfm.prefetch.SfmPrefetch`) with their
-gate: no SfM is begun ahead while the running window's own SfM has not ended. On a few cores two
-reconstructions at once slowed the current window's (a GPU machine held to 2 cores: first
-weights 6.8 s after the window's last frame instead of 4.2 s); the stream asks again at its next
-frame.
+Batch (``sfm.mode: batch``, :class:`BatchSfmSource`): the window worker's reconstructor after
+the window's last frame, or the reconstruction begun ahead
+(:class:`~sfm_ttr_ros.core.sfm.prefetch.SfmPrefetch`) with its gate: no SfM is begun ahead while
+the running window's own SfM has not ended. On a few cores two reconstructions at once slowed
+the current window's (a GPU machine held to 2 cores: first weights 6.8 s after the window's
+last frame instead of 4.2 s); the stream asks again at its next frame. Keyframes are not
+admitted one by one: the window does it all after its last frame.
 
-Streaming (``sfm.mode: streaming``): it holds a
-:class:`~sfm_ttr_ros.core.sfm.streaming_map.StreamingSfm` instead. The stream admits each
-keyframe as it takes it (:meth:`SfmSource.admit`: features, matches, registration into the
-map), so a window's :meth:`SfmSource.reconstruct` only maps what is left and collects; a fresh
-mapping replaces the continuation when it fits badly (:attr:`SfmSource.last_mapping` says which
-and why). Nothing is begun ahead (nothing is left to begin).
+Streaming (``sfm.mode: streaming``, :class:`StreamingSfmSource`): the stream's
+:class:`~sfm_ttr_ros.core.sfm.streaming_map.StreamingSfm`. The stream admits each keyframe as it
+takes it (:meth:`SfmSource.admit`: features, matches, registration into the map), so a window's
+:meth:`SfmSource.reconstruct` only maps what is left and collects; a fresh mapping replaces the
+continuation when it fits badly (the result's ``mapping`` and ``mapping_reason`` say which and
+why). Nothing is begun ahead (nothing is left to begin).
+
+A configuration of the other mode (:func:`reconfigure_sfm_source`) closes the source and makes
+one of that mode.
 """
 
 from __future__ import annotations
@@ -21,42 +25,98 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Protocol
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
-from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm, StreamingSfmConfig
+from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
+
+#: what :meth:`SfmSource.counters` gives for reconstructions begun ahead when none can be
+NOTHING_AHEAD = {"started": 0, "used": 0, "discarded": 0}
 
 
-class SfmSource:
-    """A stream's reconstructions: the window's own, or taken from those begun ahead."""
+class SfmSource(Protocol):
+    """A stream's reconstructions, one window after the other (stage 1, Sec. 3.1): the one
+    interface the pipeline and the stream call, whatever ``mode``."""
+
+    mode: str  # the sfm.mode this kind of source serves
+    config: SfmConfig
+    workspace: str | Path | None  # the batch reconstructor's folder (None: a temporary one)
+    nice: int  # OS priority of the work it does in threads of its own (the window worker's)
+
+    def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
+                    ) -> tuple[SfmResult, bool]:
+        """The window's reconstruction (Sec. 3.1; how it was mapped in its ``mapping``) and
+        whether it was made ahead (while the previous window refined)."""
+        ...
+
+    def begin_window(self) -> None:
+        """A window begins (its own reconstruction follows)."""
+        ...
+
+    def admit(self, frame: Frame, intrinsics: Intrinsics) -> bool:
+        """A keyframe the stream took into the window being filled; True when the source did
+        its share of the window's SfM now, False when it does it all at the window's end."""
+        ...
+
+    def retain(self, names: Sequence[str]) -> None:
+        """The frames the stream's future windows may still take; the others admitted are
+        forgotten."""
+        ...
+
+    def prefetch(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
+        """Begin the SfM of a coming window now, in the background; False when nothing was
+        begun (the source begins nothing ahead, or not now)."""
+        ...
+
+    def counters(self) -> dict[str, dict[str, int]]:
+        """What /diagnostics counts: ``sfm_ahead`` (reconstructions begun ahead: started, used
+        by their window, discarded) and ``sfm_streaming`` (windows continued and mapped afresh,
+        keyframes admitted but not registered into the map yet; {} for batch)."""
+        ...
+
+    @property
+    def frames_extracted(self) -> int:
+        """Frames whose features the window's reconstructions extracted."""
+        ...
+
+    def set_config(self, config: SfmConfig) -> None:
+        """New options of the same ``sfm.mode``, from the next reconstruction on."""
+        ...
+
+    def cancel(self) -> None:
+        """Interrupt the running reconstructions (from another thread)."""
+        ...
+
+    def close(self) -> None:
+        """Stop and free what the source holds (threads, workspaces)."""
+        ...
+
+
+class BatchSfmSource:
+    """``sfm.mode: batch``: the window's own reconstruction, or the one begun ahead of it
+    (:class:`SfmSource`)."""
+
+    mode = "batch"
 
     def __init__(self, config: SfmConfig, workspace: str | Path | None = None):
         self.config = config
+        self.workspace = workspace
+        self.nice = 0
         self.reconstructor = SfmReconstructor(config, workspace)
-        # the stream's carried map under sfm.mode streaming (None: batch)
-        self.streaming = (StreamingSfm(StreamingSfmConfig(sfm=config))
-                          if config.mode == "streaming" else None)
         self._prefetch: SfmPrefetch | None = None  # created at the first prefetch()
-        self.nice = 0  # OS priority of the SfM-ahead thread (the window worker's)
         # a window runs and its own SfM has not ended yet (set by begin_window, cleared once
         # its SfM ends; a window that stops before SfM runs none, so nothing waits on it)
         self._own_pending = False
+        self._closed = False  # nothing begun ahead once closed (a new source took over)
         self._lock = threading.Lock()
 
     def set_config(self, config: SfmConfig) -> None:
-        """New options, from the next reconstruction on (ahead ones included)."""
         self.config = config
         self.reconstructor.config = config
-        if (config.mode == "streaming") != (self.streaming is not None):  # the mode changed
-            if self.streaming is not None:
-                self.streaming.close()
-            self.streaming = (StreamingSfm(StreamingSfmConfig(sfm=config))
-                              if config.mode == "streaming" else None)
-        elif self.streaming is not None:
-            self.streaming.set_config(config)
         if self._prefetch is not None:
             self._prefetch.set_config(config)
 
@@ -66,11 +126,7 @@ class SfmSource:
 
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
                     ) -> tuple[SfmResult, bool]:
-        """The window's reconstruction (Sec. 3.1) and whether it was made ahead (while the
-        previous window refined)."""
         try:
-            if self.streaming is not None:
-                return self.streaming.reconstruct(frames, intrinsics), False
             sfm = (self._prefetch.take(frames, intrinsics) if self._prefetch is not None
                    else None)
             if sfm is not None:
@@ -80,70 +136,114 @@ class SfmSource:
             self._own_pending = False
 
     def admit(self, frame: Frame, intrinsics: Intrinsics) -> bool:
-        """A keyframe the stream took into the window being filled: in streaming mode its
-        features, matches and registration into the carried map now (True); batch: nothing
-        (False; the window does it all after its last frame)."""
-        if self.streaming is None:
-            return False
-        self.streaming.admit(frame, intrinsics)
-        return True
+        """Nothing now (False): the window does it all after its last frame."""
+        return False
 
     def retain(self, names: Sequence[str]) -> None:
-        """The frames the stream's future windows may still take (streaming mode: the others
-        admitted are forgotten, :meth:`StreamingSfm.retain`)."""
-        if self.streaming is not None:
-            self.streaming.retain(names)
-
-    @property
-    def last_mapping(self) -> tuple[str, str]:
-        """How the last window was mapped: ("continued" | "fresh", the reason a fresh mapping
-        replaced the continuation); ("", "") in batch mode."""
-        return self.streaming.last_mapping if self.streaming is not None else ("", "")
-
-    def streaming_counters(self) -> dict[str, int]:
-        """Streaming mode's windows continued and mapped afresh, and the keyframes admitted but
-        not registered into the map yet ({} in batch mode)."""
-        st = self.streaming
-        if st is None:
-            return {}
-        return {"continued": st.continuations, "fresh": st.fresh_mappings,
-                "admitted_unmapped": st.unmapped()}
-
-    @property
-    def frames_extracted(self) -> int:
-        """Frames whose features were extracted, by the batch reconstructor and the streaming
-        front end."""
-        extracted = self.reconstructor.frames_extracted
-        if self.streaming is not None:
-            extracted += self.streaming.frontend.frames_extracted
-        return extracted
+        """Nothing admitted, nothing to forget."""
 
     def prefetch(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
         """Begin the SfM of a coming window now, in the background; :meth:`reconstruct` of
         exactly these frames then takes it. False when one is still running, or while the
         current window has not finished its own SfM (module docstring)."""
-        if self._own_pending or self.streaming is not None:
+        if self._own_pending or self._closed:
             return False
         with self._lock:
             if self._prefetch is None:
                 self._prefetch = SfmPrefetch(self.config, self.nice)
         return self._prefetch.start(frames, intrinsics)
 
-    def counters(self) -> dict[str, int]:
-        """SfM reconstructions begun ahead: started, used by their window, discarded."""
-        if self._prefetch is None:
-            return {"started": 0, "used": 0, "discarded": 0}
-        return self._prefetch.counters()
+    def counters(self) -> dict[str, dict[str, int]]:
+        ahead = self._prefetch.counters() if self._prefetch is not None else dict(NOTHING_AHEAD)
+        return {"sfm_ahead": ahead, "sfm_streaming": {}}
+
+    @property
+    def frames_extracted(self) -> int:
+        return self.reconstructor.frames_extracted
 
     def cancel(self) -> None:
-        """Interrupt the running reconstructions (from another thread)."""
         self.reconstructor.cancel()
         if self._prefetch is not None:
             self._prefetch.cancel()
 
     def close(self) -> None:
+        self._closed = True
         self.reconstructor.close()
-        if self.streaming is not None:
-            self.streaming.close()
         if self._prefetch is not None:
             self._prefetch.close()
+
+
+class StreamingSfmSource:
+    """``sfm.mode: streaming``: the stream's carried map (:class:`StreamingSfm`), each keyframe
+    admitted as the stream takes it (:class:`SfmSource`)."""
+
+    mode = "streaming"
+
+    def __init__(self, config: SfmConfig, workspace: str | Path | None = None):
+        self.config = config
+        self.workspace = workspace  # unused here; carried to a batch source (mode change)
+        self.nice = 0  # no thread of its own
+        self.streaming = StreamingSfm(config)
+
+    def set_config(self, config: SfmConfig) -> None:
+        self.config = config
+        self.streaming.set_config(config)
+
+    def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
+                    ) -> tuple[SfmResult, bool]:
+        return self.streaming.reconstruct(frames, intrinsics), False
+
+    def begin_window(self) -> None:
+        """Nothing waits on a window's own SfM (nothing is begun ahead)."""
+
+    def prefetch(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> bool:
+        """Nothing is begun ahead (False): the keyframes admitted leave only the mapping."""
+        return False
+
+    def admit(self, frame: Frame, intrinsics: Intrinsics) -> bool:
+        """The keyframe's features, matches and registration into the carried map now."""
+        self.streaming.admit(frame, intrinsics)
+        return True
+
+    def retain(self, names: Sequence[str]) -> None:
+        """The admitted frames outside ``names`` are forgotten (:meth:`StreamingSfm.retain`)."""
+        self.streaming.retain(names)
+
+    def counters(self) -> dict[str, dict[str, int]]:
+        st = self.streaming
+        return {"sfm_ahead": dict(NOTHING_AHEAD),
+                "sfm_streaming": {"continued": st.continuations, "fresh": st.fresh_mappings,
+                                  "admitted_unmapped": st.unmapped()}}
+
+    @property
+    def frames_extracted(self) -> int:
+        return self.streaming.frontend.frames_extracted
+
+    def cancel(self) -> None:
+        """Nothing to interrupt: a window's mapping runs to its end (never cancelled)."""
+
+    def close(self) -> None:
+        self.streaming.close()
+
+
+#: the source of each sfm.mode
+_SOURCES: dict[str, type[BatchSfmSource | StreamingSfmSource]] = {
+    s.mode: s for s in (BatchSfmSource, StreamingSfmSource)}
+
+
+def make_sfm_source(config: SfmConfig, workspace: str | Path | None = None) -> SfmSource:
+    """The source ``sfm.mode`` says (``workspace``: the batch reconstructor's folder; a
+    temporary one when None)."""
+    return _SOURCES[config.mode](config, workspace)
+
+
+def reconfigure_sfm_source(source: SfmSource, config: SfmConfig) -> SfmSource:
+    """``source`` with the options ``config``, or, when ``config`` is of another ``sfm.mode``, a
+    new source of that mode (``source`` closed; its workspace and ``nice`` carried over)."""
+    if source.mode == config.mode:
+        source.set_config(config)
+        return source
+    source.close()
+    fresh = make_sfm_source(config, source.workspace)
+    fresh.nice = source.nice
+    return fresh

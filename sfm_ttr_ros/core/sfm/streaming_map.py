@@ -8,32 +8,26 @@ locally adjusted), and gives a window the same :class:`SfmResult` the batch
 p_lj and r_lj of every registered frame of the window, read from the shared map, so consecutive
 windows share one scale. A fresh mapping of the window alone (the batch reconstructor's mapper
 runs: seeds, retries, the best kept) replaces the continuation when there is no map or the
-continuation fits badly; ``attempts`` and :attr:`StreamingSfm.last_mapping` say which and why.
-After a window the map keeps its last ``anchors`` frames (the next frames' match partners) and
-deregisters the rest.
+continuation fits badly; ``attempts`` and the result's ``mapping`` and ``mapping_reason`` say
+which and why. After a window the map keeps its last ``sfm.overlap`` frames (the next frames'
+match partners) and deregisters the rest.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
 from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.frontend import AdmitTimings, StreamFrontend
-from sfm_ttr_ros.core.sfm.map_cache import (
-    build_cache,
-    continue_reconstruction,
-    image_name,
-)
+from sfm_ttr_ros.core.sfm.map_cache import build_cache, continue_reconstruction
 from sfm_ttr_ros.core.sfm.mapping import Mapper, mapper_options, rank
+from sfm_ttr_ros.core.sfm.names import frame_name
 from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result, point_colours
 
 log = logging.getLogger(__name__)
@@ -44,31 +38,9 @@ log = logging.getLogger(__name__)
 FRESH_ANCHORS = 3
 
 
-@dataclass
-class StreamingSfmConfig:
-    """Options of the streaming SfM; the SIFT, matching and mapper options are ``sfm``'s."""
-
-    sfm: SfmConfig = field(default_factory=SfmConfig)
-    # frames of a window kept registered in the map for the next window; 0: sfm.overlap
-    keep_frames: int = 0
-    # a continuation that registered fewer than this fraction of a window's frames, failed
-    # or fits worse than the batch mapper's retry limit is replaced by a fresh mapping
-    min_registered_fraction: float = 0.8
-    # register each frame into the map when it is admitted (else at the window's end)
-    map_on_admit: bool = True
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.sfm, SfmConfig):
-            raise InputError(f"streaming sfm needs an SfmConfig, got {type(self.sfm).__name__}")
-        if int(self.keep_frames) < 0:
-            raise InputError(f"keep_frames must be >= 0, got {self.keep_frames}")
-        if not 0.0 <= float(self.min_registered_fraction) <= 1.0:
-            raise InputError(f"min_registered_fraction must be in [0, 1], got "
-                             f"{self.min_registered_fraction}")
-
-    @property
-    def anchors(self) -> int:
-        return int(self.keep_frames) or int(self.sfm.overlap)
+#: a continuation that registered fewer than this fraction of a window's frames (or failed, or
+#: fits worse than the batch mapper's retry limit) is replaced by a fresh mapping
+MIN_REGISTERED_FRACTION = 0.8
 
 
 class WindowMapper:
@@ -117,10 +89,10 @@ class WindowMapper:
 class StreamingSfm:
     """One stream's SfM: features as keyframes arrive, one map continued across windows."""
 
-    def __init__(self, config: StreamingSfmConfig | None = None):
-        self.config = config or StreamingSfmConfig()
-        self.frontend = StreamFrontend(self.config.sfm)
-        self._fresh = WindowMapper(self.config.sfm, self.frontend)
+    def __init__(self, config: SfmConfig | None = None):
+        self.config = config or SfmConfig()
+        self.frontend = StreamFrontend(self.config)
+        self._fresh = WindowMapper(self.config, self.frontend)
         self.rec = None  # pycolmap.Reconstruction: the map
         self._generation = self.frontend.generation
         self._open: list[str] = []  # admitted, not yet reconstructed in a window
@@ -128,7 +100,6 @@ class StreamingSfm:
         self._spent: dict[str, tuple[float, float, float]] = {}
         self.continuations = 0
         self.fresh_mappings = 0
-        self.last_mapping: tuple[str, str] = ("", "")  # ("continued" | "fresh", why fresh)
 
     def close(self) -> None:
         """Nothing on disk: the front end and the map live in memory."""
@@ -141,8 +112,8 @@ class StreamingSfm:
 
     # -- per frame ---------------------------------------------------------------------------
     def admit(self, frame: Frame, intrinsics: Intrinsics) -> AdmitTimings:
-        """A keyframe arrives: its features and verified pairs, then (``map_on_admit``) it is
-        registered into the map, triangulated and locally adjusted."""
+        """A keyframe arrives: its features and verified pairs, then it is registered into the
+        map (when there is one), triangulated and locally adjusted."""
         timings = self.frontend.admit(frame, intrinsics)
         if self.frontend.generation != self._generation:
             self._generation = self.frontend.generation
@@ -153,7 +124,7 @@ class StreamingSfm:
             self._open.append(frame.name)
         self._pin()
         t0 = time.perf_counter()
-        if self.config.map_on_admit and self.rec is not None:
+        if self.rec is not None:
             self._extend()
         self._spent[frame.name] = (timings.extract, timings.match + timings.verify,
                                    time.perf_counter() - t0)
@@ -176,7 +147,7 @@ class StreamingSfm:
     def set_config(self, config: SfmConfig) -> None:
         """New SfM options from the next frame on (the mapper's at once, the SIFT options for
         the frames extracted from now)."""
-        self.config = dataclasses.replace(self.config, sfm=config)
+        self.config = config
         self.frontend.config = config
         self._fresh.config = config
 
@@ -191,7 +162,6 @@ class StreamingSfm:
         admitted first). Never raises for a window that cannot be reconstructed; raises
         :class:`InputError` for bad input."""
         check_window(frames, intrinsics)
-        self.last_mapping = ("", "")
         names = [f.name for f in frames]
         if len(frames) < 2:
             return SfmResult(False, "a window needs at least 2 frames", len(frames))
@@ -236,7 +206,7 @@ class StreamingSfm:
             attempt["mode"] = "fresh"
         fresh.attempts.insert(0, {"mode": "continue", "rejected": reason})
         self.fresh_mappings += 1
-        self.last_mapping = ("fresh", reason)
+        fresh.mapping, fresh.mapping_reason = "fresh", reason
         log.info("window %s..%s mapped afresh: %s", names[0], names[-1], reason)
         return fresh
 
@@ -260,14 +230,14 @@ class StreamingSfm:
         if result.ok:
             self._fresh.mapper.errors.append(result.reprojection_error)
         self.continuations += 1
-        self.last_mapping = ("continued", note)
+        result.mapping, result.mapping_reason = "continued", note
         return result
 
     def _fit_reason(self, result: SfmResult, num_frames: int) -> str:
         """Why a continued window fits badly ("" when it fits)."""
         if not result.ok:
             return f"continuation failed: {result.reason}"
-        need = math.ceil(self.config.min_registered_fraction * num_frames)
+        need = math.ceil(MIN_REGISTERED_FRACTION * num_frames)
         if result.num_registered < need:
             return (f"continuation registered {result.num_registered} of {num_frames} frames "
                     f"(< {need})")
@@ -282,7 +252,7 @@ class StreamingSfm:
 
     # -- the map -----------------------------------------------------------------------------
     def _registered_names(self) -> list[str]:
-        return [self.rec.image(i).name.removesuffix(".png")
+        return [frame_name(self.rec.image(i).name)
                 for i in self.rec.reg_image_ids()] if self.rec is not None else []
 
     def _extend(self) -> None:
@@ -300,17 +270,18 @@ class StreamingSfm:
             self._drop_map(f"continuation raised {type(exc).__name__}: {exc}")
 
     def _slide(self, names: list[str]) -> None:
-        """Keep the window's last ``anchors`` registered frames (and any frame admitted for
-        the next window); deregister the rest and drop what only they held."""
+        """Keep the window's last ``sfm.overlap`` registered frames (the next frames' match
+        partners, and any frame admitted for the next window); deregister the rest and drop
+        what only they held."""
         done = set(names)
         self._open = [n for n in self._open if n not in done]
         for n in names:
             self._spent.pop(n, None)
         if self.rec is not None:
-            keep = set(names[-self.config.anchors:]) | set(self._open)
+            keep = set(names[-int(self.config.overlap):]) | set(self._open)
             for iid in list(self.rec.reg_image_ids()):
                 image = self.rec.image(iid)
-                if image.name.removesuffix(".png") not in keep:
+                if frame_name(image.name) not in keep:
                     self.rec.deregister_frame(image.frame_id)
             self.rec.tear_down()
         self._pin()
@@ -337,4 +308,3 @@ def _window_points(result: SfmResult) -> SfmResult:
     return result
 
 
-__all__ = ["StreamingSfm", "StreamingSfmConfig", "image_name"]

@@ -1,4 +1,5 @@
-"""Streaming SfM against the batch reconstructor on the same windows: cost, fit and scale.
+"""Streaming SfM against the batch reconstructor on the same windows: cost, fit and scale
+(only the tests use it: tests/test_streaming_sfm.py).
 
 For windows side by side (a stream cut every ``window_size`` frames), interleaved in one
 process (window w streamed, then window w by the batch :class:`SfmReconstructor`, which keeps
@@ -21,9 +22,10 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
-from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm, StreamingSfmConfig
+from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
 
 def window_figures(result: SfmResult, seconds: float,
@@ -62,16 +64,16 @@ def scale_ratios(windows: list[dict]) -> list[float]:
 def compare_streaming_with_batch(frames: Sequence[Frame], intrinsics: Intrinsics,
                                  window_size: int,
                                  depths: dict[str, np.ndarray] | None = None,
-                                 config: StreamingSfmConfig | None = None) -> dict:
+                                 config: SfmConfig | None = None) -> dict:
     """Stream ``frames`` through :class:`StreamingSfm` and the batch reconstructor, window by
     window (windows side by side), and return both sides' figures (see the module doc) and the
     streamed windows' results."""
     if window_size < 2 or len(frames) < window_size:
         raise InputError(f"need windows of >= 2 frames and at least one window: "
                          f"{len(frames)} frames, window_size {window_size}")
-    config = config or StreamingSfmConfig()
+    config = config or SfmConfig()
     report: dict = {"stream": [], "batch": [], "frontend": [], "stream_results": []}
-    with StreamingSfm(config) as stream, SfmReconstructor(config.sfm) as batch:
+    with StreamingSfm(config) as stream, SfmReconstructor(config) as batch:
         for start in range(0, len(frames) - window_size + 1, window_size):
             window = list(frames[start:start + window_size])
             for f in window:  # frames arrive: front end (+ registration into the map)
@@ -81,7 +83,7 @@ def compare_streaming_with_batch(frames: Sequence[Frame], intrinsics: Intrinsics
             report["stream_results"].append(result)
             figures = window_figures(result, time.perf_counter() - t0, depths)
             figures["map_on_admit"] = result.timings.get("map_on_admit", 0.0)
-            figures["mapping"] = stream.last_mapping
+            figures["mapping"] = (result.mapping, result.mapping_reason)
             report["stream"].append(figures)
             t0 = time.perf_counter()
             result = batch.reconstruct(window, intrinsics)
