@@ -1,4 +1,5 @@
-"""The camera's path: the windows' SfM camera poses chained into one path in an ``odom`` frame.
+"""The camera's path: the windows' SfM camera poses chained into one path in an ``odom`` frame
+(the stream keeps one: core/stream/path.py).
 
 Every window's reconstruction (Sec. 3.1) holds the pose ``cam_from_world`` of each registered
 frame in its own world frame. :class:`CameraPath` maps each window's world into ``odom`` with a
