@@ -1,8 +1,10 @@
-"""The camera's path (core/camera_path.py): windows chained on synthetic poses, and the drift
-measure of the benchmark (tools/benchmark/path.py)."""
+"""The camera's path (core/camera_path.py): windows chained on synthetic poses, the stream's
+one path in its depth's metres (core/stream/path.py), and the drift measure of the benchmark
+(tools/benchmark/path.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,10 +16,13 @@ from sfm_ttr_ros.core.camera_path import (
     CameraPath,
     WindowPoses,
     fit_similarity,
+    metres_per_sfm_unit,
     result_poses,
     window_poses,
 )
 from sfm_ttr_ros.core.errors import InputError
+from sfm_ttr_ros.core.frames import Frame
+from sfm_ttr_ros.core.stream.records import FramePose
 from sfm_ttr_ros.tools.benchmark.path import path_drift
 
 
@@ -56,6 +61,16 @@ def _window(gt, frames, s, R, t, mapping="", metres=None, var=1e-4) -> WindowPos
     return WindowPoses({n: _world(gt[i], s, R, t) for n, i in zip(names, frames, strict=True)},
                        {n: 0.1 * i for n, i in zip(names, frames, strict=True)}, mapping,
                        metres, {n: var for n in names}, {n: var for n in names})
+
+
+def _reported(path: CameraPath, added) -> list[FramePose]:
+    """``added`` (one window's new poses) as the stream reports them, in the path's units."""
+    return [FramePose(Frame(int(p.name), np.zeros((1, 1, 3), np.uint8), p.stamp, p.name), p,
+                      path.units) for p in added]
+
+
+def _drift(path: CameraPath, added, gt) -> dict[str, object]:
+    return path_drift(_reported(path, added), path.summary(), gt)
 
 
 def _expected(gt, i, scale=1.0) -> np.ndarray:
@@ -191,22 +206,103 @@ def test_a_fitted_scale_needs_two_distinct_centres():
 def test_drift_is_zero_on_the_poses_themselves_and_grows_with_a_wrong_scale():
     gt = _drive(40)
     path = CameraPath()
-    path.add(_window(gt, range(40), 1.0, np.eye(3), np.zeros(3), metres=1.0))
+    added = path.add(_window(gt, range(40), 1.0, np.eye(3), np.zeros(3), metres=1.0))
     names = {f"{i:04d}": gt[i] for i in range(40)}
-    exact = path_drift(path, names)
+    exact = _drift(path, added, names)
     assert exact["compared"] == 40 and exact["drift_pct"] < 1e-6 and not exact["scale_fitted"]
     # a path 3 % too long ends 3 % of its chord off: 3 % x chord / distance travelled
     longer = CameraPath()
-    longer.add(_window(gt, range(40), 1.0, np.eye(3), np.zeros(3), metres=1.03))
+    added = longer.add(_window(gt, range(40), 1.0, np.eye(3), np.zeros(3), metres=1.03))
     assert longer.units == "m"
     chord = np.linalg.norm(gt[39][:3, 3] - gt[0][:3, 3])
-    drift = path_drift(longer, names)
+    drift = _drift(longer, added, names)
     assert drift["length_m"] == pytest.approx(39.0)
     assert drift["drift_pct"] == pytest.approx(3.0 * chord / 39.0, rel=1e-6)
     unscaled = CameraPath()
-    unscaled.add(_window(gt, range(40), 1.0, np.eye(3), np.zeros(3)))
-    assert path_drift(unscaled, names)["scale_fitted"]
-    assert path_drift(CameraPath(), names)["compared"] == 0
+    added = unscaled.add(_window(gt, range(40), 1.0, np.eye(3), np.zeros(3)))
+    assert _drift(unscaled, added, names)["scale_fitted"]
+    assert _drift(CameraPath(), [], names)["compared"] == 0
+
+
+def test_a_path_in_sfm_units_turns_metric_at_the_first_window_in_metres():
+    """The depth turned metric: the window is chained in the path's units, then the path
+    scaled into metres about its origin (no jump); the poses handed out before keep theirs."""
+    gt = _drive()
+    path = CameraPath()
+    before = path.add(_window(gt, range(0, 10), 2.0, np.eye(3), np.zeros(3), "fresh"))
+    assert path.units == "sfm"
+    R2, t2 = _rot(1, 0.8), np.array([1.0, 2.0, 3.0])
+    after = path.add(_window(gt, range(6, 16), 0.5, R2, t2, "fresh", metres=2.0))
+    assert path.units == "m" and [p.chain for p in after] == ["shared"] * 6
+    for p in [*path.poses.values()]:  # all of it in metres now, the earlier poses too
+        np.testing.assert_allclose(p.odom_from_camera, _expected(gt, int(p.name)), atol=1e-8)
+    np.testing.assert_allclose(before[-1].position, _expected(gt, 9, 2.0)[:3, 3], atol=1e-8)
+    assert path.poses["0009"].position_var == pytest.approx(before[-1].position_var / 4)
+    # a continued window of the same map goes on in metres (its scale the window's metres)
+    more = path.add(_window(gt, range(12, 20), 0.5, R2, t2, "continued", metres=2.0))
+    for p in more:
+        np.testing.assert_allclose(p.odom_from_camera, _expected(gt, int(p.name)), atol=1e-8)
+    # and a path that began in SfM units, continued, turns metric without a jump
+    cont = CameraPath()
+    cont.add(_window(gt, range(0, 10), 2.0, np.eye(3), np.zeros(3), "fresh"))
+    late = cont.add(_window(gt, range(6, 16), 2.0, np.eye(3), np.zeros(3), "continued",
+                            metres=0.5))
+    assert cont.units == "m"
+    for p in [*cont.poses.values(), *late]:
+        np.testing.assert_allclose(p.odom_from_camera, _expected(gt, int(p.name)), atol=1e-8)
+
+
+def test_a_windows_metres_are_its_depth_outputs_factor_times_its_alignment_scale():
+    from sfm_ttr_ros.core.metric.scale import WindowMetric
+    from sfm_ttr_ros.core.window import WindowResult
+
+    measured = WindowMetric("camera_height", m=2.0, k=0.5)
+    # metric.learn: ŝ is the window's metres (the supervision's), the factor 1
+    res = WindowResult(["a"], {}, {}, refined=True, metric=measured, scale=2.0)
+    assert metres_per_sfm_unit(res, 1.0) == pytest.approx(2.0)
+    assert metres_per_sfm_unit(res, None) is None  # the depth is not in metres: nor the path
+    # outputs scaled: the outputs' factor (the accepted windows' median) times ŝ
+    assert metres_per_sfm_unit(dataclasses.replace(res, scale=4.0), 0.6) == pytest.approx(2.4)
+    # metres the window did not measure (no estimate, or not refined): the path's own scale
+    assert metres_per_sfm_unit(dataclasses.replace(res, metric=WindowMetric("camera_height")),
+                               1.0) is None
+    assert metres_per_sfm_unit(dataclasses.replace(res, refined=False), 1.0) is None
+    fixed = WindowResult(["a"], {}, {}, refined=False, metric=WindowMetric("fixed"), scale=4.0)
+    assert metres_per_sfm_unit(fixed, 0.5) == pytest.approx(2.0)
+    assert metres_per_sfm_unit(dataclasses.replace(fixed, scale=float("nan")), 0.5) is None
+
+
+def test_the_streams_path_stamps_its_poses_from_the_frames_and_reports_their_units():
+    from sfm_ttr_ros.core.metric.scale import WindowMetric
+    from sfm_ttr_ros.core.sfm.result import SfmResult
+    from sfm_ttr_ros.core.stream.path import StreamPath
+    from sfm_ttr_ros.core.window import WindowResult
+
+    gt = _drive()
+    frames = [Frame(i, np.zeros((4, 4, 3), np.uint8), 0.1 * i, f"{i:04d}", header=f"h{i}")
+              for i in range(20)]
+
+    def result(idx, anchors=(), scale=2.0):
+        world = {i: _world(gt[i], 1.0, np.eye(3), np.zeros(3)) for i in (*anchors, *idx)}
+        sfm = SfmResult(True, "", len(idx), {f"{i:04d}": _observed(f"{i:04d}", world[i])
+                                              for i in idx})
+        sfm.anchors = {f"{i:04d}": _observed(f"{i:04d}", world[i]) for i in anchors}
+        return WindowResult([f"{i:04d}" for i in idx], {}, {}, True, sfm=sfm, scale=scale,
+                            metric=WindowMetric("camera_height", m=scale, k=1.0))
+
+    path = StreamPath()
+    first = path.window(frames[0:6], result(range(0, 6)), None)
+    assert [(p.name, p.units, p.frame.header) for p in first[:2]] == [("0000", "sfm", "h0"),
+                                                                      ("0001", "sfm", "h1")]
+    assert first[0].frame.image.size == 0 and first[3].pose.stamp == pytest.approx(0.3)
+    # a fresh map of frames 8-11 mapped with 4-5 (before the window: the path's stamps) joins
+    # the path through them, in metres now that the depth is: 0.5 m per unit x ŝ 2
+    later = path.window(frames[8:12], result(range(8, 12), anchors=(4, 5)), 0.5)
+    assert [p.name for p in later] == ["0008", "0009", "0010", "0011"]
+    assert {p.units for p in later} == {"m"} and {p.pose.chain for p in later} == {"shared"}
+    assert path.summary()["breaks"] == 0
+    np.testing.assert_allclose(later[-1].pose.odom_from_camera, _expected(gt, 11), atol=1e-8)
+    assert path.window(frames[8:12], WindowResult(["0008"], {}, {}, False), 0.5) == []
 
 
 @pytest.mark.slow
@@ -222,8 +318,8 @@ def test_the_path_of_a_short_generated_drive_drifts_less_than_its_metric_scale_e
     from sfm_ttr_ros.core.frames import Frame
     from sfm_ttr_ros.core.metric.config import MetricConfig
     from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+    from sfm_ttr_ros.core.stream.path import StreamPath
     from sfm_ttr_ros.data.synthetic import make_sequence
-    from sfm_ttr_ros.tools.benchmark.path import add_window
 
     seq = make_sequence(seed=0, domain="A", num_frames=20, width=416, height=128)
     cfg = TTRConfig()
@@ -232,18 +328,20 @@ def test_the_path_of_a_short_generated_drive_drifts_less_than_its_metric_scale_e
     ttr = SfmTTR(tiny_model(), cfg)
     frames = [Frame(index=i, image=im, stamp=s)
               for i, (im, s) in enumerate(zip(seq.images, seq.stamps, strict=True))]
-    path, shape = CameraPath(), CameraPath()
+    path, shape = StreamPath(), CameraPath()
+    reported, shape_added = [], []
     try:
         for start in range(0, 13, 4):
             res = ttr.process_window(frames[start:start + 8], seq.intrinsics)
-            add_window(path, res, lambda n: frames[int(n)].stamp, ttr.metres_per_unit)
+            reported += path.window(frames[start:start + 8], res, ttr.metres_per_unit)
             unscaled = result_poses(res, {f.name: f.stamp for f in frames})
             unscaled.metres_per_sfm_unit = None  # the same windows without metres
-            shape.add(unscaled)
+            shape_added += shape.add(unscaled)
     finally:
         ttr.close()
     gt = {f.name: np.linalg.inv(seq.cam_from_world[f.index]) for f in frames}
-    drift, drift_shape = path_drift(path, gt), path_drift(shape, gt)
+    drift = path_drift(reported, path.summary(), gt)
+    drift_shape = _drift(shape, shape_added, gt)
     assert drift["units"] == "m" and drift["compared"] == 20 and drift["breaks"] == 0
     assert drift["length_m"] == pytest.approx(12.57, abs=0.1)
     assert drift["drift_pct"] < 5.0, drift
@@ -255,9 +353,10 @@ def test_the_benchmark_reports_the_path_only_where_the_sequence_has_poses():
 
     gt = _drive(12)
     path = CameraPath()
-    path.add(_window(gt, range(12), 1.0, np.eye(3), np.zeros(3), metres=1.02))
-    assert path_report(path, None, int) == {}
-    report = path_report(path, np.array(gt), int)
+    added = _reported(path, path.add(_window(gt, range(12), 1.0, np.eye(3), np.zeros(3),
+                                              metres=1.02)))
+    assert path_report(added, path.summary(), None, int) == {}
+    report = path_report(added, path.summary(), np.array(gt), int)
     assert report["path"]["compared"] == 12 and report["path"]["drift_pct"] > 0
     lines = path_lines({"node_online": report, "no_ttr": {}}, ["no_ttr", "node_online"])
     assert len(lines) == 6 and lines[-2].startswith("| node_online | m | 12 | 11.00 |")

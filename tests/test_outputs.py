@@ -181,3 +181,21 @@ def test_depth_scale_says_where_the_depth_goes_as_each_frame_is_routed(state, fa
     assert values["reason"] == "why" and msg.level == bytes([level])
     routed = units.route({names.DEPTH_TOPIC: "m"}, factor is not None, "publish")
     assert list(routed) == [topic]
+
+
+@pytest.mark.parametrize("metric, relative, odom, depth", [
+    (True, "drop", names.ODOM_OUTPUT_TOPIC, names.DEPTH_REFINED_TOPIC),
+    (False, "publish", names.ODOM_RELATIVE_TOPIC, names.DEPTH_REFINED_RELATIVE_TOPIC),
+    (False, "drop", None, None)])
+def test_the_camera_path_and_the_depth_follow_one_relative_topic_rule(metric, relative, odom,
+                                                                      depth):
+    """~/odom goes where the depth goes (ros/units.py topic_now): its metric topic, its
+    relative twin, or nowhere; a topic without units (~/depth_colored) always stays."""
+    from sfm_ttr_ros.ros import units
+
+    assert units.topic_now(names.ODOM_OUTPUT_TOPIC, metric, relative) == odom
+    assert units.topic_now(names.DEPTH_REFINED_TOPIC, metric, relative) == depth
+    assert units.topic_now(names.DEPTH_COLORED_TOPIC, metric, relative) == (
+        names.DEPTH_COLORED_TOPIC)
+    assert names.relative_twin_of(names.ODOM_OUTPUT_TOPIC_RESOLVED) == (
+        names.ODOM_RELATIVE_TOPIC_RESOLVED)

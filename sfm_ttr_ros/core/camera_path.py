@@ -1,4 +1,5 @@
-"""The camera's path: the windows' SfM camera poses chained into one path in an ``odom`` frame.
+"""The camera's path: the windows' SfM camera poses chained into one path in an ``odom`` frame
+(the stream keeps one: core/stream/path.py).
 
 Every window's reconstruction (Sec. 3.1) holds the pose ``cam_from_world`` of each registered
 frame in its own world frame. :class:`CameraPath` maps each window's world into ``odom`` with a
@@ -20,8 +21,12 @@ similarity S = (s, R, t) (an odom point x_o = s·R·x_w + t), chosen by how the 
   or, with no velocity yet (a path of one frame), by :data:`UNKNOWN_VARIANCE` and a heading
   unknown within ±90°.
 
-Units: metres when the first window's metres per SfM unit is known (``metric``: m_w of
-core/metric/scale.py), otherwise the first reconstruction's SfM units (``units`` says which).
+Units: those of the stream's depth (:func:`metres_per_sfm_unit`): metres when the window's
+depth outputs are in metres, its metres per SfM unit their factor k times the ŝ of the depth
+(D_nn ≈ ŝ·D_sfm, Eq. (4)); otherwise the first reconstruction's SfM units (``units`` says
+which). A path in SfM units turns metric at the first window in metres: the window is chained
+as before (its scale fitted, or its map's), and the path until then is scaled by the metres
+per path unit that gives (the origin and the axes stay); from then on it stays in metres.
 
 Covariance (what it is): per frame, isotropic, in the path's units. From the reconstruction, a
 frame j with n_j observations, RMS reprojection error r_j (px), focal f (px) and median
@@ -41,7 +46,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -119,14 +124,17 @@ def window_poses(sfm: SfmResult, stamps: Mapping[str, float], mapping: str = "",
 
 
 def metres_per_sfm_unit(result: WindowResult, metres_per_unit: float | None) -> float | None:
-    """The window's metres per SfM unit: its own estimate m_w (core/metric/scale.py), or under
-    ``metric.source: fixed`` the user's metres per network unit times the alignment's ŝ
-    (D_nn ≈ ŝ·D_sfm, Eq. (4)); None when neither is known."""
+    """The metres per SfM unit of the window's depth outputs: their factor ``metres_per_unit``
+    (metres per network unit, core/metric/scale.py) times the ŝ the depth is in units of
+    (D_nn ≈ ŝ·D_sfm, Eq. (4)): for a refined window that measured its metres the ŝ its
+    supervision used (Eq. (5); with ``metric.learn`` the window's metres, the factor then 1),
+    under ``metric.source: fixed`` the alignment's. None when the depth is not in metres, or
+    in metres the window did not measure (the path keeps its own scale)."""
     metric = result.metric
-    if metric is not None and math.isfinite(metric.m) and metric.m > 0:
-        return float(metric.m)
-    if (metric is not None and metric.source == "fixed" and metres_per_unit is not None
-            and math.isfinite(result.scale) and result.scale > 0):
+    if (metres_per_unit is None or not math.isfinite(metres_per_unit) or metres_per_unit <= 0
+            or metric is None or not (math.isfinite(result.scale) and result.scale > 0)):
+        return None
+    if metric.source == "fixed" or (result.refined and metric.ok):
         return float(metres_per_unit * result.scale)
     return None
 
@@ -197,6 +205,9 @@ class CameraPath:
             self.units = "m" if metres is not None else "sfm"
         scale = metres if self.units == "m" else None
         chain, segment = self._chain(window, scale)
+        if metres is not None and self.units == "sfm":
+            self._to_metres(metres / segment.S.s, segment)
+            scale = metres
         if chain == "continued":
             segment.rescale(scale)
         elif scale is not None:
@@ -205,6 +216,25 @@ class CameraPath:
         self.chains[chain] += 1
         index, self._windows = self._windows, self._windows + 1
         return self._append(window, segment, chain, index)
+
+    def _to_metres(self, factor: float, segment: _Segment) -> None:
+        """A path in SfM units turned metric: every pose and ``segment`` (the window's, its
+        scale fitted in the path's units) scaled by ``factor`` metres per path unit about the
+        origin, the variances by its square (module docstring). The poses are new objects:
+        the ones handed out before keep the units they were published in."""
+        f2 = factor * factor
+        for name, pose in self.poses.items():
+            T = pose.odom_from_camera.copy()
+            T[:3, 3] *= factor
+            self.poses[name] = replace(pose, odom_from_camera=T,
+                                       position_var=pose.position_var * f2)
+        S = segment.S
+        segment.S = Similarity(S.s * factor, S.R, S.t * factor, S.position_res2 * f2,
+                               S.rotation_res2)
+        segment.position_base *= f2
+        if segment.anchor is not None:
+            segment.anchor = (segment.anchor[0] * factor, segment.anchor[1])
+        self.units = "m"
 
     def _chain(self, window: WindowPoses, scale: float | None) -> tuple[str, _Segment]:
         """How the window joins the path, and its segment."""

@@ -47,8 +47,9 @@ ODOM_OUTPUT_TOPIC = "~/odom"  # nav_msgs/Odometry: the camera's path in metres (
 ODOM_RELATIVE_TOPIC = "~/odom_relative"  # the same in SfM units, while no metres are known
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
-# REP 118: 32FC1 depth is metres. Depth, clouds and points not (yet) in metres go out on a
-# relative twin of their topic (relative_depth: publish) or not at all (drop).
+# REP 118: 32FC1 depth is metres (REP 105: so are odom's poses). Depth, clouds, points and the
+# camera's path not (yet) in metres go out on a relative twin of their topic (relative_depth:
+# publish) or not at all (drop): ros/units.py, topic_now.
 DEPTH_RELATIVE_BASE = "~/depth_relative"
 DEPTH_RELATIVE_TOPIC = DEPTH_RELATIVE_BASE + IMAGE_SUFFIX
 DEPTH_RELATIVE_INFO_TOPIC = DEPTH_RELATIVE_BASE + CAMERA_INFO_SUFFIX
@@ -57,12 +58,14 @@ DEPTH_REFINED_RELATIVE_TOPIC = DEPTH_REFINED_RELATIVE_BASE + IMAGE_SUFFIX
 DEPTH_REFINED_RELATIVE_INFO_TOPIC = DEPTH_REFINED_RELATIVE_BASE + CAMERA_INFO_SUFFIX
 CLOUD_RELATIVE_TOPIC = "~/cloud_relative"
 POINTS_RELATIVE_TOPIC = "~/points_relative"
-#: metric topic -> its relative twin (the outputs in the depth's units)
+#: metric topic -> its relative twin (the outputs in the depth's units): every output that has
+#: units (``~/depth_colored`` has none)
 RELATIVE_TWIN = {
     DEPTH_TOPIC: DEPTH_RELATIVE_TOPIC, DEPTH_INFO_TOPIC: DEPTH_RELATIVE_INFO_TOPIC,
     DEPTH_REFINED_TOPIC: DEPTH_REFINED_RELATIVE_TOPIC,
     DEPTH_REFINED_INFO_TOPIC: DEPTH_REFINED_RELATIVE_INFO_TOPIC,
     CLOUD_TOPIC: CLOUD_RELATIVE_TOPIC, POINTS_TOPIC: POINTS_RELATIVE_TOPIC,
+    ODOM_OUTPUT_TOPIC: ODOM_RELATIVE_TOPIC,
 }
 #: latched (transient local, depth 1) diagnostic_msgs/DiagnosticStatus: the depth's scale now
 DEPTH_SCALE_TOPIC = "~/depth_scale"

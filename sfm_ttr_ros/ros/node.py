@@ -67,11 +67,11 @@ from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
 from sfm_ttr_ros.requirements import check_sfm_dependencies
 from sfm_ttr_ros.ros import accounting, allocator, dds, names, outputs, subscriptions
 from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
+from sfm_ttr_ros.ros.camera_path_output import CameraPathOutput
 from sfm_ttr_ros.ros.containment import ThrottledLog, contained, fault_message, where
 from sfm_ttr_ros.ros.encoder_file import load_encoder, save_encoder
 from sfm_ttr_ros.ros.live_settings import LiveSettings
 from sfm_ttr_ros.ros.metric_watch import warn_if_stale
-from sfm_ttr_ros.ros.odom_output import OdomOutput
 from sfm_ttr_ros.ros.publishers import OutputPublishers
 from sfm_ttr_ros.ros.units import ScaleState
 
@@ -137,7 +137,7 @@ class RefinerNode(Node):
         self.pubs = OutputPublishers(self, int(node.qos_depth), self._on_incompatible_qos)
         self.scale = ScaleState(self.pubs.depth_scale.publish, self.get_fully_qualified_name())
         self._report_scale()
-        self.odom = OdomOutput(self, node, int(node.qos_depth))  # ~/odom: the camera's path
+        self.camera_path = CameraPathOutput(self, node, int(node.qos_depth))  # ~/odom
         self.create_timer(float(node.diagnostics_period_s), self._on_timer)
 
         self.online.start()  # warm-up paid: only now subscribe, so no frame waits for it
@@ -298,7 +298,6 @@ class RefinerNode(Node):
     def _publish_output(self, out: FrameOutput) -> None:
         if self._stop.is_set():
             return
-        self.odom.frame_seen(out.frame)
         if self._publishes("depth_refined") and not out.live_only:
             camera = self.intrinsics.window_camera(out.frame, _stamp_ns(out.frame))
             if camera is None:
@@ -325,8 +324,8 @@ class RefinerNode(Node):
             stats, points=self._publishes("points"), metric=self.ttr.metres_per_unit is not None,
             relative=self.settings.relative_depth))
         self._report_scale()
-        self.odom.window(stats, self.ttr.metres_per_unit, publish=self._publishes("odom"),
-                         relative=self.settings.relative_depth)
+        if self._publishes("odom"):
+            self.camera_path.window(stats, relative=self.settings.relative_depth)
         self.publish_diagnostics()
 
     def diagnostics_values(self) -> dict[str, object]:

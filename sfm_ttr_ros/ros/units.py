@@ -1,10 +1,12 @@
-"""The units of the ``refiner`` node's depth outputs on the wire (docs/node.md, "Units").
+"""The units of the ``refiner`` node's outputs on the wire (docs/node.md, "Units").
 
-REP 118: a 32FC1 depth image is metres. ``~/depth/image``, ``~/depth_refined/image``,
-``~/cloud`` and ``~/points`` carry metres only; what is not (yet) in metres (metric state
-``not_metric`` or ``waiting``: :class:`~sfm_ttr_ros.core.metric.scale.MetricStatus`) goes out on
-the relative twin of its topic (:data:`~sfm_ttr_ros.ros.names.RELATIVE_TWIN`,
-``relative_depth: publish``) or not at all (``drop``; ``~/depth_scale`` says which): :func:`route`.
+REP 118: a 32FC1 depth image is metres (REP 105: so is ``odom``). Every output topic that has a
+relative twin (:data:`~sfm_ttr_ros.ros.names.RELATIVE_TWIN`: the depth images, their
+CameraInfos, the clouds, the camera's path) carries metres only; what is not (yet) in metres
+(metric state ``not_metric`` or ``waiting``:
+:class:`~sfm_ttr_ros.core.metric.scale.MetricStatus`) goes out on that twin (``relative_depth:
+publish``) or not at all (``drop``; ``~/depth_scale`` says which): :func:`topic_now`, the one
+rule, and :func:`route` of a publication's messages by it.
 A frame is in metres when the outputs' factor was known as it was made: in states ``metric``,
 ``confirming`` (one window's estimate, not yet confirmed by a second) and ``stale`` (its source
 stopped; the last factor holds), each of the last two with a WARN on ``~/depth_scale``.
@@ -30,29 +32,30 @@ from sfm_ttr_ros.ros import names
 SCALE_STATUS_NAME = "depth scale"  # the DiagnosticStatus name (after the node's full name)
 
 
+def topic_now(topic: str, metric: bool, relative: str) -> str | None:
+    """Where an output built for the metric ``topic`` goes: ``topic`` itself when ``metric``
+    or when it has no relative twin (``~/depth_colored``: colours, no unit); else its twin
+    (``relative`` ``"publish"``) or nowhere (None, ``"drop"``)."""
+    twin = names.RELATIVE_TWIN.get(topic)
+    if metric or twin is None:
+        return topic
+    return twin if relative == "publish" else None
+
+
 def route(messages: Mapping[str, object], metric: bool, relative: str) -> dict[str, object]:
-    """``messages`` built on the metric topics, as they go out: unchanged when ``metric``;
-    else each metric topic's message on its relative twin (``relative`` ``"publish"``) or left
-    out (``"drop"``). Topics without a twin (``~/depth_colored``: colours, no unit) stay."""
-    if metric:
-        return dict(messages)
+    """``messages`` built on the metric topics, as they go out (:func:`topic_now`)."""
     out: dict[str, object] = {}
     for topic, msg in messages.items():
-        twin = names.RELATIVE_TWIN.get(topic)
-        if twin is None:
-            out[topic] = msg
-        elif relative == "publish":
-            out[twin] = msg
+        now = topic_now(topic, metric, relative)
+        if now is not None:
+            out[now] = msg
     return out
 
 
 def depth_topic_now(metres_per_unit: float | None, relative: str) -> str:
     """Where the live depth goes with the outputs' factor ``metres_per_unit`` (None: not in
-    metres, the rule :func:`route` applies to every frame): the metric topic, its relative
-    twin, or ``"dropped"``."""
-    if metres_per_unit is not None:
-        return names.DEPTH_TOPIC
-    return names.DEPTH_RELATIVE_TOPIC if relative == "publish" else "dropped"
+    metres; :func:`topic_now`): the metric topic, its relative twin, or ``"dropped"``."""
+    return topic_now(names.DEPTH_TOPIC, metres_per_unit is not None, relative) or "dropped"
 
 
 def scale_status_message(status: MetricStatus, relative: str, hardware_id: str):

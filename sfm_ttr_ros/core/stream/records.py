@@ -1,6 +1,7 @@
-"""What comes out of the stream: each frame's depth (``FrameOutput``) and what each window did
+"""What comes out of the stream: each frame's depth (``FrameOutput``), what each window did
 (``WindowStats``: the core's :class:`~sfm_ttr_ros.core.pipeline.WindowResult` once, read
-through, with what only the stream knows beside it)."""
+through, with what only the stream knows beside it) and the camera's path it extended
+(``FramePose``)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
+from sfm_ttr_ros.core.camera_path import PathPose
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
@@ -39,6 +41,22 @@ class FrameOutput:
     def live_only(self) -> bool:
         """Unrefined and not predicted again: its depth went out on the live output only."""
         return self.depth is None
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """One frame's pose on the stream's camera path (core/camera_path.py: ``odom_from_camera``,
+    covariance, how its window was chained) in the path's ``units`` when it joined ("m", or
+    "sfm": the first reconstruction's units), and its ``frame`` without pixels (header and
+    stamp: what the pose is stamped with)."""
+
+    frame: Frame = field(repr=False)
+    pose: PathPose
+    units: str
+
+    @property
+    def name(self) -> str:
+        return self.pose.name
 
 
 def unrefined_result(names: list[str], key: Unrefined, reason: str) -> WindowResult:
@@ -83,8 +101,8 @@ class WindowStats:
     ``result`` is the core's record of the window without its depth maps (the history holds
     100 windows: 10 full-size maps each would grow memory for the whole first 100); every
     figure below is read from it, so none is kept twice. Beside it what only the stream knows:
-    the window's index, its new frames, the steps configured, when it ran and the frame its
-    cloud is in."""
+    the window's index, its new frames, the steps configured, when it ran, the frame its
+    cloud is in and the poses it added to the stream's camera path."""
 
     index: int
     new_frames: int
@@ -94,6 +112,9 @@ class WindowStats:
     started_at: float = _NAN
     finished_at: float = _NAN
     cloud_frame: Frame | None = field(default=None, repr=False)  # header and stamp, no pixels
+    # the camera's path: the poses this window added, in stamp (= publish) order (core/stream/
+    # path.py); set after its depth outputs
+    path_poses: list[FramePose] = field(default_factory=list, repr=False)
 
     @classmethod
     def of(cls, index: int, new_frames: int, result: WindowResult, *, steps: int,

@@ -12,7 +12,8 @@ submit + process everything queued, for synchronous callers (benchmark, tests). 
 threads share), :mod:`.ledger` (the counters), :mod:`.admission` (the per-frame rules),
 :mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.publisher` (outputs, counted), :mod:`.sfm_feed`
 (the next window's SfM begun ahead, or each keyframe admitted to the streaming SfM as the
-buffer takes it); this module schedules the windows and skips them under overload.
+buffer takes it), :mod:`.path` (the camera's path, extended as each window finishes); this
+module schedules the windows and skips them under overload.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from sfm_ttr_ros.core.stream.admission import (
 )
 from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE, FrameQueue
 from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector
+from sfm_ttr_ros.core.stream.path import StreamPath
 from sfm_ttr_ros.core.stream.publisher import FramePublisher
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats, unrefined_result
 from sfm_ttr_ros.core.stream.settings import StreamSettings
@@ -88,6 +90,7 @@ class StreamProcessor:
         self._last_stamp: float | None = None
         self.keyframes = KeyframeSelector()  # which frames are keyframes (keyframes.py)
         self._window_index = 0
+        self.path = StreamPath()  # the camera's path (~/odom), in the depth's metres
         # the next window's SfM begun ahead (batch), each keyframe admitted (streaming)
         self._sfm = SfmFeed(ttr, self._queue, self._out.warn)
 
@@ -292,6 +295,7 @@ class StreamProcessor:
                                else dataclasses.replace(cloud, image=RELEASED_IMAGE))
         self.windows.append(stats)
         outs = self._out.window(new, res, stats, ran)
+        stats.path_poses = self.path.window(frames, res, self.ttr.metres_per_unit)
         with self._queue.locked() as ledger:
             ledger.window(stats)
         if not stats.refined and stats.reason_key not in (Unrefined.DISABLED, Unrefined.OVERLOAD):

@@ -1,4 +1,5 @@
-"""The camera's path (core/camera_path.py) against a drive's poses: the benchmark's ``path``.
+"""The stream's camera path (core/stream/path.py: the poses its windows report,
+``WindowStats.path_poses``) against a drive's poses: the benchmark's ``path``.
 
 Both paths are expressed relative to the path's first frame (est_0⁻¹·est_i against
 gt_0⁻¹·gt_i, so the ``odom`` axes drop out). ``drift_pct``: the translation error at the path's
@@ -7,18 +8,19 @@ odometry; ``max_drift_pct`` the largest error over the distance travelled up to 
 first tenth of the distance left out: there the ratio is over a few metres); ``ate_rmse`` the
 RMS position error after the rigid motion (Kabsch) that best lays the path on the poses. In
 metres when the path is (``units`` "m"); otherwise the least-squares scale of the positions is
-fitted first (``scale_fitted``) and the drift is of the shape only.
+fitted first (``scale_fitted``) and the drift is of the shape only. A path that turned metric
+midway is measured over its poses in metres (those before went out in SfM units).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from sfm_ttr_ros.core.camera_path import CameraPath, result_poses
 from sfm_ttr_ros.core.geometry import nearest_rotation
+from sfm_ttr_ros.core.stream.records import FramePose
 
 
 def _relative(poses: list[np.ndarray]) -> np.ndarray:
@@ -34,23 +36,27 @@ def _kabsch_rmse(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((ca @ R.T - cb) ** 2, 1))))
 
 
-def path_drift(path: CameraPath, gt_from_name: Mapping[str, np.ndarray]) -> dict[str, object]:
-    """The path's drift against ``gt_from_name`` (name → 4x4 camera-to-world, metres) over the
-    path's frames that have a pose (module docstring); with the path's own summary."""
-    out: dict[str, object] = dict(path.summary())
-    names = [n for n in path.poses if n in gt_from_name]
-    out["compared"] = len(names)
-    if len(names) < 2:
+def path_drift(poses: Sequence[FramePose], summary: Mapping[str, object],
+               gt_from_name: Mapping[str, np.ndarray]) -> dict[str, object]:
+    """The drift of the path's ``poses`` (as the windows reported them, in order) against
+    ``gt_from_name`` (name → 4x4 camera-to-world, metres) over those in the path's units
+    (``summary``: the stream's path summary) that have a pose (module docstring); with the
+    summary."""
+    out: dict[str, object] = dict(summary)
+    units = out.get("units", "")
+    kept = [p.pose for p in poses if p.units == units and p.name in gt_from_name]
+    out["compared"] = len(kept)
+    if len(kept) < 2:
         out["reason"] = "fewer than two path frames with a pose"
         return out
-    est = _relative([path.poses[n].odom_from_camera for n in names])
-    gt = _relative([np.asarray(gt_from_name[n], np.float64) for n in names])
+    est = _relative([p.odom_from_camera for p in kept])
+    gt = _relative([np.asarray(gt_from_name[p.name], np.float64) for p in kept])
     steps = np.linalg.norm(np.diff(gt, axis=0), axis=1)
     travelled = np.concatenate([[0.0], np.cumsum(steps)])
     length = float(travelled[-1])
     out["length_m"] = length
-    out["scale_fitted"] = path.units != "m"
-    if path.units != "m":
+    out["scale_fitted"] = units != "m"
+    if units != "m":
         denom = float(np.sum(est * est))
         scale = float(np.sum(est * gt)) / denom if denom > 0 else float("nan")
         est = est * scale
@@ -63,29 +69,19 @@ def path_drift(path: CameraPath, gt_from_name: Mapping[str, np.ndarray]) -> dict
     out["drift_pct"] = 100.0 * float(err[-1]) / length
     out["max_drift_pct"] = 100.0 * float(np.max(err[late] / travelled[late]))
     out["ate_rmse"] = _kabsch_rmse(est, gt)
-    out["mean_position_sd"] = float(np.mean([math.sqrt(path.poses[n].position_var)
-                                             for n in names]))
+    out["mean_position_sd"] = float(np.mean([math.sqrt(p.position_var) for p in kept]))
     return out
 
 
-def add_window(path: CameraPath, result, stamp_of, metres_per_unit: float | None) -> None:
-    """One window's ``result`` (a WindowResult, or WindowStats' ``result``) onto ``path``,
-    each registered frame and anchor (what a fresh map shares with the path) stamped
-    ``stamp_of(name)``."""
-    if result.sfm is None:
-        return
-    names = (*result.sfm.anchors, *result.sfm.frames)
-    poses = result_poses(result, {n: stamp_of(n) for n in names}, metres_per_unit)
-    if poses is not None:
-        path.add(poses)
-
-
-def path_report(path: CameraPath, poses: np.ndarray | None, index_of) -> dict[str, object]:
-    """``{"path": drift}`` against a sequence's ``poses`` (N x 4 x 4 camera-to-world; frame
-    ``name`` at ``index_of(name)``); {} when the sequence has none."""
+def path_report(path_poses: Sequence[FramePose], summary: Mapping[str, object],
+                poses: np.ndarray | None, index_of) -> dict[str, object]:
+    """``{"path": drift}`` of the stream's ``path_poses`` (``summary`` its path's summary)
+    against a sequence's ``poses`` (N x 4 x 4 camera-to-world; frame ``name`` at
+    ``index_of(name)``); {} when the sequence has none."""
     if poses is None:
         return {}
-    return {"path": path_drift(path, {n: poses[index_of(n)] for n in path.poses})}
+    return {"path": path_drift(path_poses, summary,
+                               {p.name: poses[index_of(p.name)] for p in path_poses})}
 
 
 def path_lines(results: Mapping[str, object], modes) -> list[str]:

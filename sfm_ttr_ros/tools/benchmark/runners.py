@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from sfm_ttr_ros.core.camera_path import CameraPath
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig, Evaluator, mean_over_frames
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.metric.scale import in_metres
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+from sfm_ttr_ros.core.stream.records import FramePose
 from sfm_ttr_ros.core.stream.windows import (
     FrameOutput,
     StreamProcessor,
@@ -33,7 +33,7 @@ from sfm_ttr_ros.core.stream.windows import (
 )
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import DepthBands
-from sfm_ttr_ros.tools.benchmark.path import add_window, path_report
+from sfm_ttr_ros.tools.benchmark.path import path_report
 
 log = logging.getLogger("sfm_ttr_ros.tools.benchmark")
 
@@ -227,7 +227,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     ttr = taps.make_ttr(model, copy.deepcopy(cfg))
     dropped: list[tuple[Any, str]] = []
     windows: dict[str, Any] = {"windows": 0, "windows_refined": 0, "window_log": []}
-    path = CameraPath()  # the camera's path, against the sequence's poses (``path``)
+    path_poses: list[FramePose] = []  # the stream's camera path, against the poses (``path``)
 
     def seq_index(stream_name: str) -> int:  # the stream names frames by a running counter
         return indices[int(stream_name)]
@@ -236,8 +236,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
         windows["windows"] += 1
         windows["windows_refined"] += int(ws.refined)
         windows["window_log"].append(window_record(ws, seq_index))
-        add_window(path, ws.result, lambda n: feed_stamp(seq, indices, int(n), rate),
-                   ttr.metres_per_unit)
+        path_poses.extend(ws.path_poses)
         for k, v in ws.timings.items():
             run.timings[k] += float(v)
         if progress:
@@ -294,7 +293,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra.update(windows)
     run.extra["stream_counters"] = counters
     run.extra["metric"] = ttr.metric_status().values()
-    run.extra.update(path_report(path, seq.poses, seq_index))
+    run.extra.update(path_report(path_poses, stream.path.summary(), seq.poses, seq_index))
 
 
 def _push_in_order(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int], take,

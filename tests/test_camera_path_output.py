@@ -1,6 +1,6 @@
-"""``~/odom``: the camera's path published by the refiner node in a real ROS 2 graph
-(in-process, like tests/test_node.py), its covariance, its frames, and TF refused clearly
-where tf2_msgs is missing."""
+"""``~/odom``: the stream's camera path published by the refiner node in a real ROS 2 graph
+(in-process, like tests/test_node.py), its covariance, its frames, its units' topic, and TF
+refused clearly where tf2_msgs is missing."""
 
 from __future__ import annotations
 
@@ -40,36 +40,41 @@ def test_the_node_publishes_the_cameras_path_on_odom_with_covariance(graph, sequ
     for units, topic in (("m", names.ODOM_OUTPUT_TOPIC_RESOLVED),
                          ("sfm", names.ODOM_RELATIVE_TOPIC_RESOLVED)):
         graph.node.create_subscription(Odometry, topic, by_units[units].append, 100)
+    output = graph.refiner.camera_path
     wait_for(lambda: all(p.get_subscription_count() > 0
-                         for p in graph.refiner.odom.publishers.values()), 10, "discovery")
+                         for p in output.publishers.values()), 10, "discovery")
     sent = []
     for rgb, t in zip(sequence.images, sequence.stamps, strict=True):
         graph.send_info(sequence.intrinsics, t)
         sent.append(graph.send_image(rgb, t).header.stamp)
         time.sleep(0.03)
     wait_for(lambda: len(graph.depths) == len(sent), 120, "every depth image")
-    path = graph.refiner.odom.path
+    path = graph.refiner.stream.path
 
     def every_window_on_odom() -> bool:  # a window's odom goes out after its depth images
         windows = list(graph.refiner.stream.windows)
         posed = sum(1 for w in windows if w.result.sfm is not None and w.result.sfm.frames)
         return (len(windows) == 3 and path.summary()["windows"] == posed > 0
-                and graph.refiner.odom.published == len(path.poses)
+                and output.published == path.summary()["poses"]
                 == sum(map(len, by_units.values())))
 
     wait_for(every_window_on_odom, 20, "every window's path on ~/odom")
-    # metres on ~/odom, SfM units on ~/odom_relative: never both
-    odoms = by_units[path.units]
-    assert not by_units["sfm" if path.units == "m" else "m"]
+    # the poses the windows reported, each on the topic of its units: metres on ~/odom, SfM
+    # units on ~/odom_relative (the depth's units, window by window)
+    reported = [p for w in graph.refiner.stream.windows for p in w.path_poses]
+    assert [len(by_units[u]) for u in ("m", "sfm")] == [
+        sum(p.units == u for p in reported) for u in ("m", "sfm")]
+    odoms = by_units["sfm"] + by_units["m"]  # a path turns metric, never back
     assert len(odoms) >= graph.refiner.stream.windows[0].registered >= 2
     stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in odoms]
     assert stamps == sorted(set(stamps))  # forward in time, each frame once
     assert set(stamps) <= {(s.sec, s.nanosec) for s in sent}
-    for msg, pose in zip(odoms, path.poses.values(), strict=True):
+    for msg, pose in zip(odoms, reported, strict=True):
         assert (msg.header.frame_id, msg.child_frame_id) == ("odom", FRAME_ID)
+        assert msg.header.stamp == pose.frame.header.stamp
         _, T, cov = odometry_to_pose(msg)
-        np.testing.assert_allclose(T, pose.odom_from_camera, atol=1e-9)
-        np.testing.assert_allclose(cov, pose.covariance())
+        np.testing.assert_allclose(T, pose.pose.odom_from_camera, atol=1e-9)
+        np.testing.assert_allclose(cov, pose.pose.covariance())
         assert (np.diag(cov) > 0).all() and np.isfinite(cov).all()
     # odom is the first camera's body frame (REP 103): it starts at the origin, the camera's
     # optical axis along odom's x
