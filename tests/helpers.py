@@ -14,9 +14,9 @@ from sfm_ttr_ros.core.alignment.scale import _check, _valid
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, load_rgb
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement import trainable
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 
 
 def load_frames(paths: Iterable[str | Path], stamps: Sequence[float] | None = None) -> list[Frame]:

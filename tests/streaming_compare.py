@@ -22,9 +22,9 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
 

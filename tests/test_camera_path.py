@@ -254,7 +254,7 @@ def test_a_path_in_sfm_units_turns_metric_at_the_first_window_in_metres():
 
 def test_a_windows_metres_are_its_depth_outputs_factor_times_its_alignment_scale():
     from sfm_ttr_ros.core.metric.scale import WindowMetric
-    from sfm_ttr_ros.core.window import WindowResult
+    from sfm_ttr_ros.core.window_io import WindowResult
 
     measured = WindowMetric("camera_height", m=2.0, k=0.5)
     # metric.learn: ŝ is the window's metres (the supervision's), the factor 1
@@ -276,7 +276,7 @@ def test_the_streams_path_stamps_its_poses_from_the_frames_and_reports_their_uni
     from sfm_ttr_ros.core.metric.scale import WindowMetric
     from sfm_ttr_ros.core.sfm.result import SfmResult
     from sfm_ttr_ros.core.stream.path import StreamPath
-    from sfm_ttr_ros.core.window import WindowResult
+    from sfm_ttr_ros.core.window_io import WindowResult
 
     gt = _drive()
     frames = [Frame(i, np.zeros((4, 4, 3), np.uint8), 0.1 * i, f"{i:04d}", header=f"h{i}")
@@ -316,7 +316,7 @@ def test_the_path_of_a_short_generated_drive_drifts_less_than_its_metric_scale_e
     from conftest import tiny_model
 
     from sfm_ttr_ros.core.frames import Frame
-    from sfm_ttr_ros.core.metric.config import MetricConfig
+    from sfm_ttr_ros.core.metric.metric_config import MetricConfig
     from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
     from sfm_ttr_ros.core.stream.path import StreamPath
     from sfm_ttr_ros.data.synthetic import make_sequence

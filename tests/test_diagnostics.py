@@ -13,7 +13,7 @@ from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
 from sfm_ttr_ros.core.stream.health import Health, RateMeter
 from sfm_ttr_ros.core.stream.records import WindowStats
-from sfm_ttr_ros.core.stream.windows import StreamProcessor
+from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
 FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_dropped",
@@ -32,9 +32,9 @@ def frame(i: int) -> Frame:
 
 
 @pytest.fixture
-def stream() -> StreamProcessor:
+def stream() -> WindowRunner:
     # only the accounting is used: frames are queued and rejected, never processed
-    return StreamProcessor(ttr=None)
+    return WindowRunner(ttr=None)
 
 
 def adds_up(v: dict) -> bool:

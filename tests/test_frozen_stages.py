@@ -12,8 +12,8 @@ from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
 from sfm_ttr_ros.core.models.monodepth2 import Monodepth2
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import frozen_stage_count, refine_encoder
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, weighted_l1
 
 

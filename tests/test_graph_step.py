@@ -15,8 +15,8 @@ from test_refinement_loss import INPUT, N_FRAMES, photometric_frames, supervisio
 import sfm_ttr_ros.core.refinement.graph_cache as graph_cache
 import sfm_ttr_ros.core.refinement.graph_step as graph_step
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 

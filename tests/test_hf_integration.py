@@ -22,8 +22,8 @@ import test_hf_model  # noqa: E402
 
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig  # noqa: E402
 from sfm_ttr_ros.core.refinement import trainable  # noqa: E402
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder  # noqa: E402
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision  # noqa: E402
 from sfm_ttr_ros.core.stream.serving import ServingModel  # noqa: E402
 

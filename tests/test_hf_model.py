@@ -26,8 +26,8 @@ from sfm_ttr_ros.core.models.hf import (  # noqa: E402
 )
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet  # noqa: E402
 from sfm_ttr_ros.core.refinement import trainable  # noqa: E402
-from sfm_ttr_ros.core.refinement.config import RefinementConfig  # noqa: E402
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder, restore_encoder, snapshot_encoder  # noqa: E402
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig  # noqa: E402
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision  # noqa: E402
 
 DA_PROCESSOR = {  # what Depth Anything V2's hub preprocessor_config.json holds, at 56 px

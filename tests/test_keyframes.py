@@ -13,7 +13,7 @@ from test_stream import ScriptedTTR, check_accounting
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector, keyframe_interval
 from sfm_ttr_ros.core.stream.settings import StreamSettings
-from sfm_ttr_ros.core.stream.windows import StreamProcessor
+from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 RNG = np.random.default_rng(0)
 IMAGE = RNG.integers(0, 255, (24, 32, 3), np.uint8)
@@ -91,7 +91,7 @@ def test_a_stream_behind_drops_its_partial_window_and_counts_every_frame():
     keyframes collected before them pass unrefined as ``stale``, the windows are built from
     the newest frames (none skipped for overload), and every frame is accounted for."""
     ttr = ScriptedTTR(delay=0.4)
-    s = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4,
+    s = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=4,
                                             keyframe_policy="newest", overload_pending=2,
                                             max_pending=500))
     frames = [Frame(index=i, image=IMAGE, stamp=0.1 * i) for i in range(60)]

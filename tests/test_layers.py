@@ -194,7 +194,7 @@ CORE_RANKS = (
     ("sfm", "prediction"),
     ("alignment",),
     ("refinement", "checks", "metric"),
-    ("window",),
+    ("window_io",),
     ("camera_path",),
     ("pipeline",),
     ("stream",),

@@ -18,8 +18,8 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder, snapshot_encoder
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.stream.live import LiveServer
 from sfm_ttr_ros.core.stream.serving import ServingModel
@@ -229,7 +229,7 @@ def test_an_exploding_window_is_rolled_back(one_thread):
 
 
 def test_a_rollback_names_the_step_whose_loss_went_non_finite():
-    from sfm_ttr_ros.core.checks.window import WindowJudge
+    from sfm_ttr_ros.core.checks.judge import WindowJudge
 
     enc = torch.nn.Linear(2, 2)
     why = WindowJudge.rollback_reason(2.0, [1.0, 0.9, math.nan, math.nan], 1.0, 0.8, enc)

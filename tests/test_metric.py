@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.ground import ground_plane
-from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
+from sfm_ttr_ros.core.metric.odometry_track import OdometryTrack, path_length
 from sfm_ttr_ros.core.metric.scale import MetricScale, WindowMetric, estimate
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
@@ -162,11 +162,11 @@ def test_the_outputs_are_in_metres_once_there_is_a_factor():
     from test_stream import INTR, ScriptedTTR, frames
 
     from sfm_ttr_ros.core.stream.serving import ServingModel
-    from sfm_ttr_ros.core.stream.windows import StreamProcessor, StreamSettings
+    from sfm_ttr_ros.core.stream.window_runner import StreamSettings, WindowRunner
 
     ttr = ScriptedTTR()
     ttr.metres_per_unit = None
-    s = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2))
+    s = WindowRunner(ttr, StreamSettings(window_size=2, window_stride=2))
     outs = s.push(frames(1)[0], INTR) + s.push(frames(2)[1], INTR)
     assert [o.metres_per_unit for o in outs] == [None, None]
     assert float(outs[0].depth.mean()) == 2.0  # the scripted refined depth, network units

@@ -11,8 +11,8 @@ from test_metric import street
 
 from sfm_ttr_ros.core.alignment.cloud import window_cloud
 from sfm_ttr_ros.core.alignment.scale import AlignmentResult
-from sfm_ttr_ros.core.metric.config import MetricConfig
-from sfm_ttr_ros.core.metric.odometry import OdometryTrack
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
+from sfm_ttr_ros.core.metric.odometry_track import OdometryTrack
 from sfm_ttr_ros.core.metric.scale import MetricScale, WindowMetric, estimate
 
 
@@ -152,7 +152,7 @@ def test_the_pipeline_supervises_a_disagreeing_window_in_the_streams_metres():
     from conftest import tiny_model
 
     from sfm_ttr_ros.core.pipeline import SfmTTR
-    from sfm_ttr_ros.core.window import TTRConfig
+    from sfm_ttr_ros.core.window_io import TTRConfig
 
     sfm, reg = street(units=0.5)  # 0.5 m per SfM unit
     cfg = TTRConfig(weight_policy="continue", metric=MetricConfig(source="camera_height"))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from test_metric import street
 
-from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.ground import ground_plane
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
 from sfm_ttr_ros.tools.ground_check import true_metres_per_unit
 
 WIDTH, HEIGHT = 621, 188
@@ -26,8 +26,8 @@ UNCONSTRAINED = {"max_slope_deg": 89.0, "max_roll_deg": 89.0, "corridor": 1e9}
 @pytest.fixture(scope="module")
 def windows(one_thread):
     from sfm_ttr_ros.core.frames import Frame
-    from sfm_ttr_ros.core.sfm.config import SfmConfig
     from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
+    from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
     from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
     out = []

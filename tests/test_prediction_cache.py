@@ -20,7 +20,7 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.geometry import sample_at
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.prediction import PREDICTION_CACHE_FRAMES
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
 W, H = 160, 64

@@ -8,8 +8,8 @@ import torch
 from conftest import tiny_model
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder, restore_encoder, snapshot_encoder
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, frame_loss
 
 # full resolution, BatchNorm after both encoder convolutions (the BN modes are tested here)

@@ -15,7 +15,6 @@ import sfm_ttr_ros.core.pipeline as pipeline_module
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder
 from sfm_ttr_ros.core.refinement.photometric import (
     network_intrinsics,
@@ -24,6 +23,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     relative_pose,
     scale_outputs,
 )
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
@@ -255,8 +255,8 @@ def test_relative_sfm_residual_divides_each_point_by_its_target():
     """|ŝD − D_nn| / (ŝD): the step's weights are exp(−r²) / target, so a point 10x farther
     weighs 10x less than with Eq. (5)'s absolute residual, and the same relative error costs
     the same near and far."""
-    from sfm_ttr_ros.core.refinement.config import RefinementConfig
     from sfm_ttr_ros.core.refinement.objective import step_weights
+    from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
     from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 
     s = FrameSupervision("a", np.zeros((4, 4, 3), np.uint8), np.zeros((2, 2)),
@@ -274,7 +274,7 @@ def test_auto_objective_is_photometric_unless_the_network_is_affine_invariant():
     """loss "auto" (the default): the hybrid for a network that predicts depth up to scale, the
     paper's Eq. (5) for one whose output is relative inverse depth (nothing to warp with) or
     when refine_encoder gets no photometric frames."""
-    from sfm_ttr_ros.core.refinement.config import resolve_loss
+    from sfm_ttr_ros.core.refinement.refinement_config import resolve_loss
 
     model = tiny_model()
     cfg = RefinementConfig()

@@ -17,9 +17,9 @@ from test_refinement_loss import INPUT, photometric_frames, supervision
 import sfm_ttr_ros.core.refinement.objective as objective
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import refine_encoder, set_bn_mode
 from sfm_ttr_ros.core.refinement.photometric import photometric_objective, scale_outputs
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, weighted_l1
 from sfm_ttr_ros.core.refinement.trainable import select_trainable
 from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params

@@ -1,4 +1,4 @@
-"""The shared report writer (tools/report.py): strict JSON, the metric and gain tables and the
+"""The shared report writer (tools/report_files.py): strict JSON, the metric and gain tables and the
 per-frame CSV the benchmark and the demo both write."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from sfm_ttr_ros.core.evaluation import METRICS
-from sfm_ttr_ros.tools.report import (
+from sfm_ttr_ros.tools.report_files import (
     format_gain,
     gain_table,
     json_safe,

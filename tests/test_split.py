@@ -462,7 +462,7 @@ def test_run_split_writes_before_and_after(data, tmp_path):
 def test_pooled_metrics_weigh_every_frame():
     """The pool is the mean over all frames, not the mean of the sequences' means."""
     from sfm_ttr_ros.core.evaluation import METRICS
-    from sfm_ttr_ros.tools.split.report import pooled_metrics
+    from sfm_ttr_ros.tools.split.split_report import pooled_metrics
 
     def row(frames, value):
         return {"modes": {"no_ttr": {**{m: value for m in METRICS}, "frames": frames,

@@ -1,4 +1,4 @@
-"""StreamProcessor: windows, keyframes, back-pressure and the accounting of every frame (no ROS).
+"""WindowRunner: windows, keyframes, back-pressure and the accounting of every frame (no ROS).
 
 Most tests drive the stream with a scripted stand-in for SfmTTR (fast, every outcome on demand);
 the last ones run the real SfmTTR with a tiny network on synthetic street frames."""
@@ -21,7 +21,7 @@ from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE
 from sfm_ttr_ros.core.stream.records import FrameOutput
 from sfm_ttr_ros.core.stream.settings import StreamSettings
-from sfm_ttr_ros.core.stream.windows import StreamProcessor
+from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 W, H = 64, 32
 INTR = Intrinsics(50.0, 50.0, 31.5, 15.5, W, H)
@@ -108,7 +108,7 @@ def frames(n: int, start: float = 0.0, size=(W, H), seed: int = 0) -> list[Frame
                   stamp=start + 0.1 * i) for i in range(n)]
 
 
-def check_accounting(stream: StreamProcessor, outs: list[FrameOutput], sent: int) -> dict:
+def check_accounting(stream: WindowRunner, outs: list[FrameOutput], sent: int) -> dict:
     c = stream.counters()
     assert c["received"] == sent
     assert c["received"] == c["refined"] + c["unrefined"] + c["dropped"] + c["pending"]
@@ -130,7 +130,7 @@ def run(stream, fs, intr=INTR):
 
 def test_windows_stride_overlap_and_each_frame_published_once():
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=2))
+    stream = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=2))
     outs = run(stream, frames(9))
     # windows over 0-3, 2-5, 4-7; frame 8 waits for the next window
     assert ttr.windows == [[f"{i:010d}" for i in r] for r in (range(0, 4), range(2, 6),
@@ -149,7 +149,7 @@ def test_windows_stride_overlap_and_each_frame_published_once():
 
 
 def test_names_come_from_a_running_counter():
-    stream = StreamProcessor(ScriptedTTR(), StreamSettings(window_size=2, window_stride=2))
+    stream = WindowRunner(ScriptedTTR(), StreamSettings(window_size=2, window_stride=2))
     fs = frames(4)
     for f in fs:
         f.name = "same"
@@ -162,7 +162,7 @@ def scripted_run(outcomes, n: int):
     """``n`` frames through windows of 2 whose outcomes ``ScriptedTTR`` scripts: (stream,
     outputs, the windows reported to ``on_window``)."""
     seen_windows = []
-    stream = StreamProcessor(ScriptedTTR(outcomes=outcomes),
+    stream = WindowRunner(ScriptedTTR(outcomes=outcomes),
                              StreamSettings(window_size=2, window_stride=2),
                              on_window=seen_windows.append)
     return stream, run(stream, frames(n)), seen_windows
@@ -202,7 +202,7 @@ def test_windows_mapped_more_than_once_are_counted():
 def test_overflow_drops_the_oldest_pending_frame():
     drops = []
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=1, max_pending=3,
+    stream = WindowRunner(ttr, StreamSettings(window_size=2, window_stride=1, max_pending=3,
                                                  overload_pending=0),
                              on_drop=lambda f, k, m: drops.append((f.name, k)))
     fs = frames(6)
@@ -221,7 +221,7 @@ def test_a_full_queue_under_newest_loses_no_frame_the_live_output_served(policy)
     """newest: served frames past max_pending give their image up and are counted stale when
     the worker reaches them; all: the oldest are dropped for overflow as before."""
     drops = []
-    stream = StreamProcessor(ScriptedTTR(), StreamSettings(
+    stream = WindowRunner(ScriptedTTR(), StreamSettings(
         window_size=2, window_stride=1, max_pending=3, overload_pending=0,
         keyframe_policy=policy), on_drop=lambda f, k, m: drops.append((f.name, k)))
     fs = frames(12)
@@ -245,7 +245,7 @@ def test_a_full_queue_under_newest_loses_no_frame_the_live_output_served(policy)
 
 def test_overload_skips_refinement_until_the_queue_drains():
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
+    stream = WindowRunner(ttr, StreamSettings(window_size=2, window_stride=2,
                                                  overload_pending=2, max_pending=50,
                                                  keyframe_policy="all"))
     for f in frames(8):
@@ -259,9 +259,9 @@ def test_overload_skips_refinement_until_the_queue_drains():
     assert c["windows_skipped"] == 2 and c["unrefined_by_reason"] == {"overload": 4}
 
 
-def overloaded_stream(ttr, republish: bool) -> StreamProcessor:
+def overloaded_stream(ttr, republish: bool) -> WindowRunner:
     """Windows of 2, refinement skipped while more than 2 frames wait (backlog bound: 4)."""
-    return StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=2,
+    return WindowRunner(ttr, StreamSettings(window_size=2, window_stride=2,
                                                overload_pending=2, max_pending=50,
                                                republish_unrefined=republish,
                                                keyframe_policy="all"))
@@ -325,7 +325,7 @@ def test_the_backlog_keeps_the_images_of_overload_pending_plus_window_size_frame
 
 def test_keyframe_interval_and_motion():
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=2, window_stride=1,
+    stream = WindowRunner(ttr, StreamSettings(window_size=2, window_stride=1,
                                                  min_keyframe_interval_s=0.25))
     outs = run(stream, frames(7))  # stamps 0.0 .. 0.6: keyframes at 0.0, 0.3, 0.6
     kf = [o for o in outs if o.reason_key != "not_keyframe"]
@@ -334,7 +334,7 @@ def test_keyframe_interval_and_motion():
                for o in outs if o.reason_key == "not_keyframe")
     check_accounting(stream, outs, 7)
 
-    stream = StreamProcessor(ScriptedTTR(), StreamSettings(window_size=2, window_stride=1,
+    stream = WindowRunner(ScriptedTTR(), StreamSettings(window_size=2, window_stride=1,
                                                            min_keyframe_motion=5.0))
     base = frames(1)[0].image
     fs = [Frame(i, base.copy(), stamp=0.1 * i) for i in range(3)]  # static camera
@@ -346,7 +346,7 @@ def test_keyframe_interval_and_motion():
 
 def test_resolution_change_flushes_pending_frames():
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=3, window_stride=3))
+    stream = WindowRunner(ttr, StreamSettings(window_size=3, window_stride=3))
     outs = run(stream, frames(2))
     assert outs == []
     big = Intrinsics(100.0, 100.0, 63.5, 31.5, 2 * W, 2 * H)
@@ -367,7 +367,7 @@ def test_the_first_received_intrinsics_replace_the_fallback_for_pending_frames()
     """Images that came before their camera's first CameraInfo (on the fallback fx, fy) stay in
     their window and take the received intrinsics; a later change still starts a new window."""
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=3, window_stride=3))
+    stream = WindowRunner(ttr, StreamSettings(window_size=3, window_stride=3))
     early = frames(2)
     for f in early:
         f.fallback_intrinsics = True
@@ -386,7 +386,7 @@ def test_the_first_received_intrinsics_replace_the_fallback_for_pending_frames()
 
 def test_duplicate_and_non_monotonic_stamps():
     ttr = ScriptedTTR()
-    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))
+    stream = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=4))
     fs = frames(5)
     fs[2].stamp = fs[1].stamp  # duplicate: rejected
     fs[4].stamp = -1.0  # back in time: window reset
@@ -404,7 +404,7 @@ def test_duplicate_and_non_monotonic_stamps():
 
 
 def test_reject_counts_frames_that_never_reach_the_stream():
-    stream = StreamProcessor(ScriptedTTR(), StreamSettings())
+    stream = WindowRunner(ScriptedTTR(), StreamSettings())
     stream.reject("bad_image", "truncated")
     c = check_accounting(stream, [], 1)
     assert c["dropped_by_reason"] == {"bad_image": 1}
@@ -419,7 +419,7 @@ def test_live_settings_and_config_take_effect_at_the_next_window():
         cfg.refinement.steps = box["steps"]
         return cfg
 
-    stream = StreamProcessor(
+    stream = WindowRunner(
         ttr, config_provider=config,
         settings_provider=lambda: StreamSettings(window_size=box["size"], window_stride=2))
     outs = run(stream, frames(2))
@@ -436,7 +436,7 @@ def test_a_camera_slower_than_idle_flush_s_is_not_taken_for_a_stopped_one():
     frame intervals); once the frames stop, the rest is flushed as a final window."""
     ttr = ScriptedTTR(delay=0.0)
     outs: list[FrameOutput] = []
-    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4,
+    stream = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=4,
                                                  idle_flush_s=0.1), on_output=outs.append)
     stop = threading.Event()
     t = threading.Thread(target=lambda: [stream.step(timeout=0.02) for _ in iter(stop.is_set,
@@ -460,7 +460,7 @@ def test_a_camera_slower_than_idle_flush_s_is_not_taken_for_a_stopped_one():
 def test_idle_flush_and_worker_thread_cancel():
     ttr = ScriptedTTR(delay=0.0)
     outs: list[FrameOutput] = []
-    stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=2,
+    stream = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=2,
                                                  idle_flush_s=0.3), on_output=outs.append)
     stop = threading.Event()
 
@@ -506,7 +506,7 @@ def small_config(steps: int = 5) -> TTRConfig:
 def test_real_windows_on_a_synthetic_street(sequence):
     ttr = SfmTTR(tiny_model(), small_config())
     try:
-        stream = StreamProcessor(ttr, StreamSettings(window_size=5, window_stride=3))
+        stream = WindowRunner(ttr, StreamSettings(window_size=5, window_stride=3))
         fs = [Frame(i, im, stamp=s) for i, (im, s) in
               enumerate(zip(sequence.images, sequence.stamps, strict=True))]
         outs = run(stream, fs, sequence.intrinsics)
@@ -530,7 +530,7 @@ def test_real_windows_on_a_synthetic_street(sequence):
 def test_static_camera_is_published_unrefined_with_the_sfm_reason(sequence):
     ttr = SfmTTR(tiny_model(), small_config())
     try:
-        stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))
+        stream = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=4))
         fs = [Frame(i, sequence.images[0].copy(), stamp=float(i)) for i in range(4)]
         outs = run(stream, fs, sequence.intrinsics)
     finally:
@@ -545,7 +545,7 @@ def test_static_camera_is_published_unrefined_with_the_sfm_reason(sequence):
 def test_zero_steps_publishes_unrefined_as_disabled_without_running_sfm(sequence):
     ttr = SfmTTR(tiny_model(), small_config(steps=0))
     try:
-        stream = StreamProcessor(ttr, StreamSettings(window_size=4, window_stride=4))
+        stream = WindowRunner(ttr, StreamSettings(window_size=4, window_stride=4))
         fs = [Frame(i, im, stamp=float(i)) for i, im in enumerate(sequence.images[:4])]
         outs = run(stream, fs, sequence.intrinsics)
     finally:
@@ -566,7 +566,7 @@ def test_the_next_windows_sfm_begins_while_a_window_runs():
     for policy, interval, want in (("all", 0.0, ahead), ("all", 0.05, []),
                                    ("newest", 0.0, [])):
         ttr = ScriptedTTR(delay=0.3)
-        s = StreamProcessor(ttr, StreamSettings(window_size=10, window_stride=5,
+        s = WindowRunner(ttr, StreamSettings(window_size=10, window_stride=5,
                                                 min_keyframe_interval_s=interval,
                                                 keyframe_policy=policy,
                                                 overload_pending=0))
@@ -588,7 +588,7 @@ def test_a_short_first_window_then_windows_of_window_size():
     """first_window_size 4: the first window closes after 4 keyframes (its weights reach the
     live output sooner), the next ones have window_size frames; every frame is accounted for."""
     ttr = ScriptedTTR()
-    s = StreamProcessor(ttr, StreamSettings(window_size=6, window_stride=6, first_window_size=4))
+    s = WindowRunner(ttr, StreamSettings(window_size=6, window_stride=6, first_window_size=4))
     outs = []
     for f in frames(16):
         outs += s.push(f, INTR)

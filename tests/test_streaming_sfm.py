@@ -20,9 +20,9 @@ from streaming_compare import compare_streaming_with_batch
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.frontend import sift_matches
 from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.core.sfm.source import (
     BatchSfmSource,
     StreamingSfmSource,
@@ -179,13 +179,13 @@ def test_bad_input_is_an_input_error(street):
         assert not sfm.reconstruct(street.frames[:1], street.intr).ok
 
 
-# -- sfm.mode streaming through the stream (StreamProcessor + SfmTTR) ------------------------
+# -- sfm.mode streaming through the stream (WindowRunner + SfmTTR) ------------------------
 def _stream_ttr(mode: str):
     from conftest import tiny_model
 
     from sfm_ttr_ros.core.pipeline import SfmTTR
-    from sfm_ttr_ros.core.refinement.config import RefinementConfig
-    from sfm_ttr_ros.core.window import TTRConfig
+    from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
+    from sfm_ttr_ros.core.window_io import TTRConfig
 
     cfg = TTRConfig(sfm=dataclasses.replace(SFM, mode=mode),
                     refinement=RefinementConfig(steps=4))
@@ -193,12 +193,12 @@ def _stream_ttr(mode: str):
 
 
 def _run_stream(ttr, frames, intr, admitted: list | None = None):
-    """Every frame pushed through a StreamProcessor of 4-frame windows side by side; with
+    """Every frame pushed through a WindowRunner of 4-frame windows side by side; with
     ``admitted``, the frames the streaming SfM held when each window began."""
     from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
-    from sfm_ttr_ros.core.stream.windows import StreamProcessor, StreamSettings
+    from sfm_ttr_ros.core.stream.window_runner import StreamSettings, WindowRunner
 
-    stream = StreamProcessor(ttr, StreamSettings(window_size=WINDOW, window_stride=WINDOW,
+    stream = WindowRunner(ttr, StreamSettings(window_size=WINDOW, window_stride=WINDOW,
                                                  keyframe_policy="all", idle_flush_s=0.0))
     if admitted is not None:
         reconstruct = ttr.sfm.reconstruct

@@ -204,7 +204,7 @@ def test_the_reprojection_ratio_judges_a_window_against_the_streams_accepted_one
 
 def test_a_window_is_judged_against_the_reprojection_errors_of_accepted_windows_only():
     from sfm_ttr_ros.core.alignment.scale import AlignmentResult
-    from sfm_ttr_ros.core.checks.window import WindowJudge
+    from sfm_ttr_ros.core.checks.judge import WindowJudge
     from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
     checks, cfg = WindowJudge(), CheckConfig(max_reprojection_ratio=1.25)

@@ -53,7 +53,7 @@ import numpy as np
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.geometry import Similarity, camera_centre, fit_similarity
 from sfm_ttr_ros.core.sfm.result import SfmResult
-from sfm_ttr_ros.core.window import WindowResult
+from sfm_ttr_ros.core.window_io import WindowResult
 
 #: REP 103 body axes (x forward, y left, z up) from a camera's optical axes (z forward, x right,
 #: y down): odom is the first camera's body frame.

@@ -3,8 +3,9 @@ refinement → prediction.
 
 :meth:`SfmTTR.process_window` only calls the stages, each the owner of its work: the SfM source
 (:class:`~sfm_ttr_ros.core.sfm.source.SfmSource`: the window's reconstruction or the one begun
-ahead), the alignment (:func:`~sfm_ttr_ros.core.alignment.window.align_window`), the window
-checks (:class:`~sfm_ttr_ros.core.checks.window.WindowJudge`: before, while and after
+ahead), the alignment
+(:func:`~sfm_ttr_ros.core.alignment.window_alignment.align_window`), the window checks
+(:class:`~sfm_ttr_ros.core.checks.judge.WindowJudge`: before, while and after
 refining, and rollback), the metres (:class:`~sfm_ttr_ros.core.metric.scale.MetricScale`), the
 supervision and the refinement (:mod:`core/refinement <sfm_ttr_ros.core.refinement>`), the
 weights across windows (:class:`~sfm_ttr_ros.core.refinement.weights.WeightPolicy`) and the
@@ -24,16 +25,15 @@ import numpy as np
 
 from sfm_ttr_ros.core.alignment.affine import is_affine_output
 from sfm_ttr_ros.core.alignment.cloud import window_cloud
-from sfm_ttr_ros.core.alignment.window import align_window
-from sfm_ttr_ros.core.checks.window import WindowJudge
+from sfm_ttr_ros.core.alignment.window_alignment import align_window
+from sfm_ttr_ros.core.checks.judge import WindowJudge
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
-from sfm_ttr_ros.core.metric.odometry import OdometryTrack
+from sfm_ttr_ros.core.metric.odometry_track import OdometryTrack
 from sfm_ttr_ros.core.metric.scale import MetricScale, MetricStatus, estimate
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
 from sfm_ttr_ros.core.outcomes import Stop, Unrefined
 from sfm_ttr_ros.core.prediction import Predictor
-from sfm_ttr_ros.core.refinement.config import resolve_loss
 from sfm_ttr_ros.core.refinement.encoder import (
     RefinementResult,
     frozen_stage_count,
@@ -41,6 +41,7 @@ from sfm_ttr_ros.core.refinement.encoder import (
     warm_up_refinement,
 )
 from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_frames
+from sfm_ttr_ros.core.refinement.refinement_config import resolve_loss
 from sfm_ttr_ros.core.refinement.supervision import (
     FrameSupervision,
     build_supervision,
@@ -49,7 +50,7 @@ from sfm_ttr_ros.core.refinement.supervision import (
 from sfm_ttr_ros.core.refinement.trainable import check_trainable
 from sfm_ttr_ros.core.refinement.weights import WeightPolicy
 from sfm_ttr_ros.core.sfm.source import make_sfm_source, reconfigure_sfm_source
-from sfm_ttr_ros.core.window import TTRConfig, WindowResult, WindowState, unrefined
+from sfm_ttr_ros.core.window_io import TTRConfig, WindowResult, WindowState, unrefined
 
 
 class SfmTTR:

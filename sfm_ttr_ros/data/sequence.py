@@ -17,7 +17,7 @@ from sfm_ttr_ros.data.poses import POSES_FILE, read_frame_poses
 class ImageSequence:
     """Frames of one camera with known intrinsics; ``gt_paths`` maps frame name → GT PNG;
     ``poses`` (N x 4 x 4 camera-to-world, metres) when the sequence has a ``poses.txt``: an
-    odometry source for the metric scale (core/metric/odometry.py)."""
+    odometry source for the metric scale (core/metric/odometry_track.py)."""
 
     name: str
     image_paths: list[Path]

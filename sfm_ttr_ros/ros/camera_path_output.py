@@ -11,7 +11,7 @@ camera's frame on ``/tf``. The path is in metres when the stream's depth is: the
 (:func:`~sfm_ttr_ros.ros.units.topic_now`: ``~/odom_relative``, or nowhere under
 ``relative_depth: drop``), never on ``~/odom``. The twist is not estimated (zero). Both
 publishers' QoS can be overridden at start-up (``qos_overrides.<topic>.publisher.*``). This
-module only turns poses into messages: "odometry" elsewhere (core/metric/odometry.py) is the
+module only turns poses into messages: "odometry" elsewhere (core/metric/odometry_track.py) is the
 incoming track the metric scale reads.
 
 TF needs tf2_msgs, which these PyPI installs lack: ``odom.publish_tf`` true without it stops

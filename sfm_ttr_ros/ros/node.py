@@ -63,7 +63,7 @@ from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
-from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
+from sfm_ttr_ros.core.stream.window_runner import FrameOutput, WindowStats
 from sfm_ttr_ros.requirements import check_sfm_dependencies
 from sfm_ttr_ros.ros import accounting, allocator, dds, names, outputs, subscriptions
 from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved

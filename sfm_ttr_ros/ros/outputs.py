@@ -54,7 +54,7 @@ from msg_adapters.compressed_depth import depth_to_compressed_depth
 from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS
 from sfm_ttr_ros.core.stream.diagnostics import Status
 from sfm_ttr_ros.core.stream.live import LiveOutput
-from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
+from sfm_ttr_ros.core.stream.window_runner import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import names, units
 from sfm_ttr_ros.ros.camera import CameraSource
 

@@ -4,8 +4,8 @@ declared on the node, read back, and turned into the core's configs.
 
 Live parameters (not read-only) take effect at the next window: the node builds a new
 :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` and
-:class:`~sfm_ttr_ros.core.stream.windows.StreamSettings` from the current values at the start of
-every window (``SfmTTR.set_config``). rclpy itself enforces types, ranges and read-only;
+:class:`~sfm_ttr_ros.core.stream.window_runner.StreamSettings` from the current values at the
+start of every window (``SfmTTR.set_config``). rclpy itself enforces types, ranges and read-only;
 :func:`validate` adds what descriptors cannot say (choices, ``window_stride <= window_size``,
 ``lr > 0``, both model files or neither, ...). The legacy names of
 :mod:`sfm_ttr_ros.core.params.legacy` are declared too, with their old defaults, so that an old

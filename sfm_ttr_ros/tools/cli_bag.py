@@ -15,7 +15,7 @@ from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.ros.bag import STORAGES
 from sfm_ttr_ros.ros.bag_evaluation import DEFAULT_PRED_TOPIC
 from sfm_ttr_ros.ros.kitti_bag import DEPTH_GT_TOPIC, ODOM_TOPIC
-from sfm_ttr_ros.tools.report import write_json
+from sfm_ttr_ros.tools.report_files import write_json
 
 
 def cmd_kitti_to_bag(args: argparse.Namespace) -> int:

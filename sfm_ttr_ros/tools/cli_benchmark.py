@@ -206,7 +206,7 @@ def evaluate_folder_command(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        from sfm_ttr_ros.tools.report import write_json
+        from sfm_ttr_ros.tools.report_files import write_json
 
         doc = {"gt": str(args.gt), "gt_scale": args.gt_scale,
                "eval": {"min_depth": cfg.min_depth, "max_depth": cfg.max_depth,

@@ -30,7 +30,7 @@ def _size(text: str) -> tuple[int, int]:
 def add_speed_parser(sub) -> argparse.ArgumentParser:
     s = sub.add_parser(
         "speed", help="the node's code path timed on a generated drive: naive vs tuned",
-        description="Time the node's code path frame by frame (decode, StreamProcessor, message "
+        description="Time the node's code path frame by frame (decode, WindowRunner, message "
                     "conversion) on a generated KITTI-size drive, a naive run against the tuned "
                     "settings, with stage shares, latency and accuracy; --memory-frames: peak "
                     "RSS over a long stream. Writes OUT/speed.json and speed.md.")

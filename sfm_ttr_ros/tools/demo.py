@@ -19,7 +19,7 @@ Steps (each printed as it runs):
 5. both bags evaluated against the GT topic matched by stamp
    (:func:`sfm_ttr_ros.ros.bag_evaluation.evaluate_bag`),
    the before/after table printed and written (``results.md`` / ``results.json`` /
-   ``per_frame.csv``, by the benchmark's writer, :mod:`sfm_ttr_ros.tools.report`) with a
+   ``per_frame.csv``, by the benchmark's writer, :mod:`sfm_ttr_ros.tools.report_files`) with a
    qualitative figure of the frame of median gain, saying so (``figure.png``,
    :mod:`sfm_ttr_ros.tools.demo_figure`).
 
@@ -513,7 +513,7 @@ def _gain_lines(results: dict) -> tuple[str, str, str]:
 def _results_markdown(results: dict) -> str:
     """``results.md``: the metric and gain tables as the benchmark writes them, the live
     output's gains by third of the drive and the figure."""
-    from sfm_ttr_ros.tools.report import gain_table, metric_table
+    from sfm_ttr_ros.tools.report_files import gain_table, metric_table
 
     thirds_line = _gain_lines(results)[2]
     lines = [f"# sfm-ttr demo: {results['drive']}", "",
@@ -538,7 +538,7 @@ def _write_reports(out: Path, results: dict, evals: dict[str, dict],
                    indices: dict[str, int]) -> None:
     """``results.json``, ``results.md`` and ``per_frame.csv`` (abs rel and RMSE of every
     evaluated frame of each output, named by stamp), with the benchmark's writer."""
-    from sfm_ttr_ros.tools.report import write_json, write_per_frame_csv
+    from sfm_ttr_ros.tools.report_files import write_json, write_per_frame_csv
 
     write_json(out / "results.json", results)
     (out / "results.md").write_text(_results_markdown(results))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 
 
 def _reserved_mb(device) -> float | None:

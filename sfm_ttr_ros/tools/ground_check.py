@@ -33,8 +33,8 @@ def check_drive(domain: str, seed: int, frames: int, window: int, size: tuple[in
                 ) -> list[float]:
     """Each window's estimate over the truth (NaN: no estimate) of one generated drive."""
     from sfm_ttr_ros.core.frames import Frame
-    from sfm_ttr_ros.core.metric.config import MetricConfig
     from sfm_ttr_ros.core.metric.ground import ground_plane
+    from sfm_ttr_ros.core.metric.metric_config import MetricConfig
     from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
     from sfm_ttr_ros.data.synthetic import make_sequence
 

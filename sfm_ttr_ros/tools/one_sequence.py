@@ -154,9 +154,9 @@ def run_whole_sequence(seq, settings, out: str | Path, *, start: int = 0, max_fr
 
 def write_per_frame(path: Path, frames, full: dict, refined: bool) -> None:
     """abs rel and RMSE of every evaluated frame before and after, methods ``no_ttr`` and
-    ``sfm_ttr`` (:func:`~sfm_ttr_ros.tools.report.write_per_frame_csv`, the benchmark's
+    ``sfm_ttr`` (:func:`~sfm_ttr_ros.tools.report_files.write_per_frame_csv`, the benchmark's
     per_frame.csv)."""
-    from sfm_ttr_ros.tools.report import write_per_frame_csv
+    from sfm_ttr_ros.tools.report_files import write_per_frame_csv
 
     index_of = {f.name: f.index for f in frames}
     rows = {METHODS[key]: {index_of[r["name"]]: {**r, "refined": bool(refined) and key == "after"}

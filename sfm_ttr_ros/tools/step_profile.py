@@ -41,13 +41,13 @@ import numpy as np
 
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.outcomes import Stop
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import (
     refine_encoder,
     restore_encoder,
     snapshot_encoder,
 )
 from sfm_ttr_ros.core.refinement.graph_step import GRAPH_WARM_UP_STEPS
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 
 #: Host-side launch calls of the CUDA runtime and driver that start kernels one by one.

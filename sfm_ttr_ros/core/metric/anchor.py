@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sfm_ttr_ros.core.metric.config import MetricConfig
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
 
 #: A window's verdict: the first estimate or one that replaces an unconfirmed one; agreeing with
 #: the unconfirmed candidate; agreeing with the confirmed anchor; disagreeing with it; moving it.

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.geometry import camera_centre
-from sfm_ttr_ros.core.metric.config import MetricConfig
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
 RANSAC_ITERATIONS = 1000

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from sfm_ttr_ros.core.metric.anchor import Anchor, Verdict
-from sfm_ttr_ros.core.metric.config import MetricConfig
 from sfm_ttr_ros.core.metric.ground import cameras, ground_plane
-from sfm_ttr_ros.core.metric.odometry import OdometryTrack, path_length
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
+from sfm_ttr_ros.core.metric.odometry_track import OdometryTrack, path_length
 from sfm_ttr_ros.core.sfm.result import SfmResult
 
 

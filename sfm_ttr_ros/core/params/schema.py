@@ -7,13 +7,13 @@ read from the target dataclass field, so they are written once, in the config. W
 what it is lives in docs/decisions.md, not here. Sections:
 
 =========== ====================================================================
-``sfm``       :class:`~sfm_ttr_ros.core.sfm.config.SfmConfig`
+``sfm``       :class:`~sfm_ttr_ros.core.sfm.sfm_config.SfmConfig`
 ``alignment`` :class:`~sfm_ttr_ros.core.alignment.scale.AlignmentConfig`
-``refinement``:class:`~sfm_ttr_ros.core.refinement.config.RefinementConfig`
+``refinement``:class:`~sfm_ttr_ros.core.refinement.refinement_config.RefinementConfig`
 ``ttr``       :class:`~sfm_ttr_ros.core.pipeline.TTRConfig` (its own fields)
 ``check``     :class:`~sfm_ttr_ros.core.checks.measures.CheckConfig` (the window checks)
-``metric``    :class:`~sfm_ttr_ros.core.metric.config.MetricConfig` (metres)
-``stream``    :class:`~sfm_ttr_ros.core.stream.windows.StreamSettings`
+``metric``    :class:`~sfm_ttr_ros.core.metric.metric_config.MetricConfig` (metres)
+``stream``    :class:`~sfm_ttr_ros.core.stream.window_runner.StreamSettings`
 ``model``     :class:`~sfm_ttr_ros.core.models.registry.ModelConfig`
 ``node``      :class:`~sfm_ttr_ros.core.params.node.NodeSettings`
 =========== ====================================================================
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
 from sfm_ttr_ros.core.checks.measures import CheckConfig
-from sfm_ttr_ros.core.metric.config import METRIC_SOURCES, MetricConfig
+from sfm_ttr_ros.core.metric.metric_config import METRIC_SOURCES, MetricConfig
 from sfm_ttr_ros.core.models.hf import OUTPUT_KINDS
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params.node import (
@@ -44,7 +44,7 @@ from sfm_ttr_ros.core.params.node import (
     NodeSettings,
 )
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.refinement.config import (
+from sfm_ttr_ros.core.refinement.refinement_config import (
     BN_MODES,
     LOSSES,
     PRECISIONS,
@@ -54,9 +54,9 @@ from sfm_ttr_ros.core.refinement.config import (
 )
 from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
 from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
-from sfm_ttr_ros.core.sfm.config import FEATURE_BACKENDS, SFM_MODES, SfmConfig
+from sfm_ttr_ros.core.sfm.sfm_config import FEATURE_BACKENDS, SFM_MODES, SfmConfig
 from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES
-from sfm_ttr_ros.core.stream.windows import StreamSettings
+from sfm_ttr_ros.core.stream.window_runner import StreamSettings
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in

@@ -19,7 +19,7 @@ from typing import Any
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
 from sfm_ttr_ros.core.checks.measures import CheckConfig
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.metric.config import MetricConfig
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params import legacy
 from sfm_ttr_ros.core.params.docs import number
@@ -33,9 +33,9 @@ from sfm_ttr_ros.core.params.schema import (
     settable,
 )
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
-from sfm_ttr_ros.core.sfm.config import SfmConfig
-from sfm_ttr_ros.core.stream.windows import StreamSettings
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
+from sfm_ttr_ros.core.stream.window_runner import StreamSettings
 
 BUILTIN_MODELS = ("default", "monodepth2", "mobilenet", "hf")
 _ARTICLES = {bool: "a bool", int: "an integer", float: "a double", str: "a string"}

@@ -40,7 +40,6 @@ import torch
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
-from sfm_ttr_ros.core.refinement.config import RefinementConfig, resolve_loss
 from sfm_ttr_ros.core.refinement.graph_step import (
     GRAPH_WARM_UP_STEPS,
     StaticStepRunner,
@@ -48,6 +47,7 @@ from sfm_ttr_ros.core.refinement.graph_step import (
 )
 from sfm_ttr_ros.core.refinement.objective import frame_terms, resolve_precision, step_loss
 from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_frames
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig, resolve_loss
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.refinement.trainable import merge_lora, select_trainable
 

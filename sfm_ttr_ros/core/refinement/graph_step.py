@@ -54,7 +54,6 @@ import torch
 
 from sfm_ttr_ros.core.geometry import sample_depth
 from sfm_ttr_ros.core.models.base import DepthModel
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.graph_cache import (
     REPLAYS_IN_FLIGHT,
     CapturedStep,
@@ -74,6 +73,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     photometric_objective,
     ssim_target,
 )
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import padded_weighted_l1
 
 #: Eager steps on a side stream before the capture (PyTorch's whole-network capture recipe).

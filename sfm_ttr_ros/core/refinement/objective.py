@@ -39,7 +39,6 @@ import torch
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
 from sfm_ttr_ros.core.models.base import DepthModel
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.photometric import (
     PhotometricConfig,
     PhotometricFrame,
@@ -47,6 +46,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
     photometric_objective,
     scale_outputs,
 )
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision, weighted_l1
 
 LOG = logging.getLogger(__name__)

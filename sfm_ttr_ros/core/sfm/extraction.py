@@ -18,8 +18,8 @@ from collections.abc import Callable, Sequence
 import cv2
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.names import image_name
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.core.sfm.workspace import SfmWorkspace
 
 

@@ -28,8 +28,8 @@ import cv2
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window, image_digest
-from sfm_ttr_ros.core.sfm.config import MIN_PAIR_INLIERS, SfmConfig
 from sfm_ttr_ros.core.sfm.reconstruction import quiet_pycolmap
+from sfm_ttr_ros.core.sfm.sfm_config import MIN_PAIR_INLIERS, SfmConfig
 
 log = logging.getLogger(__name__)
 

@@ -14,9 +14,9 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from sfm_ttr_ros.core.sfm.config import MIN_PAIR_INLIERS, RETRY_HISTORY, SfmConfig
 from sfm_ttr_ros.core.sfm.names import image_name
 from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result
+from sfm_ttr_ros.core.sfm.sfm_config import MIN_PAIR_INLIERS, RETRY_HISTORY, SfmConfig
 from sfm_ttr_ros.core.sfm.workspace import SfmWorkspace
 
 MapperRun = Callable[[SfmConfig, list[str], object, int], dict]

@@ -12,7 +12,7 @@ overlap entirely. When the next window begins, :meth:`SfmPrefetch.take` hands ov
 reconstruction of exactly those frames (waiting for it if it is still running); anything else
 (other frames, other intrinsics, a failure) is discarded and the window reconstructs as usual.
 
-The stream (:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`) begins it from its input
+The stream (:class:`~sfm_ttr_ros.core.stream.window_runner.WindowRunner`) begins it from its input
 callback, at the first frame that finds the next window's frames all queued once the running
 window's own SfM has ended (:meth:`~sfm_ttr_ros.core.sfm.source.SfmSource.prefetch`); the thread
 lowers its own OS priority to the worker's

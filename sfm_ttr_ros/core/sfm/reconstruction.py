@@ -28,10 +28,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window, image_digest
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.extraction import FeatureMatcher
 from sfm_ttr_ros.core.sfm.mapping import Mapper
 from sfm_ttr_ros.core.sfm.result import SfmResult, point_colours
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.core.sfm.workspace import SfmWorkspace
 
 log = logging.getLogger(__name__)

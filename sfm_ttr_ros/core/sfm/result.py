@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Intrinsics
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.names import image_name
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 
 
 @dataclass

@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import Protocol
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
 #: what :meth:`SfmSource.counters` gives for reconstructions begun ahead when none can be

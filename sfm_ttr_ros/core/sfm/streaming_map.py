@@ -23,12 +23,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.frontend import AdmitTimings, StreamFrontend
 from sfm_ttr_ros.core.sfm.map_cache import build_cache, continue_reconstruction
 from sfm_ttr_ros.core.sfm.mapping import Mapper, mapper_options, rank
 from sfm_ttr_ros.core.sfm.names import frame_name
 from sfm_ttr_ros.core.sfm.result import SfmResult, collect_result, point_colours
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 
 log = logging.getLogger(__name__)
 

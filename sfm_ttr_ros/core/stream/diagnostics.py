@@ -40,7 +40,7 @@ from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.keyframes import keyframe_interval
 from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
-from sfm_ttr_ros.core.stream.windows import StreamProcessor
+from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 #: Unrefined frames the keyframe rule passed on by design (below its floor or motion, or skipped
 #: behind): counted under their reason, no WARN (a 10-Hz camera on 2 CPU cores under
@@ -59,13 +59,13 @@ class Status:
 
 
 class StreamDiagnostics:
-    """Counters and status of a :class:`StreamProcessor` fed by a node. Thread-safe.
+    """Counters and status of a :class:`WindowRunner` fed by a node. Thread-safe.
 
     ``held``: how many frames wait outside the stream (for intrinsics); they count as received
     and pending. ``health``: rates, ERROR and STALE (none: OK or WARN only).
     """
 
-    def __init__(self, stream: StreamProcessor, held: Callable[[], int] = lambda: 0,
+    def __init__(self, stream: WindowRunner, held: Callable[[], int] = lambda: 0,
                  live: Callable[[], dict] | None = None, health: Health | None = None):
         self.stream = stream
         self.health = health

@@ -68,7 +68,7 @@ class Ledger:
                                  + sum(self.dropped.values()) + pending)
 
     def counters(self, pending: int, queued: int) -> dict[str, object]:
-        """The counters as the stream reports them (``StreamProcessor.counters``), with the
+        """The counters as the stream reports them (``WindowRunner.counters``), with the
         ``pending`` frames (queued or in the worker's hands) and the ``queued`` ones."""
         return {
             "received": self.received,

@@ -1,7 +1,7 @@
 """Live depth at camera rate: every frame predicted on arrival by the serving network.
 
 The paper leaves "online and real-time refinement" open; here the two jobs are split. The
-windowed SfM-TTR (:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`) reconstructs and
+windowed SfM-TTR (:class:`~sfm_ttr_ros.core.stream.window_runner.WindowRunner`) reconstructs and
 refines in the background and publishes each keyframe again once its window is done;
 :class:`LiveServer` answers every frame at once from a
 :class:`~sfm_ttr_ros.core.stream.serving.ServingModel` that holds the newest accepted weights.

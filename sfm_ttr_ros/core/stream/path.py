@@ -7,7 +7,7 @@ reconstruction's poses) and the factor its depth outputs were made with
 is (core/camera_path.py, "Units"). What it returns, the poses new to the path in stamp order
 with their units, is what the window reports (:attr:`~.records.WindowStats.path_poses`) and
 what the node publishes (``~/odom``) and the benchmark measures (``path``). The window runner
-(:class:`~.windows.StreamProcessor`) keeps one; a caller that runs windows without the stream
+(:class:`~.windows.WindowRunner`) keeps one; a caller that runs windows without the stream
 keeps its own.
 """
 
@@ -20,7 +20,7 @@ from sfm_ttr_ros.core.camera_path import CameraPath, result_poses
 from sfm_ttr_ros.core.frames import Frame
 from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE
 from sfm_ttr_ros.core.stream.records import FramePose
-from sfm_ttr_ros.core.window import WindowResult
+from sfm_ttr_ros.core.window_io import WindowResult
 
 
 class StreamPath:

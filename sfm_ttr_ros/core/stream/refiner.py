@@ -6,8 +6,8 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
   :class:`~sfm_ttr_ros.core.stream.live.LiveServer` (its own thread): depth from the serving copy of
   the network (:class:`~sfm_ttr_ros.core.stream.serving.ServingModel`), no intrinsics needed.
 * :meth:`StreamRefiner.submit` — frames with intrinsics to the
-  :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`, stepped by a background worker thread
-  at a lower OS priority (``StreamSettings.worker_nice``) with an OpenMP team of its own
+  :class:`~sfm_ttr_ros.core.stream.window_runner.WindowRunner`, stepped by a background worker
+  thread at a lower OS priority (``StreamSettings.worker_nice``) with an OpenMP team of its own
   (``StreamSettings.worker_threads``, :mod:`~sfm_ttr_ros.core.threads`): keyframes, windows,
   SfM, alignment, refinement; each window's frames come out again on ``on_refined`` (today's
   windowed output).
@@ -49,7 +49,7 @@ from sfm_ttr_ros.core.stream.live import WARM_UP_WAIT_S, LiveOutput, LiveServer
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats
 from sfm_ttr_ros.core.stream.serving import ServingModel
 from sfm_ttr_ros.core.stream.settings import StreamSettings
-from sfm_ttr_ros.core.stream.windows import StreamProcessor
+from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 #: Windows whose serving times :attr:`StreamRefiner.served_at` keeps.
 SERVED_HISTORY = 1000
@@ -77,7 +77,7 @@ class StreamRefiner:
         self.ttr = ttr
         self.on_window = on_window
         self.on_fault = on_fault
-        self.stream = StreamProcessor(ttr, settings, config_provider=config_provider,
+        self.stream = WindowRunner(ttr, settings, config_provider=config_provider,
                                       settings_provider=settings_provider,
                                       on_output=on_refined, on_window=self._window_done,
                                       on_drop=on_drop, logger=self.log)

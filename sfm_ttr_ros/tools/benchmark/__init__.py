@@ -2,9 +2,9 @@
 
 * ``no_ttr``: the network's plain prediction (the original weights).
 * ``sfm_ttr_online``: every frame pushed through
-  :class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor` exactly as the ROS node feeds it (same
-  windows, keyframes, overlap and accounting; no ROS transport), then
-  :meth:`~sfm_ttr_ros.core.stream.windows.StreamProcessor.flush` at the end of the stream (the
+  :class:`~sfm_ttr_ros.core.stream.window_runner.WindowRunner` exactly as the ROS node feeds it
+  (same windows, keyframes, overlap and accounting; no ROS transport), then
+  :meth:`~sfm_ttr_ros.core.stream.window_runner.WindowRunner.flush` at the end of the stream (the
   node's idle flush). The depth of each frame is the one the node would publish.
 * ``sfm_ttr_offline``: one :meth:`~sfm_ttr_ros.core.pipeline.SfmTTR.process_window` over the whole
   sequence, the paper's setting (or consecutive chunks of ``offline_max_frames`` frames, each
@@ -35,12 +35,12 @@ and predicted-vs-GT density plots, drawn with OpenCV).
 Modules: :mod:`.settings` (the parameter file), :mod:`.runners` (the windowed modes),
 :mod:`.live` (``sfm_ttr_live``: the node's live serving fed in real time at ``--rate``),
 :mod:`.run` (:func:`run_benchmark`, :class:`BenchmarkOptions`), :mod:`.report` (markdown / csv,
-through the shared :mod:`sfm_ttr_ros.tools.report`), :mod:`.figure`, :mod:`.bands` (the depth
+through the shared :mod:`sfm_ttr_ros.tools.report_files`), :mod:`.figure`, :mod:`.bands` (the depth
 bands and the error-against-depth figure).
 """
 
+from sfm_ttr_ros.tools.benchmark.benchmark_report import describe_model, results_markdown
 from sfm_ttr_ros.tools.benchmark.figure import qualitative_figure, scatter_panel
-from sfm_ttr_ros.tools.benchmark.report import describe_model, results_markdown
 from sfm_ttr_ros.tools.benchmark.run import BenchmarkOptions, run_benchmark
 from sfm_ttr_ros.tools.benchmark.runners import DEFAULT_MODES, MODES, STAGES
 from sfm_ttr_ros.tools.benchmark.settings import (
@@ -49,7 +49,7 @@ from sfm_ttr_ros.tools.benchmark.settings import (
     read_params_file,
     settings_from_params,
 )
-from sfm_ttr_ros.tools.report import json_safe
+from sfm_ttr_ros.tools.report_files import json_safe
 
 __all__ = [
     "BenchmarkOptions",

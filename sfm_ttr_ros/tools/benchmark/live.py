@@ -21,7 +21,7 @@ from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
-from sfm_ttr_ros.core.stream.windows import StreamSettings, WindowStats
+from sfm_ttr_ros.core.stream.window_runner import StreamSettings, WindowStats
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.runners import (
     ModeRun,

@@ -17,7 +17,7 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS
 from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
-from sfm_ttr_ros.core.stream.windows import FrameOutput, WindowStats
+from sfm_ttr_ros.core.stream.window_runner import FrameOutput, WindowStats
 
 #: The timers of :class:`MessageCost` (seconds each), in the report's order.
 CONVERSIONS = ("input_image", "depth_image", "camera_info", "pointcloud", "diagnostics",

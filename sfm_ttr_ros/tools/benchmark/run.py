@@ -15,17 +15,17 @@ import numpy as np
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.evaluation import EvalConfig, relative_gain
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.stream.windows import StreamSettings
+from sfm_ttr_ros.core.stream.window_runner import StreamSettings
 from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE, error_by_depth_figure
-from sfm_ttr_ros.tools.benchmark.figure import pick_figure_frames, qualitative_figure
-from sfm_ttr_ros.tools.benchmark.live import run_live
-from sfm_ttr_ros.tools.benchmark.report import (
+from sfm_ttr_ros.tools.benchmark.benchmark_report import (
     config_dict,
     describe_model,
     results_markdown,
     write_per_frame,
 )
+from sfm_ttr_ros.tools.benchmark.figure import pick_figure_frames, qualitative_figure
+from sfm_ttr_ros.tools.benchmark.live import run_live
 from sfm_ttr_ros.tools.benchmark.runners import (
     DEFAULT_MODES,
     MODES,
@@ -44,7 +44,7 @@ from sfm_ttr_ros.tools.benchmark.settings import (
     settings_from_params,
 )
 from sfm_ttr_ros.tools.benchmark.timeline import TIMELINE_FIGURE, window_timeline_figure
-from sfm_ttr_ros.tools.report import write_json
+from sfm_ttr_ros.tools.report_files import write_json
 
 
 def _stderr(line: str) -> None:

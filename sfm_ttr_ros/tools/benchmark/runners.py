@@ -25,10 +25,10 @@ from sfm_ttr_ros.core.metric.scale import in_metres
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.stream.records import FramePose
-from sfm_ttr_ros.core.stream.windows import (
+from sfm_ttr_ros.core.stream.window_runner import (
     FrameOutput,
-    StreamProcessor,
     StreamSettings,
+    WindowRunner,
     WindowStats,
 )
 from sfm_ttr_ros.data.sequence import ImageSequence
@@ -68,7 +68,7 @@ class StreamTaps:
     on_window: Callable[[WindowStats], None] | None = None
     prepare: Callable[[Frame], Any] | None = None
     receive: Callable[[Frame, Any], None] | None = None
-    attach: Callable[[StreamProcessor, SfmTTR], None] | None = None
+    attach: Callable[[WindowRunner, SfmTTR], None] | None = None
     pushed: Callable[[float], None] | None = None
 
 
@@ -218,7 +218,7 @@ def feed_odometry(ttr: SfmTTR, seq: ImageSequence, indices: Sequence[int],
 def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
                cfg: TTRConfig, settings: StreamSettings, progress,
                rate: float | None = None, taps: StreamTaps | None = None) -> None:
-    """Every frame through the node's :class:`StreamProcessor`, synchronously (each frame
+    """Every frame through the node's :class:`WindowRunner`, synchronously (each frame
     waits for the one before: the windows' accuracy at any speed), or with ``rate`` (Hz) in
     virtual time: frames arrive at that rate while the worker spends its measured time on each
     (:func:`_push_in_virtual_time`), as the node's keyframe rule sees a camera. ``taps``: what
@@ -261,7 +261,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
             run.add(o.frame.index, depth, o.refined, o.reason_key)
 
     feed_odometry(ttr, seq, indices, rate)
-    stream = StreamProcessor(ttr, copy.deepcopy(settings), on_output=taps.on_output,
+    stream = WindowRunner(ttr, copy.deepcopy(settings), on_output=taps.on_output,
                              on_window=on_window, on_drop=on_drop, logger=log)
     if taps.attach is not None:
         taps.attach(stream, ttr)
@@ -296,7 +296,7 @@ def run_online(run: ModeRun, seq: ImageSequence, indices: Sequence[int], model,
     run.extra.update(path_report(path_poses, stream.path.summary(), seq.poses, seq_index))
 
 
-def _push_in_order(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int], take,
+def _push_in_order(stream: WindowRunner, seq: ImageSequence, indices: Sequence[int], take,
                    run: ModeRun, taps: StreamTaps) -> None:
     """Each frame pushed once the one before is done, each push timed (with the ``taps``'
     ``receive``, as the node's subscription callback comes before its push)."""
@@ -314,7 +314,7 @@ def _push_in_order(stream: StreamProcessor, seq: ImageSequence, indices: Sequenc
         take(outs)
 
 
-def _push_in_virtual_time(stream: StreamProcessor, seq: ImageSequence, indices: Sequence[int],
+def _push_in_virtual_time(stream: WindowRunner, seq: ImageSequence, indices: Sequence[int],
                           rate: float, take, run: ModeRun) -> None:
     """Frame k arrives at k / rate s (its stamp rewritten to that time); the worker takes one
     queued frame at a time and its processing time (measured) advances the clock, so the frames

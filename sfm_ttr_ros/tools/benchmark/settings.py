@@ -11,7 +11,7 @@ from sfm_ttr_ros.core import params as schema
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.pipeline import TTRConfig
-from sfm_ttr_ros.core.stream.windows import StreamSettings
+from sfm_ttr_ros.core.stream.window_runner import StreamSettings
 from sfm_ttr_ros.ros.names import NODE_NAME
 from sfm_ttr_ros.ros.share import find_share_file, share_candidates
 

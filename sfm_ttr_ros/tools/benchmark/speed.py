@@ -1,7 +1,7 @@
 """``sfm-ttr speed``: the speed of SfM-TTR on a KITTI-size stream, a naive run against the
 tuned settings, through the benchmark's own online runner
 (:func:`~sfm_ttr_ros.tools.benchmark.runners.run_online`: the node's
-:class:`~sfm_ttr_ros.core.stream.windows.StreamProcessor`, fed frame by frame as the node feeds
+:class:`~sfm_ttr_ros.core.stream.window_runner.WindowRunner`, fed frame by frame as the node feeds
 it) with the node's message work timed around it (:mod:`.messages`).
 
 Both configurations run one after the other in one process over the SAME generated drive
@@ -47,9 +47,9 @@ from sfm_ttr_ros.core.evaluation import METRICS, EvalConfig
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
-from sfm_ttr_ros.core.stream.windows import WindowStats
+from sfm_ttr_ros.core.stream.window_runner import WindowStats
+from sfm_ttr_ros.tools.benchmark.benchmark_report import describe_model
 from sfm_ttr_ros.tools.benchmark.messages import CONVERSIONS, MessageCost
-from sfm_ttr_ros.tools.benchmark.report import describe_model
 from sfm_ttr_ros.tools.benchmark.runners import ModeRun, StreamTaps, run_no_ttr, run_online
 from sfm_ttr_ros.tools.process import own_memory_kib
 
@@ -422,7 +422,7 @@ def memory_in_child(cfg: SpeedConfig, options: Mapping[str, Any],
 
 
 def _memory_child(job: str, result: str) -> int:
-    from sfm_ttr_ros.tools.report import write_json
+    from sfm_ttr_ros.tools.report_files import write_json
 
     cfg, options = pickle.loads(Path(job).read_bytes())
     write_json(result, run_memory(cfg, **options,

@@ -1,5 +1,5 @@
-"""``sfm-ttr speed``'s reports: ``speed.json`` (:func:`~sfm_ttr_ros.tools.report.write_json`)
-and ``speed.md`` (tables through :func:`~sfm_ttr_ros.tools.report.markdown_table`): per
+"""``sfm-ttr speed``'s reports: ``speed.json`` (:func:`~sfm_ttr_ros.tools.report_files.write_json`)
+and ``speed.md`` (tables through :func:`~sfm_ttr_ros.tools.report_files.markdown_table`): per
 configuration the time per frame, latency, accuracy and stage shares, the speed-up naive/tuned,
 and the memory run."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from sfm_ttr_ros.tools.benchmark.speed import LATENCY_DEFINITION, STAGES
-from sfm_ttr_ros.tools.report import markdown_table, write_json
+from sfm_ttr_ros.tools.report_files import markdown_table, write_json
 
 
 def _f(v, fmt: str = ".3f") -> str:

@@ -245,7 +245,7 @@ def _modes(kind: str, options: dict[str, Any]) -> list[str]:
 
 
 def _print_summary(res: dict[str, Any], out: Path) -> None:
-    from sfm_ttr_ros.tools.split.report import results_markdown
+    from sfm_ttr_ros.tools.split.split_report import results_markdown
 
     text = results_markdown(res)
     print(text.split("Per sequence")[0].rstrip())

@@ -1,5 +1,5 @@
 """The benchmark's reports: ``results.md`` and ``per_frame.csv`` (their tables, the JSON and
-the CSV written by the shared :mod:`sfm_ttr_ros.tools.report`, as the demo's are), the
+the CSV written by the shared :mod:`sfm_ttr_ros.tools.report_files`, as the demo's are), the
 settings and model as ``results.json`` records them."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from sfm_ttr_ros.data.sequence import ImageSequence
 from sfm_ttr_ros.tools.benchmark.bands import ERROR_FIGURE
 from sfm_ttr_ros.tools.benchmark.path import path_lines
 from sfm_ttr_ros.tools.benchmark.runners import MODES, ModeRun
-from sfm_ttr_ros.tools.report import gain_table, metric_table, write_per_frame_csv
+from sfm_ttr_ros.tools.report_files import gain_table, metric_table, write_per_frame_csv
 
 
 def config_dict(obj) -> dict:

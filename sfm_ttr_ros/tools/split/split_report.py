@@ -205,7 +205,7 @@ def results_markdown(res: Mapping[str, Any]) -> str:
 
 
 def write_results(out: Path, results: dict[str, Any]) -> None:
-    from sfm_ttr_ros.tools.report import write_json
+    from sfm_ttr_ros.tools.report_files import write_json
 
     out = Path(out)
     write_json(out / "results.json", results)

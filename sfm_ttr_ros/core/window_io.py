@@ -11,19 +11,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig, AlignmentResult
-from sfm_ttr_ros.core.alignment.window import WindowAlignment
+from sfm_ttr_ros.core.alignment.window_alignment import WindowAlignment
 from sfm_ttr_ros.core.checks.measures import CheckConfig, CheckReport
 from sfm_ttr_ros.core.errors import InputError, check_choice
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
-from sfm_ttr_ros.core.metric.config import MetricConfig
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig
 from sfm_ttr_ros.core.metric.scale import WindowMetric
 from sfm_ttr_ros.core.outcomes import Stop, Unrefined
-from sfm_ttr_ros.core.refinement.config import RefinementConfig
 from sfm_ttr_ros.core.refinement.encoder import RefinementResult
+from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
-from sfm_ttr_ros.core.sfm.config import SfmConfig
 from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 
 
 @dataclass

@@ -1,12 +1,12 @@
-"""The window runner: online SfM-TTR over a stream of frames (:class:`StreamProcessor`).
+"""The window runner: online SfM-TTR over a stream of frames (:class:`WindowRunner`).
 
 ROS-free: the ROS node feeds it from its subscription callbacks and publishes what comes out; the
 benchmark feeds it from files. Same code path, no ROS transport. The rules it applies to every
 frame (queue and back-pressure, stamps, keyframes, windows, overload, idle flush, the end of the
 stream) and the accounting of every frame are written once, in docs/node.md, "How frames flow".
 
-:meth:`StreamProcessor.submit` (any thread, cheap) queues a frame; :meth:`StreamProcessor.step`
-(one worker thread) takes frames out and does the heavy work; :meth:`StreamProcessor.push` =
+:meth:`WindowRunner.submit` (any thread, cheap) queues a frame; :meth:`WindowRunner.step`
+(one worker thread) takes frames out and does the heavy work; :meth:`WindowRunner.push` =
 submit + process everything queued, for synchronous callers (benchmark, tests). The parts:
 :mod:`.settings`, :mod:`.records` (what comes out), :mod:`.frame_queue` (the only part two
 threads share), :mod:`.ledger` (the counters), :mod:`.admission` (the per-frame rules),
@@ -45,10 +45,10 @@ from sfm_ttr_ros.core.stream.sfm_feed import SfmFeed
 from sfm_ttr_ros.core.stream.window_buffer import Entry, WindowBuffer
 
 # the names the node, the benchmark and the parameter schema import from here
-__all__ = ["FrameOutput", "StreamProcessor", "StreamSettings", "WindowStats"]
+__all__ = ["FrameOutput", "WindowRunner", "StreamSettings", "WindowStats"]
 
 
-class StreamProcessor:
+class WindowRunner:
     """Sliding-window SfM-TTR over a stream (docs/node.md, "How frames flow", for the rules).
 
     ``config_provider`` (optional) is called at the start of every window and its TTRConfig
