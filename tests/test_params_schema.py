@@ -277,6 +277,23 @@ def test_schema_and_cli_parsers_import_without_ros():
     assert proc.returncode == 0, proc.stderr
 
 
+def test_reading_the_schema_imports_the_configs_not_the_pipeline():
+    """``import sfm_ttr_ros.core.params.schema`` loads the config dataclasses it reads, not the
+    pipeline, the stream's worker or pycolmap (a tool reading parameters pays for no SfM)."""
+    code = textwrap.dedent("""
+        import sys
+        import sfm_ttr_ros.core.params.schema
+        heavy = ("pycolmap", "sfm_ttr_ros.core.pipeline", "sfm_ttr_ros.core.stream.windows",
+                 "sfm_ttr_ros.core.refinement.encoder", "sfm_ttr_ros.core.sfm.reconstruction")
+        loaded = [m for m in heavy if m in sys.modules]
+        assert not loaded, loaded
+    """)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_node_settings_validate_themselves():
     from sfm_ttr_ros.core.params.node import NodeSettings
 

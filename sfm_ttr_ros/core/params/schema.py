@@ -43,20 +43,20 @@ from sfm_ttr_ros.core.params.node import (
     USE_PROJECTION_CHOICES,
     NodeSettings,
 )
-from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.refinement.config import (
     BN_MODES,
     LOSSES,
     PRECISIONS,
     SFM_RESIDUALS,
+    WEIGHT_POLICIES,
     WEIGHTINGS,
     RefinementConfig,
 )
 from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
-from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
 from sfm_ttr_ros.core.sfm.config import FEATURE_BACKENDS, SFM_MODES, SfmConfig
 from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES
-from sfm_ttr_ros.core.stream.windows import StreamSettings
+from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.window import TTRConfig
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in

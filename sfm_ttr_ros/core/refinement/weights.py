@@ -14,9 +14,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from sfm_ttr_ros.core.models.base import DepthModel
+from sfm_ttr_ros.core.refinement.config import WEIGHT_POLICIES
 from sfm_ttr_ros.core.refinement.encoder import restore_encoder, snapshot_encoder
 
-WEIGHT_POLICIES = ("reset", "continue")
+__all__ = ["WEIGHT_POLICIES", "WeightPolicy"]
 
 
 class WeightPolicy:
