@@ -380,7 +380,7 @@ def invalid_parameter_sets() -> list[tuple[str, object]]:
         ("refinement.frozen_encoder_levels", 9), ("refinement.frozen_encoder_levels", -1),
         ("sfm.max_image_size", 1),
         ("sfm.max_image_size", -7), ("sfm.init_min_tri_angle", 0.0),
-        ("sfm.init_min_tri_angle", 91.0), ("sfm.max_num_features", 0), ("sfm.num_threads", 0),
+        ("sfm.init_min_tri_angle", -1.0), ("sfm.max_num_features", 0), ("sfm.num_threads", 0),
         ("sfm.overlap", 0), ("sfm.first_octave", -2), ("sfm.mapping_attempts", 0),
         ("alignment.tau", 0.0),
         ("alignment.tau", -1.0), ("alignment.tau", float("nan")),

@@ -25,7 +25,7 @@ def test_stamps_forward_pass_a_repeated_one_is_dropped_an_earlier_one_restarts()
     assert dup.reason == "frame with the same stamp as the previous one (1.000000000) rejected"
     back = stamp_rule(0.5, 1.0, 3)
     assert back.flush == Unrefined.STAMP_JUMP_BACK and back.reset and not back.final
-    assert back.log == ("stamp went back from 1.000000 to 0.500000 s: 3 pending frame(s) "
+    assert back.warning == ("stamp went back from 1.000000 to 0.500000 s: 3 pending frame(s) "
                         "published unrefined and a new window started")
 
 
@@ -40,7 +40,7 @@ def test_a_released_image_or_a_size_the_intrinsics_do_not_fit_keeps_the_frame_ou
     assert image_rule(frame, INTR, released=False) is None
     released = image_rule(frame, INTR, released=True)
     assert released.flush == released.unrefined == Unrefined.OVERLOAD and released.reset
-    assert released.throttle == "overload" and released.log == released.reason
+    assert released.throttle == "overload" and released.warning == released.reason
     other = Intrinsics(50.0, 50.0, 3.5, 2.5, 16, 12)
     mismatch = image_rule(frame, other, released=False)
     assert mismatch.unrefined == Unrefined.INTRINSICS_MISMATCH and mismatch.flush is None
@@ -53,8 +53,8 @@ def test_new_intrinsics_restart_the_window_unless_they_replace_the_fallback():
     assert intrinsics_rule(INTR, None, False, False, 2) is None
     assert intrinsics_rule(INTR, INTR, True, False, 2) is None
     took = intrinsics_rule(other_k, INTR, True, False, 2)  # the CameraInfo replaces the fallback
-    assert took.flush is None and not took.reset and took.level == "info"
-    assert took.log.endswith("for the 2 pending frame(s)")
+    assert took.flush is None and not took.reset and not took.warning
+    assert took.info.endswith("for the 2 pending frame(s)")
     changed = intrinsics_rule(other_k, INTR, False, False, 2)
     assert changed.flush == Unrefined.INTRINSICS_CHANGE and changed.reset and not changed.final
     # a frame on the fallback itself, or another image size: a change all the same

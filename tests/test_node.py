@@ -335,11 +335,11 @@ def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
     declared = call(client.list_parameters()).result.names
     assert set(node_params.SPECS) <= set(declared)
     desc = {d.name: d for d in call(client.describe_parameters(
-        ["window_size", "refinement.lr", "model_type", "refinement.bn_mode"])).descriptors}
+        ["window_size", "refinement.lr", "model_type", "refinement.loss"])).descriptors}
     assert desc["window_size"].integer_range[0].from_value == 2
     assert desc["refinement.lr"].type == ParameterType.PARAMETER_DOUBLE
     assert desc["model_type"].read_only and not desc["window_size"].read_only
-    assert "frozen" in desc["refinement.bn_mode"].additional_constraints
+    assert "hybrid" in desc["refinement.loss"].additional_constraints
 
     def set_(name, value):
         return call(client.set_parameters([Parameter(name, value=value)])).results[0]
@@ -351,7 +351,7 @@ def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
         "refinement.lr": set_("refinement.lr", 1),  # an integer for a double
         "model_type": set_("model_type", "mobilenet"),  # read-only
         "window_stride": set_("window_stride", 4),  # > window_size
-        "refinement.bn_mode": set_("refinement.bn_mode", "banana"),
+        "refinement.loss": set_("refinement.loss", "banana"),
         "refinement.lr ": set_("refinement.lr", 0.0),
         # the tiny test model has no staged encoder: only the whole encoder can be refined
         "refinement.frozen_encoder_levels": set_("refinement.frozen_encoder_levels", 2),
@@ -361,7 +361,7 @@ def test_parameters_tuned_like_ros2_param(graph_factory, sequence):
     assert "type" in refused["refinement.lr"].reason.lower()
     assert "read-only" in refused["model_type"].reason
     assert "window_stride" in refused["window_stride"].reason
-    assert "bn_mode" in refused["refinement.bn_mode"].reason
+    assert "loss" in refused["refinement.loss"].reason
     assert "lr" in refused["refinement.lr "].reason
     assert "staged-encoder protocol" in refused["refinement.frozen_encoder_levels"].reason
     got = call(client.get_parameters(["refinement.steps", "window_size"])).values

@@ -42,7 +42,6 @@ def test_every_default_is_the_dataclass_field_default():
 def _other_value(p: schema.Param):
     """A valid value of ``p`` that is not its default."""
     special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True,
-               "check.max_scale_jump": 1.5,  # 0 or >= 1
                "check.unsupported_change_ratio": 1.5, "first_window_size": 4,
                "fallback_intrinsics": "700 700 300 200", "outputs": "depth,points",
                "odom.frame_id": "map", "odom.child_frame_id": "camera_optical_frame"}
@@ -108,7 +107,7 @@ def test_set_values_are_typed_by_the_schema():
     ("refinement.steps=1.5", "refinement.steps must be an integer"),
     ("refinement.steps=-1", "refinement.steps must be >= 0"),
     ("refinement.lr=2.0", "refinement.lr must be <= 1"),
-    ("refinement.bn_mode=sideways", "must be one of frozen, train"),
+    ("keyframe_policy=sideways", "must be one of newest, all"),
     ("weight_policy=maybe", "must be one of"),
     ("window_size=true", "must be an integer"),
     ("fx=abc", "fx must be a double"),  # a legacy name keeps its old type
@@ -190,7 +189,7 @@ def test_params_file_is_read_and_checked_like_the_node(tmp_path):
          r"not a parameter of the refiner node \(did you mean refinement\.steps"),
         ("refiner:\n  ros__parameters:\n    ttr.predict_batch: 1\n", "not a parameter"),
         ("refiner:\n  ros__parameters:\n    window_size: 1\n", "window_size must be >= 2"),
-        ("refiner:\n  ros__parameters:\n    refinement.bn_mode: x\n", "one of"),
+        ("refiner:\n  ros__parameters:\n    keyframe_policy: x\n", "one of"),
         ("refiner:\n  ros__parameters: [1, 2]\n", "not a mapping"),
         ("other_node:\n  ros__parameters:\n    window_size: 4\n", "no ros__parameters"),
         ("- a list\n", "expected a mapping"),
@@ -277,6 +276,39 @@ def test_schema_and_cli_parsers_import_without_ros():
     assert proc.returncode == 0, proc.stderr
 
 
+def test_reading_the_schema_imports_the_configs_not_the_pipeline():
+    """``import sfm_ttr_ros.core.params.schema`` loads the config dataclasses it reads, not the
+    pipeline, the stream's worker or pycolmap (a tool reading parameters pays for no SfM)."""
+    code = textwrap.dedent("""
+        import sys
+        import sfm_ttr_ros.core.params.schema
+        heavy = ("pycolmap", "sfm_ttr_ros.core.pipeline", "sfm_ttr_ros.core.stream.window_runner",
+                 "sfm_ttr_ros.core.refinement.encoder", "sfm_ttr_ros.core.sfm.reconstruction")
+        loaded = [m for m in heavy if m in sys.modules]
+        assert not loaded, loaded
+    """)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_parameters_retired_on_2026_11_29_set_their_config_fields():
+    """The parameters that left the schema on 2026-11-29 (docs/decisions.md) still work under
+    their old names for one release and set the config field; its checks still apply."""
+    old = {"refinement.bn_mode": "train", "refinement.photometric_weight": 3.0,
+           "min_keyframe_interval_s": 0.5, "reuse_live_predictions": False,
+           "compressed_depth.png_level": 9, "sfm.mapping_attempts": 3}
+    assert not set(old) & set(schema.SCHEMA)
+    s = schema.build(old, as_node=True)
+    assert (s.ttr.refinement.bn_mode, s.ttr.refinement.photometric_weight) == ("train", 3.0)
+    assert s.stream.min_keyframe_interval_s == 0.5 and not s.ttr.reuse_live_predictions
+    assert s.node.compressed_depth_png_level == 9 and s.ttr.sfm.mapping_attempts == 3
+    assert len(s.warnings) == len(old) and all("deprecated" in w for w in s.warnings)
+    assert "mapping_attempts" in schema.validate({"sfm.mapping_attempts": 0})
+    assert "png_level" in schema.validate({"compressed_depth.png_level": 10})
+
+
 def test_node_settings_validate_themselves():
     from sfm_ttr_ros.core.params.node import NodeSettings
 
@@ -291,8 +323,10 @@ def test_node_settings_validate_themselves():
                        ({"cloud_max_range": float("nan")}, "cloud.max_range")):
         with pytest.raises(InputError, match=match):
             NodeSettings(**bad)
-    # every node setting is a parameter
-    assert {f.name for f in dataclasses.fields(NodeSettings)} == {
+    # every node setting is a parameter, or a config field that was one (legacy.py)
+    fields_now = {row.becomes.removeprefix("the field node.") for row in schema.LEGACY
+                  if row.becomes.startswith("the field node.")}
+    assert {f.name for f in dataclasses.fields(NodeSettings)} == fields_now | {
         t.partition(".")[2] for p in schema.PARAMS for t in p.targets if t.startswith("node.")}
 
 

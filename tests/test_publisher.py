@@ -83,20 +83,27 @@ def test_a_failed_prediction_drops_the_frames_it_was_for():
     assert [o.frame.index for o in got] == [1, 2] and drops == [(0, "prediction_error")]
     c = q.counters()
     assert c["dropped_by_reason"] == {"prediction_error": 1} and c["unrefined"] == 2
-    assert q.ledger.balanced(q.pending()) and log.lines[0][0] == "error"
+    assert q.ledger.balanced(q.pending()) and log.lines[-1][0] == "error"
 
 
-def test_a_verdict_logs_then_publishes_the_flushed_keyframes_then_the_frame():
+def test_a_verdict_publishes_the_flushed_keyframes_then_the_frame_then_logs():
     pub, q, fs, outs, drops, log = setup(Net())
+    published_when_logged = []
+    pub.log = type("Log", (), {"warning": lambda self, m: published_when_logged.append(
+        (m, len(outs), q.pending()))})()
     v = Verdict("reset", flush=Unrefined.STAMP_JUMP_BACK, unrefined=Unrefined.STALE,
-                log="went back")
+                warning="went back")
     got = pub.verdict(fs[2], v, fs[:2])
     assert [(o.frame.index, o.reason_key) for o in got] == \
         [(0, "stamp_jump_back"), (1, "stamp_jump_back"), (2, "stale")]
-    assert log.lines == [("warning", "went back")]
+    assert published_when_logged == [("went back", 3, 0)]  # every frame out before the line
     pub, q, fs, outs, drops, log = setup(Net(), n=1)
     assert pub.verdict(fs[0], Verdict("twice", drop=Dropped.DUPLICATE_STAMP), []) == []
     assert drops == [(0, "duplicate_stamp")] and q.pending() == 0 and outs == []
+    assert log.lines == [("warning", "twice")]
+    pub, q, fs, outs, drops, log = setup(Net(), n=1)
+    assert pub.verdict(fs[0], Verdict(info="took the received K"), []) == []
+    assert log.lines == [("info", "took the received K")] and q.pending() == 1
 
 
 def test_warnings_are_throttled_per_key_and_an_overflow_says_how_many():

@@ -7,23 +7,28 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sfm_ttr_ros.core.alignment.scale import AlignmentConfig, AlignmentResult
-from sfm_ttr_ros.core.alignment.window_alignment import WindowAlignment
-from sfm_ttr_ros.core.checks.measures import CheckConfig, CheckReport
+from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
+from sfm_ttr_ros.core.checks.measures import CheckConfig
 from sfm_ttr_ros.core.errors import InputError, check_choice
-from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.metric.metric_config import MetricConfig
-from sfm_ttr_ros.core.metric.scale import WindowMetric
-from sfm_ttr_ros.core.outcomes import Stop, Unrefined
-from sfm_ttr_ros.core.refinement.encoder import RefinementResult
-from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
-from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
-from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
-from sfm_ttr_ros.core.sfm.result import SfmResult
+from sfm_ttr_ros.core.refinement.refinement_config import WEIGHT_POLICIES, RefinementConfig
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
+
+if TYPE_CHECKING:  # the stages' results: annotations only (TTRConfig, read by the parameter
+    # schema, imports the configs alone)
+    from sfm_ttr_ros.core.alignment.scale import AlignmentResult
+    from sfm_ttr_ros.core.alignment.window_alignment import WindowAlignment
+    from sfm_ttr_ros.core.checks.measures import CheckReport
+    from sfm_ttr_ros.core.frames import Frame, Intrinsics
+    from sfm_ttr_ros.core.metric.scale import WindowMetric
+    from sfm_ttr_ros.core.outcomes import Stop, Unrefined
+    from sfm_ttr_ros.core.refinement.encoder import RefinementResult
+    from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
+    from sfm_ttr_ros.core.sfm.result import SfmResult
 
 
 @dataclass

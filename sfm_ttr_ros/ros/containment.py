@@ -48,22 +48,27 @@ def fault_message(place: str, exc: BaseException, count: int) -> str:
 
 
 class ThrottledLog:
-    """A logger's warnings and errors, at most one per ``WARN_PERIOD_S`` per key."""
+    """A logger's warnings and errors, at most one per ``WARN_PERIOD_S`` per key. Each
+    severity has its own call site: rclpy refuses one call site logging at two severities."""
 
     def __init__(self, logger) -> None:
         self._logger = logger
         self._throttle = Throttle()
 
-    def warn_every(self, key: str, message: str, *, error: bool = False) -> None:
-        """Log ``message`` (an error when ``error``) unless ``key`` logged one within the
-        period."""
+    def warn_every(self, key: str, message: str) -> None:
+        """Log the warning ``message`` unless ``key`` logged one within the period."""
         if not self._throttle.due(key):
             return
-        # two call sites: rclpy refuses one call site logging at two severities
         try:
-            if error:
-                self._logger.error(message)
-            else:
-                self._logger.warning(message)
+            self._logger.warning(message)
+        except Exception:  # noqa: S110 - a log that cannot be written must not become a fault
+            pass
+
+    def error_every(self, key: str, message: str) -> None:
+        """Log the error ``message`` unless ``key`` logged one within the period."""
+        if not self._throttle.due(key):
+            return
+        try:
+            self._logger.error(message)
         except Exception:  # noqa: S110 - a log that cannot be written must not become a fault
             pass

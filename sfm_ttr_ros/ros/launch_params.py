@@ -7,7 +7,8 @@ Which keys of a parameter file are the node's (rcl's matching of node names in p
 files, ROS 2 design "Parameters", "YAML file format"):
 
 * sections that name the node (``refiner``, ``/refiner``, ``/<ns>/refiner``, ``/**/refiner``):
-  every key is checked as the node checks it (:func:`~sfm_ttr_ros.core.params.check_value`); a
+  every key is checked as the node checks it (the one reader of parameter files,
+  :func:`~sfm_ttr_ros.core.params.values.read_params_file`); a
   key that is neither a parameter of the node nor owned by ROS itself (:data:`ROS_OWNED`:
   ``use_sim_time``, ``qos_overrides.*``, ...) stops the launch, with the key named;
 * wildcard sections (``/**``): the node's parameters among them are checked the same way, the
@@ -23,9 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.params import SCHEMA, check_value, ros_literal
-from sfm_ttr_ros.core.params.legacy import BY_NAME as LEGACY_NAMES
-from sfm_ttr_ros.core.params.values import is_wildcard_section, names_node, parameter_sections
+from sfm_ttr_ros.core.params import read_params_file, ros_literal
 from sfm_ttr_ros.ros import names
 
 #: Parameters every rclpy node declares itself, and the prefix of those its QoS overriding
@@ -66,32 +65,11 @@ def ros_owned(key: str) -> bool:
 
 def node_parameters(path: str | Path, node_name: str = names.NODE_NAME) -> dict[str, Any]:
     """The parameters the file at ``path`` gives node ``node_name``, checked (see the module's
-    docstring); an unknown key of the node's own sections, a wrong type or a value out of range
+    docstring) by the one reader of parameter files,
+    :func:`~sfm_ttr_ros.core.params.values.read_params_file`, with ROS's own keys passed
+    through; an unknown key of the node's own sections, a wrong type or a value out of range
     raises :class:`InputError` naming the key."""
-    path = Path(path)
-    wild: dict[str, Any] = {}
-    own: dict[str, Any] = {}
-    for section, params in parameter_sections(path):
-        if is_wildcard_section(section):
-            wild.update(params)
-        elif names_node(section, node_name):
-            own.update(params)
-    values: dict[str, Any] = {}
-    for key, value in wild.items():
-        if key in SCHEMA or key in LEGACY_NAMES or ros_owned(key):
-            values[key] = value
-    for key, value in own.items():
-        if not (key in SCHEMA or key in LEGACY_NAMES or ros_owned(key)):
-            raise InputError(f"{path}: {key!r} is not a parameter of the {node_name} node "
-                             "(`sfm-ttr params` lists them)")
-        values[key] = value
-    if not values:
-        raise InputError(f"{path}: no ros__parameters for node {node_name!r}")
-    for key, value in values.items():
-        reason = None if ros_owned(key) else check_value(key, value)
-        if reason:
-            raise InputError(f"{path}: {reason}")
-    return values
+    return read_params_file(path, node_name, passed_through=ros_owned)
 
 
 def parameter_arguments(values: Mapping[str, Any], use_sim_time: str = "") -> list[str]:

@@ -176,11 +176,11 @@ class RefinerNode(Node):
     def fault(self, place: str, exc: BaseException) -> None:
         """Count and log (throttled per place) an exception contained at ``place``."""
         n = self.diagnostics.fault(place)
-        self.warn_every(f"fault:{place}", fault_message(place, exc, n), error=True)
+        self._log.error_every(f"fault:{place}", fault_message(place, exc, n))
 
-    def warn_every(self, key: str, message: str, *, error: bool = False) -> None:
-        """Log ``message`` at most once per ``WARN_PERIOD_S`` per ``key``."""
-        self._log.warn_every(key, message, error=error)
+    def warn_every(self, key: str, message: str) -> None:
+        """Log the warning ``message`` at most once per ``WARN_PERIOD_S`` per ``key``."""
+        self._log.warn_every(key, message)
 
     # -- callbacks (executor thread: convert and hand over only) -------------------------------
     @contained("image_callback")

@@ -28,7 +28,6 @@ PARAM_FLAGS: dict[str, tuple[str, str]] = {
     "--threads": ("torch_num_threads", "model"),
     "--steps": ("refinement.steps", "method"),
     "--lr": ("refinement.lr", "method"),
-    "--bn-mode": ("refinement.bn_mode", "method"),
     "--weighting": ("refinement.weighting", "method"),
     "--tau": ("alignment.tau", "method"),
     "--sfm-max-image-size": ("sfm.max_image_size", "method"),

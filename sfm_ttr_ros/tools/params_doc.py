@@ -5,8 +5,9 @@ schema (:mod:`sfm_ttr_ros.core.params`). Regenerate the page with
 from __future__ import annotations
 
 import argparse
+from textwrap import fill
 
-from sfm_ttr_ros.core.params import markdown_table
+from sfm_ttr_ros.core.params import LEGACY, markdown_table
 
 INTRO = """\
 # Parameters
@@ -36,11 +37,7 @@ Names of the last release that still work for one more release, with a warning a
 `publish_colored`, `publish_refined`, `publish_points`, `publish_diagnostics` (now `outputs`),
 `reset_each_window` (now `weight_policy`). Parameters that became config fields (settable as
 `--set section.field` in `sfm-ttr` for experiments, or under their old name for one release):
-`num_layers`, `live_max_queue`, `worker_nice`, `sfm.prefetch`, `sfm.refine_intrinsics`,
-`sfm.min_points`, `alignment.ransac_iterations`,
-`sfm.retry_above_error`, `sfm.retry_above_ratio`, `alignment.relaxed_tau`,
-`alignment.affine_ransac_iterations`, `refinement.photometric_alpha`,
-`refinement.smoothness_weight`, `refinement.photometric_sources`, `refinement.lora_rank`.
+{fields}.
 Removed, because they lost their measurement (docs/decisions.md; at their old default they are
 ignored with a warning, at any other value refused): `carried_steps`, `continual.*` (with
 `weight_policy: continual`), `check.holdout_fraction`, `check.holdout_margin`,
@@ -50,8 +47,11 @@ ignored with a warning, at any other value refused): `carried_steps`, `continual
 
 
 def parameters_page() -> str:
-    """docs/parameters.md: the introduction, the table, when live values apply."""
-    return INTRO + markdown_table() + LIVE
+    """docs/parameters.md: the introduction, the table, when live values apply and the names
+    of the last release (the config fields among them from :data:`~sfm_ttr_ros.core.params.
+    legacy.LEGACY`)."""
+    fields = [f"`{row.name}`" for row in LEGACY if row.becomes.startswith("the field ")]
+    return INTRO + markdown_table() + LIVE.format(fields=fill(", ".join(fields), 96))
 
 
 def cmd_params(args: argparse.Namespace) -> int:

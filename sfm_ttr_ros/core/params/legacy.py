@@ -87,6 +87,18 @@ LEGACY: tuple[Legacy, ...] = (
            "refinement.photometric_sources", _field("refinement.photometric_sources")),
     Legacy("refinement.lora_rank", 8, "the field refinement.lora_rank",
            _field("refinement.lora_rank")),
+    # 2026-11-29, kept as config fields (docs/decisions.md says why each left the schema)
+    *(Legacy(path, default, f"the field {path}", _field(path)) for path, default in (
+        ("sfm.init_min_tri_angle", 1.0), ("sfm.mapping_attempts", 2),
+        ("refinement.photometric_weight", 10.0), ("refinement.sfm_residual", "relative"),
+        ("refinement.bn_mode", "frozen"), ("refinement.precision", "fp32"),
+        ("check.max_reprojection_error", 2.0), ("check.max_scale_jump", 2.0))),
+    Legacy("min_keyframe_interval_s", 0.0, "the field stream.min_keyframe_interval_s",
+           _field("stream.min_keyframe_interval_s")),
+    Legacy("reuse_live_predictions", True, "the field ttr.reuse_live_predictions",
+           _field("ttr.reuse_live_predictions")),
+    Legacy("compressed_depth.png_level", 1, "the field node.compressed_depth_png_level",
+           _field("node.compressed_depth_png_level")),
     # removed: lost their measurement
     Legacy("carried_steps", 0, "nothing (removed)"),
     Legacy("continual.replay_windows", 3, "nothing (removed with weight_policy continual)"),

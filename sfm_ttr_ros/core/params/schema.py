@@ -43,20 +43,17 @@ from sfm_ttr_ros.core.params.node import (
     USE_PROJECTION_CHOICES,
     NodeSettings,
 )
-from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.refinement.refinement_config import (
-    BN_MODES,
     LOSSES,
-    PRECISIONS,
-    SFM_RESIDUALS,
+    WEIGHT_POLICIES,
     WEIGHTINGS,
     RefinementConfig,
 )
 from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
-from sfm_ttr_ros.core.refinement.weights import WEIGHT_POLICIES
 from sfm_ttr_ros.core.sfm.sfm_config import FEATURE_BACKENDS, SFM_MODES, SfmConfig
 from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES
-from sfm_ttr_ros.core.stream.window_runner import StreamSettings
+from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.window_io import TTRConfig
 
 INT_MAX = 2**31 - 1
 #: section name → the config dataclass its fields live in
@@ -137,8 +134,6 @@ PARAMS: tuple[Param, ...] = (
        "skipped ('stale'); all = every frame (a camera faster than the windows overloads the "
        "queue). Frames passed on are served live and published unrefined.",
        choices=KEYFRAME_POLICIES),
-    _p("min_keyframe_interval_s", "stream.min_keyframe_interval_s", "Minimum time between "
-       "keyframes (stamps), seconds; other frames pass unrefined ('not_keyframe').", 0.0, 3600.0),
     _p("min_keyframe_motion", "stream.min_keyframe_motion", "Minimum mean absolute grey-level "
        "difference (0-255, on 64-px-wide thumbnails) of a keyframe to the last one; 0 = off.",
        0.0, 255.0),
@@ -184,13 +179,6 @@ PARAMS: tuple[Param, ...] = (
        "(upsampled image), 0 = start at full size (faster).", -1, 8),
     _p("sfm.overlap", "sfm.overlap", "Sequential matching: each frame is matched with the next "
        "N frames.", 1, 1000),
-    _p("sfm.init_min_tri_angle", "sfm.init_min_tri_angle", "Minimum triangulation angle "
-       "(degrees) of the mapper's initial pair (COLMAP's 16 rejects forward driving).", 0.0,
-       90.0, constraints="> 0"),
-    _p("sfm.mapping_attempts", "sfm.mapping_attempts", "Runs of the incremental mapper per "
-       "window, each with the next seed, while the best reconstruction so far fits badly (mean "
-       "reprojection error high in itself or against the stream's last reconstructions); the "
-       "one with the most registered frames, then the lowest error, is kept.", 1, 100),
     _p("sfm.num_threads", "sfm.num_threads", "Threads of feature extraction, matching and "
        "mapping.", 1, 256),
     # -- alignment (live) ---------------------------------------------------------------------
@@ -204,20 +192,12 @@ PARAMS: tuple[Param, ...] = (
     _p("refinement.lr", "refinement.lr", "Adam learning rate.", 0.0, 1.0, constraints="> 0"),
     _p("refinement.loss", "refinement.loss", "A step's objective: sfm = the paper's Eq. (5); "
        "photometric = Monodepth2's photometric + smoothness loss with the window's SfM poses "
-       "(Ph-TTR); hybrid = Eq. (5)'s term + refinement.photometric_weight x that loss; auto = "
+       "(Ph-TTR); hybrid = Eq. (5)'s term + lambda x that loss (the field "
+       "refinement.photometric_weight); auto = "
        "hybrid, or sfm for a network whose output is affine-invariant.", choices=LOSSES),
-    _p("refinement.photometric_weight", "refinement.photometric_weight", "lambda of the hybrid "
-       "loss: the weight of the photometric term against the SfM term; 0 = Eq. (5) alone.",
-       0.0, 1e6),
-    _p("refinement.sfm_residual", "refinement.sfm_residual", "The hybrid loss's SfM term: "
-       "relative = |s*D_sfm - D_nn| / (s*D_sfm), near and far points alike; absolute = the "
-       "paper's |s*D_sfm - D_nn| (far points weigh more). Loss sfm is always the paper's.",
-       choices=SFM_RESIDUALS),
     _p("refinement.weighting", "refinement.weighting", "Per-point weight of the SfM term: "
        "exp(-r^2) with the reprojection error r per observation or per track, or none.",
        choices=WEIGHTINGS),
-    _p("refinement.bn_mode", "refinement.bn_mode", "BatchNorm during refinement: frozen = "
-       "running statistics, train = each step's own.", choices=BN_MODES),
     _p("refinement.frozen_encoder_levels", "refinement.frozen_encoder_levels", "Keep the "
        "encoder fixed up to its L-th feature map (1 = 1/2 ... 4 = 1/16 of the input), computed "
        "once per frame instead of once per step (faster); 0 = the whole encoder trains.",
@@ -229,24 +209,13 @@ PARAMS: tuple[Param, ...] = (
     _p("refinement.trainable_blocks", "refinement.trainable_blocks", "Transformer encoders: "
        "train only inside the last N blocks (the blocks before run once per frame); 0 = all.",
        0, 1000),
-    _p("refinement.precision", "refinement.precision", "A step's forward pass: fp32; bf16 = "
-       "under bfloat16 autocast (loss, weights and Adam in fp32) where the CPU (AVX-512 BF16 "
-       "or AMX) or GPU computes bf16, else fp32 with a logged reason.", choices=PRECISIONS),
     _p("weight_policy", "ttr.weight_policy", "Where each window's refinement starts: continue "
        "= the last accepted window's weights (a refused or failed window leaves them as they "
        "were); reset = the start-up weights (the paper).", choices=WEIGHT_POLICIES),
     _p("max_loss_ratio", "ttr.max_loss_ratio", "Roll a window back to the weights before it "
        "when its loss after refinement exceeds this many times the loss before ('rolled_back'; "
        "non-finite losses always roll back); 0 = only the non-finite check.", 0.0, 1e6),
-    _p("reuse_live_predictions", "ttr.reuse_live_predictions", "A window takes the network "
-       "depth of a frame the live output served with the very weights the window starts from "
-       "(weight_policy continue, once the window before was accepted) instead of predicting "
-       "it again; frames served with interim or older weights are predicted again. Equal to "
-       "~1e-6 relative (the live thread's thread team)."),
     # -- window checks (live) -----------------------------------------------------------------
-    _p("check.max_reprojection_error", "check.max_reprojection_error", "Refuse a window whose "
-       "mean SfM reprojection error exceeds this, px ('check_reprojection'); 0 = off.",
-       0.0, 1e3),
     _p("check.max_reprojection_ratio", "check.max_reprojection_ratio", "Refuse a window whose "
        "mean reprojection error exceeds this factor x the median of the stream's last 10 "
        "accepted windows ('check_reprojection'; from the third window on); 0 = off.", 0.0,
@@ -254,10 +223,6 @@ PARAMS: tuple[Param, ...] = (
     _p("check.min_parallax", "check.min_parallax", "Refuse a window whose camera centres span "
        "less than this fraction of the median SfM depth ('check_parallax': creeping or turning "
        "on the spot); 0 = off.", 0.0, 1e3),
-    _p("check.max_scale_jump", "check.max_scale_jump", "Refuse a window whose camera path on "
-       "the frames it shares with the previous accepted window differs by more than this "
-       "factor in network units ('check_scale_jump'); 0 = off.", 0.0, 1e3,
-       constraints="0 or >= 1"),
     _p("check.max_unsupported_change", "check.max_unsupported_change", "Refuse the refined "
        "weights of a window when more than this share of the pixels far from every SfM point "
        "changed depth by more than 1.5x against the change at the points (a region SfM says "
@@ -342,9 +307,6 @@ PARAMS: tuple[Param, ...] = (
     _p("compressed_depth.depth_max", "node.compressed_depth_max", "compressedDepth outputs: "
        "depths at or beyond this (metres, or the network's units on the relative topics) are "
        "sent as none (image_transport's depth_max).", 1e-3, 1e6),
-    _p("compressed_depth.png_level", "node.compressed_depth_png_level", "compressedDepth "
-       "outputs: PNG compression level (image_transport's png_level; 9 takes ~25x longer "
-       "than 1 for ~15 % fewer bytes).", 0, 9),
     _p("odom.frame_id", "node.odom_frame_id", "~/odom (outputs: odom): the frame the camera's "
        "path is in (REP 105's odom).", **_START_UP),
     _p("odom.child_frame_id", "node.odom_child_frame_id", "~/odom: the camera's frame; empty "

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,10 +32,10 @@ from sfm_ttr_ros.core.params.schema import (
     config_field,
     settable,
 )
-from sfm_ttr_ros.core.pipeline import TTRConfig
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
-from sfm_ttr_ros.core.stream.window_runner import StreamSettings
+from sfm_ttr_ros.core.stream.settings import StreamSettings
+from sfm_ttr_ros.core.window_io import TTRConfig
 
 BUILTIN_MODELS = ("default", "monodepth2", "mobilenet", "hf")
 _ARTICLES = {bool: "a bool", int: "an integer", float: "a double", str: "a string"}
@@ -211,30 +211,44 @@ def names_node(section: str, node_name: str) -> bool:
     return section.lstrip("/").split("/")[-1] == node_name
 
 
-def _ros_parameters(path: Path, node_name: str) -> dict[str, Any]:
-    """The ``ros__parameters`` of ``path`` for ``node_name``: wildcard sections ``/**`` first,
-    then the node's own; nested mappings flattened with dots."""
-    wild, own = {}, {}
+def read_params_file(path: str | Path, node_name: str, *,
+                     passed_through: Callable[[str], bool] | None = None) -> dict[str, Any]:
+    """The ``ros__parameters`` a ROS 2 parameter file gives node ``node_name`` (wildcard
+    sections ``/**`` first, then the node's own, which win; nested mappings flattened with
+    dots), checked as the node checks them: every key a parameter (or a legacy name), of its
+    type (a double written as ``1`` is an error, as for rclpy) and within its range and
+    choices. The one reader of parameter files (the CLI, the benchmark, the launch).
+
+    ``passed_through(key)``: keys the caller hands on unchecked (ROS's own parameters, for the
+    launch). With it, a file is read as one shared by several nodes: a wildcard section's keys
+    that are neither the node's nor passed through are other nodes' and are left out; without
+    it every key must be the node's."""
+    path = Path(path)
+    wild: dict[str, Any] = {}
+    own: dict[str, Any] = {}
     for section, params in parameter_sections(path):
         if is_wildcard_section(section):
             wild.update(params)
         elif names_node(section, node_name):
             own.update(params)
-    return {**wild, **own}
 
+    def ours(key: str) -> bool:
+        return key in SCHEMA or key in legacy.BY_NAME
 
-def read_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
-    """The ``ros__parameters`` a ROS 2 parameter file gives node ``node_name``, checked as the
-    node checks them: every key a parameter (or a legacy name), of its type (a double written
-    as ``1`` is an error, as for rclpy) and within its range and choices."""
-    path = Path(path)
-    values = _ros_parameters(path, node_name)
+    def kept(key: str) -> bool:
+        return passed_through is not None and passed_through(key)
+
+    if passed_through is not None:
+        wild = {k: v for k, v in wild.items() if ours(k) or kept(k)}
+    values = {**wild, **own}
     if not values:
         raise InputError(f"{path}: no ros__parameters for node {node_name!r}")
     for key, value in values.items():
-        if key not in SCHEMA and key not in legacy.BY_NAME:
+        if kept(key):
+            continue
+        if not ours(key):
             raise InputError(f"{path}: {key!r} is not a parameter of the {node_name} node"
-                             f"{_close(key, fields=False)}")
+                             f"{_close(key, fields=False)} (`sfm-ttr params` lists them)")
         reason = check_value(key, value)
         if reason:
             raise InputError(f"{path}: {reason}")

@@ -20,6 +20,8 @@ from sfm_ttr_ros.core.refinement.photometric import (
 from sfm_ttr_ros.core.refinement.trainable import TRAINABLE_MODES
 
 BN_MODES = ("frozen", "train")
+#: Where each window's weights start (``TTRConfig.weight_policy``, core/refinement/weights.py).
+WEIGHT_POLICIES = ("reset", "continue")
 WEIGHTINGS = ("observation", "track", "none")
 SAMPLINGS = ("bilinear", "nearest")
 #: A step's objective (core/refinement/objective.py): Eq. (5), Ph-TTR, or Eq. (5) + λ·Ph-TTR.

@@ -15,8 +15,9 @@ from collections.abc import Callable
 
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.encoder import restore_encoder, snapshot_encoder
+from sfm_ttr_ros.core.refinement.refinement_config import WEIGHT_POLICIES
 
-WEIGHT_POLICIES = ("reset", "continue")
+__all__ = ["WEIGHT_POLICIES", "WeightPolicy"]
 
 
 class WeightPolicy:

@@ -16,20 +16,23 @@ _RESTART = "pending frame(s) published unrefined and a new window started"
 
 @dataclass(frozen=True)
 class Verdict:
-    """What a rule says about a frame, applied in this order: ``log`` written, the pending
-    keyframes published unrefined under ``flush``, a new window started (``reset``: the
-    keyframe rule starts from scratch), then the frame itself dropped under ``drop`` or
-    published unrefined under ``unrefined``. With neither, the frame goes on to the next rule.
-    ``reason`` is the text counted beside the keys."""
+    """What a rule says about a frame, applied in this order: the pending keyframes published
+    unrefined under ``flush``, a new window started (``reset``: the keyframe rule starts from
+    scratch), the frame itself dropped under ``drop`` or published unrefined under
+    ``unrefined``, then ``warning`` / ``info`` written (after the frames are carried out: a log
+    that fails loses no frame). With neither ``drop`` nor ``unrefined``, the frame goes on to
+    the next rule. ``reason`` is the text counted beside the keys. A line has its severity in
+    its field, never chosen at run time: rclpy's logger refuses one call site logging at two
+    severities."""
 
     reason: str = ""
     drop: Dropped | None = None
     flush: Unrefined | None = None
     unrefined: Unrefined | None = None
     reset: bool = False
-    log: str = ""
-    level: str = "warning"  # of ``log``: "info" or "warning"
-    throttle: str = ""  # set: ``log`` is a warning written at most once per period per key
+    warning: str = ""
+    info: str = ""
+    throttle: str = ""  # set: ``warning`` is written at most once per period per key
 
     @property
     def final(self) -> bool:
@@ -47,7 +50,8 @@ def stamp_rule(stamp: float, last: float | None, pending: int) -> Verdict | None
         return Verdict(f"frame with the same stamp as the previous one ({stamp:.9f}) rejected",
                        drop=Dropped.DUPLICATE_STAMP)
     return Verdict("stamp went back: window reset", flush=Unrefined.STAMP_JUMP_BACK, reset=True,
-                   log=f"stamp went back from {last:.6f} to {stamp:.6f} s: {pending} {_RESTART}")
+                   warning=f"stamp went back from {last:.6f} to {stamp:.6f} s: {pending} "
+                           f"{_RESTART}")
 
 
 def stale_verdict(policy: str) -> Verdict:
@@ -67,7 +71,7 @@ def image_rule(frame: Frame, intrinsics: Intrinsics, released: bool) -> Verdict 
         reason = ("overload: image released by the backlog bound (overload_pending + "
                   "window_size images kept); served live")
         return Verdict(reason, flush=Unrefined.OVERLOAD, unrefined=Unrefined.OVERLOAD,
-                       reset=True, log=reason, throttle="overload")
+                       reset=True, warning=reason, throttle="overload")
     if frame.size != (intrinsics.width, intrinsics.height):
         return Verdict(f"intrinsics are for {intrinsics.width}x{intrinsics.height}, the image "
                        f"is {frame.size[0]}x{frame.size[1]}",
@@ -85,10 +89,10 @@ def intrinsics_rule(new: Intrinsics, current: Intrinsics | None, current_fallbac
         return None
     size_changed = (new.width, new.height) != (current.width, current.height)
     if current_fallback and not new_fallback and not size_changed:
-        return Verdict(log=f"intrinsics received: {new} replace the fallback {current} for the "
-                           f"{pending} pending frame(s)", level="info")
+        return Verdict(info=f"intrinsics received: {new} replace the fallback {current} for the "
+                            f"{pending} pending frame(s)")
     key = Unrefined.RESOLUTION_CHANGE if size_changed else Unrefined.INTRINSICS_CHANGE
     what = (f"image size changed from {current.width}x{current.height} to "
             f"{new.width}x{new.height}" if size_changed else
             f"intrinsics changed from {current} to {new}")
-    return Verdict(what, flush=key, reset=True, log=f"{what}: {pending} {_RESTART}")
+    return Verdict(what, flush=key, reset=True, warning=f"{what}: {pending} {_RESTART}")

@@ -63,40 +63,46 @@ class FramePublisher:
         todo = [f for f in frames
                 if f.image is not RELEASED_IMAGE and (again or not f.served_live)]
         depths: dict[int, np.ndarray] = {}
+        failure = ""
         if todo:
             try:
                 depths = dict(zip(map(id, todo),
                                   self.ttr.predictor.predict([f.image for f in todo]),
                                   strict=True))
             except Exception as exc:
-                msg = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
-                self.log.error(msg)
+                failure = f"prediction failed ({type(exc).__name__}: {exc}): frame(s) dropped"
                 self.queue.drop_taken(todo, Dropped.PREDICTION_ERROR)
                 for f in todo:
-                    self.drop(f, Dropped.PREDICTION_ERROR, msg)
+                    self.drop(f, Dropped.PREDICTION_ERROR, failure)
                 failed = set(map(id, todo))
                 frames = [f for f in frames if id(f) not in failed]
         k = None if self.ttr is None else self.ttr.metres_per_unit
         outs = [FrameOutput(f, in_metres(depths.get(id(f)), k), False, key, reason, window,
                             metres_per_unit=k) for f in frames]
         self._account(outs)
+        if failure:  # logged once every frame is out: a log that fails loses none
+            self.log.error(failure)
         return outs
 
     def verdict(self, frame: Frame, v: Verdict, flushed: Sequence[Frame]) -> list[FrameOutput]:
-        """What an admission verdict says, in its order (:class:`~.admission.Verdict`): its
-        log line, the ``flushed`` keyframes unrefined under ``v.flush``, then the frame dropped
-        or published unrefined."""
-        if v.throttle:
-            self.warn(v.throttle, v.log)
-        elif v.log:
-            (self.log.info if v.level == "info" else self.log.warning)(v.log)
+        """What an admission verdict says, in its order (:class:`~.admission.Verdict`): the
+        ``flushed`` keyframes unrefined under ``v.flush``, the frame dropped or published
+        unrefined, then its log lines (each at its one severity), so a log that fails loses no
+        frame."""
+        outs: list[FrameOutput] = []
         if v.drop is not None:
             self.queue.drop_taken([frame], v.drop)
             self.drop(frame, v.drop, v.reason)
-            return []
-        outs = self.unrefined(flushed, v.flush, v.reason) if flushed else []
-        if v.unrefined is not None:
-            outs += self.unrefined([frame], v.unrefined, v.reason)
+        else:
+            outs = self.unrefined(flushed, v.flush, v.reason) if flushed else []
+            if v.unrefined is not None:
+                outs += self.unrefined([frame], v.unrefined, v.reason)
+        if v.throttle:
+            self.warn(v.throttle, v.warning)
+        elif v.warning:
+            self.log.warning(v.warning)
+        if v.info:
+            self.log.info(v.info)
         return outs
 
     def _account(self, outs: list[FrameOutput]) -> None:
@@ -114,10 +120,10 @@ class FramePublisher:
                   f"frame (stamp {frame.stamp:.6f}); {n} dropped so far")
 
     def drop(self, frame: Frame | None, key: Dropped, message: str) -> None:
-        """Report a dropped frame (already counted): a throttled warning and the sink."""
-        self.warn(f"drop:{key}", message)
+        """Report a dropped frame (already counted): the sink, then a throttled warning."""
         if self.on_drop is not None:
             self.on_drop(frame, key, message)
+        self.warn(f"drop:{key}", message)
 
     def warn(self, key: str, message: str) -> None:
         """Log a warning at most once per :data:`~sfm_ttr_ros.core.stream.throttle.WARN_PERIOD_S`
