@@ -256,7 +256,7 @@ def test_a_windows_metres_are_its_depth_outputs_factor_times_its_alignment_scale
     from sfm_ttr_ros.core.metric.scale import WindowMetric
     from sfm_ttr_ros.core.window_io import WindowResult
 
-    measured = WindowMetric("camera_height", m=2.0, k=0.5)
+    measured = WindowMetric("camera_height", metres_per_sfm_unit=2.0, metres_per_net_unit=0.5)
     # metric.learn: ŝ is the window's metres (the supervision's), the factor 1
     res = WindowResult(["a"], {}, {}, refined=True, metric=measured, scale=2.0)
     assert metres_per_sfm_unit(res, 1.0) == pytest.approx(2.0)
@@ -288,7 +288,8 @@ def test_the_streams_path_stamps_its_poses_from_the_frames_and_reports_their_uni
                                               for i in idx})
         sfm.anchors = {f"{i:04d}": _observed(f"{i:04d}", world[i]) for i in anchors}
         return WindowResult([f"{i:04d}" for i in idx], {}, {}, True, sfm=sfm, scale=scale,
-                            metric=WindowMetric("camera_height", m=scale, k=1.0))
+                            metric=WindowMetric("camera_height", metres_per_sfm_unit=scale,
+                                                metres_per_net_unit=1.0))
 
     path = StreamPath()
     first = path.window(frames[0:6], result(range(0, 6)), None)

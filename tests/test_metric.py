@@ -53,9 +53,9 @@ def test_the_camera_height_is_found_in_sfm_units_under_any_scale():
         assert plane.inliers >= 100 and plane.spread < 0.05 and abs(plane.pitch_deg) < 1
         w = estimate(cfg, sfm, reg, [0.1 * i for i in range(10)], alignment_scale=2.0,
                      odometry=None)
-        assert w.ok and w.m == pytest.approx(units, rel=0.02)
-        assert w.k == pytest.approx(units / 2.0, rel=0.02)  # metres per network unit
-        assert w.k_after == 1.0  # learn: the refined network predicts metres
+        assert w.ok and w.metres_per_sfm_unit == pytest.approx(units, rel=0.02)
+        assert w.metres_per_net_unit == pytest.approx(units / 2.0, rel=0.02)
+        assert w.metres_per_net_unit_after == 1.0  # learn: the refined network predicts metres
 
 
 @pytest.mark.parametrize("kind, why", [
@@ -90,7 +90,7 @@ def test_odometry_gives_metres_per_sfm_unit_from_the_travelled_path():
     assert not track.add(9.0, [np.nan, 0, 0]) and track.rejected == 2
     cfg = MetricConfig(source="odometry")
     w = estimate(cfg, sfm, reg, [0.1 * i for i in range(10)], 1.0, track)
-    assert w.ok and w.m == pytest.approx(0.5) and w.travel_m == pytest.approx(5.4)
+    assert w.ok and w.metres_per_sfm_unit == pytest.approx(0.5) and w.travel_m == pytest.approx(5.4)
     assert not estimate(cfg, sfm, reg, [0.1 * i + 5 for i in range(10)], 1.0, track).ok
     standing = OdometryTrack()
     for i in range(20):
@@ -106,28 +106,29 @@ def test_a_network_that_learns_metres_is_served_as_metric_and_a_jump_is_refused(
     cfg = MetricConfig(source="camera_height", max_jump=1.5)
     scale = MetricScale()
     assert scale.factor(cfg) is None  # waiting for the first accepted estimate
-    first = WindowMetric("camera_height", k=0.6, k_after=1.0)  # start-up units: 0.6 m each
+    # start-up units: 0.6 m each
+    first = WindowMetric("camera_height", metres_per_net_unit=0.6, metres_per_net_unit_after=1.0)
     assert scale.judge(cfg, first, "continue") == ""  # no reference yet
     scale.accept(cfg, first, "continue")
     assert scale.factor(cfg) == 1.0
     for k in (1.02, 0.97):
-        w = WindowMetric("camera_height", k=k, k_after=1.0)
+        w = WindowMetric("camera_height", metres_per_net_unit=k, metres_per_net_unit_after=1.0)
         assert scale.judge(cfg, w, "continue") == ""
         scale.accept(cfg, w, "continue")
     assert scale.spread() == pytest.approx(0.025, abs=1e-9)
-    assert "metric.max_jump" in scale.judge(cfg, WindowMetric("camera_height", k=1.8,
-                                                                k_after=1.0), "continue")
+    jump = WindowMetric("camera_height", metres_per_net_unit=1.8, metres_per_net_unit_after=1.0)
+    assert "metric.max_jump" in scale.judge(cfg, jump, "continue")
 
 
 def test_scaled_outputs_take_the_median_of_the_accepted_windows():
     cfg = MetricConfig(source="camera_height", max_jump=1.5, learn=False)
     scale = MetricScale()
     for k in (0.5, 0.52, 0.49):
-        w = WindowMetric("camera_height", k=k, k_after=k)
+        w = WindowMetric("camera_height", metres_per_net_unit=k, metres_per_net_unit_after=k)
         assert scale.judge(cfg, w, "continue") == ""
         scale.accept(cfg, w, "continue")
     assert scale.factor(cfg) == pytest.approx(0.5) and scale.spread() < 0.05
-    jump = WindowMetric("camera_height", k=0.9, k_after=0.9)
+    jump = WindowMetric("camera_height", metres_per_net_unit=0.9, metres_per_net_unit_after=0.9)
     assert "metric.max_jump 1.5" in scale.judge(cfg, jump, "continue")
     # no estimate: no verdict
     assert scale.judge(cfg, WindowMetric("camera_height"), "continue") == ""
@@ -141,11 +142,12 @@ def test_under_reset_a_window_is_judged_against_the_start_up_weights():
     cfg = MetricConfig(source="camera_height", max_jump=1.5)
     scale = MetricScale()
     for k in (0.6, 0.62, 0.58):
-        w = WindowMetric("camera_height", k=k, k_after=1.0)
+        w = WindowMetric("camera_height", metres_per_net_unit=k, metres_per_net_unit_after=1.0)
         assert scale.judge(cfg, w, "reset") == "", k
         scale.accept(cfg, w, "reset")
     assert scale.factor(cfg) == 1.0 and scale.reference(cfg, "reset") == pytest.approx(0.6)
-    assert scale.judge(cfg, WindowMetric("camera_height", k=1.2, k_after=1.0), "reset")
+    far = WindowMetric("camera_height", metres_per_net_unit=1.2, metres_per_net_unit_after=1.0)
+    assert scale.judge(cfg, far, "reset")
 
 
 def test_metric_settings_validate_themselves():

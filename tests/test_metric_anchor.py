@@ -25,12 +25,13 @@ class Network:
         self.u, self.policy = u, policy
 
     def window(self, scale: MetricScale, cfg: MetricConfig, e: float) -> tuple[str, WindowMetric]:
-        w = WindowMetric("camera_height", m=e, k=self.u * e, k_after=1.0, target_m=e)
+        w = WindowMetric("camera_height", metres_per_sfm_unit=e, metres_per_net_unit=self.u * e,
+                         metres_per_net_unit_after=1.0, supervision_metres_per_sfm_unit=e)
         why = scale.judge(cfg, w, self.policy)
         if not why:
             scale.accept(cfg, w, self.policy)
             if self.policy == "continue":
-                self.u = w.m / (w.target_m * e)
+                self.u = w.metres_per_sfm_unit / (w.supervision_metres_per_sfm_unit * e)
         return why, w
 
 
@@ -59,13 +60,16 @@ def test_a_disagreeing_window_does_not_move_the_learnt_metres():
         net.window(scale, cfg, e)
     why, w = net.window(scale, cfg, 1.4)
     assert why == "" and w.verdict == "disagrees" and "anchor" in w.reason
-    assert w.target_m == pytest.approx(1.0)  # ref (1) · ŝ (m / k = 1): the stream's metres
+    # ref (1) · ŝ (m / k = 1): the stream's metres
+    assert w.supervision_metres_per_sfm_unit == pytest.approx(1.0)
     assert net.u == pytest.approx(1.0) and scale.factor(cfg) == 1.0
     # under reset the anchor is the start-up weights' k
     scale, net = MetricScale(), Network(0.6, "reset")
     for e in (1.0, 1.02, 1.4):
         why, w = net.window(scale, cfg, e)
-    assert w.verdict == "disagrees" and w.target_m == pytest.approx(w.m * 0.606 / w.k, rel=1e-3)
+    shat = w.metres_per_sfm_unit / w.metres_per_net_unit
+    assert w.verdict == "disagrees"
+    assert w.supervision_metres_per_sfm_unit == pytest.approx(0.606 * shat, rel=1e-3)
     assert scale.reference(cfg, "reset") == pytest.approx(0.606)
 
 
@@ -126,7 +130,7 @@ def test_a_bag_played_twice_keeps_odometry_metres():
         for i in range(40):
             assert track.add(100.0 + 0.05 * i, [0.0, 0.0, 0.3 * i])
         w = estimate(cfg, sfm, reg, [100.0 + 0.1 * i for i in range(10)], 1.0, track)
-        ms.append(w.m)
+        ms.append(w.metres_per_sfm_unit)
     assert ms == pytest.approx([0.5, 0.5])
     assert (track.resets, track.rejected) == (1, 0)
     assert not track.add(101.5, [0, 0, 0]) and track.rejected == 1  # slightly back: out of order

@@ -55,7 +55,8 @@ def full_result(refined: bool) -> WindowResult:
         alignment=AlignmentResult(2.0, np.array([True, True, False, True]),
                                   np.array([True, False, False, True])),
         refinement=RefinementResult(steps_done=3, step_mode="eager", step_mode_reason="cpu"),
-        metric=WindowMetric("ground", k=0.5, reason="ok"), scale=2.0, loss_before=0.4,
+        metric=WindowMetric("ground", metres_per_net_unit=0.5, reason="ok"), scale=2.0,
+        loss_before=0.4,
         loss_after=0.2, cloud_frame="c", cloud_xyz=np.ones((7, 3), np.float32),
         cloud_error=np.ones(7, np.float32), timings={"sfm": 1.0})
 

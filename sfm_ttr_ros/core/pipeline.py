@@ -213,8 +213,9 @@ class SfmTTR:
         if why := self.metric.judge(cfg.metric, w.metric, cfg.weight_policy):
             return Stop(Unrefined.CHECK_SCALE_JUMP, f"check: {why}")
         if cfg.metric.learn and w.metric.ok:  # Eq. (5)'s targets m·D_sfm: metres are learnt
-            res.alignment = dataclasses.replace(res.alignment, scale=w.metric.target_m)
-            res.scale = w.metric.target_m
+            metres = w.metric.supervision_metres_per_sfm_unit
+            res.alignment = dataclasses.replace(res.alignment, scale=metres)
+            res.scale = metres
         return None
 
     def _supervise(self, w: WindowState) -> None:

@@ -48,25 +48,26 @@ def in_metres(depth: np.ndarray | None, metres_per_unit: float | None) -> np.nda
 
 @dataclass
 class WindowMetric:
-    """One window's metric estimate: metres per SfM unit ``m``, per network unit of the weights
-    before the window ``k`` (m / ŝ) and of the weights it leaves ``k_after`` (k, or 1 when the
-    network learns metres); NaN when there is none, ``reason`` says why; and what the ground
-    plane or the odometry measured."""
+    """One window's metric estimate: metres per SfM unit (m), per network unit of the weights
+    before the window (k = m / ŝ) and of the weights it leaves (k, or 1 when the network learns
+    metres); NaN when there is none, ``reason`` says why; and what the ground plane or the
+    odometry measured."""
 
     source: str
-    m: float = float("nan")
-    k: float = float("nan")
-    k_after: float = float("nan")
+    metres_per_sfm_unit: float = float("nan")  # m
+    metres_per_net_unit: float = float("nan")  # k = m / ŝ, of the weights before the window
+    metres_per_net_unit_after: float = float("nan")  # of the weights the window leaves
     reason: str = ""
     verdict: str = ""  # against the stream's anchor (core/metric/anchor.py)
-    target_m: float = float("nan")  # metres per SfM unit the supervision uses (m, or the anchor's)
+    # metres per SfM unit the supervision uses (m, or the anchor's)
+    supervision_metres_per_sfm_unit: float = float("nan")
     ground_inliers: int = 0
     height_spread: float = float("nan")
     travel_m: float = float("nan")
 
     @property
     def ok(self) -> bool:
-        return math.isfinite(self.k) and self.k > 0
+        return math.isfinite(self.metres_per_net_unit) and self.metres_per_net_unit > 0
 
 
 def estimate(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
@@ -82,13 +83,14 @@ def estimate(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
         if not math.isfinite(plane.height):
             w.reason = f"no ground plane: {plane.reason}"
             return w
-        w.m = cfg.camera_height / plane.height
+        w.metres_per_sfm_unit = cfg.camera_height / plane.height
     else:
-        w.m, w.travel_m, w.reason = _odometry_scale(cfg, sfm, registered, stamps, odometry)
-    if math.isfinite(w.m) and alignment_scale > 0:
-        w.k = w.m / alignment_scale
-        w.k_after = 1.0 if cfg.learn else w.k
-        w.target_m = w.m
+        w.metres_per_sfm_unit, w.travel_m, w.reason = _odometry_scale(cfg, sfm, registered,
+                                                                      stamps, odometry)
+    if math.isfinite(w.metres_per_sfm_unit) and alignment_scale > 0:
+        w.metres_per_net_unit = w.metres_per_sfm_unit / alignment_scale
+        w.metres_per_net_unit_after = 1.0 if cfg.learn else w.metres_per_net_unit
+        w.supervision_metres_per_sfm_unit = w.metres_per_sfm_unit
     return w
 
 
@@ -222,12 +224,14 @@ class MetricScale:
             return ""
         self.without_estimate = 0
         ref = self.reference(cfg, weight_policy)
-        verdict = self.anchor.judge(cfg, window.k, ref)
-        self.anchor.record(cfg, verdict, window.k)
+        verdict = self.anchor.judge(cfg, window.metres_per_net_unit, ref)
+        self.anchor.record(cfg, verdict, window.metres_per_net_unit)
         window.verdict, window.reason = verdict.kind, verdict.refusal or verdict.reason
         if verdict.kind == "disagrees" and ref is not None:
-            window.target_m = ref * window.m / window.k  # ref·ŝ: the stream's metres
-            window.k_after = 1.0 if cfg.learn else ref
+            # ref·ŝ (ŝ = m / k): the stream's metres
+            window.supervision_metres_per_sfm_unit = (ref * window.metres_per_sfm_unit
+                                                      / window.metres_per_net_unit)
+            window.metres_per_net_unit_after = 1.0 if cfg.learn else ref
         return verdict.refusal
 
     def accept(self, cfg: MetricConfig, window: WindowMetric, weight_policy: str) -> None:
@@ -240,10 +244,10 @@ class MetricScale:
                 h.clear()
         ref = self.reference(cfg, weight_policy)
         if ref is not None:
-            self.ratios.append(window.k / ref)
+            self.ratios.append(window.metres_per_net_unit / ref)
         if weight_policy == "reset":
-            self.start_up.append(window.k)
-        self.history.append(window.k_after)
+            self.start_up.append(window.metres_per_net_unit)
+        self.history.append(window.metres_per_net_unit_after)
         for h in (self.history, self.start_up, self.ratios):
             while len(h) > cfg.history:
                 h.popleft()

@@ -159,7 +159,7 @@ class WindowStats:
     step_mode = _stage("refinement", _step_mode, "", _step_mode.__doc__)
     unsupported_change = _stage("check", lambda c: c.unsupported_change, _NAN,
                                 "Share of the unsupported pixels moved (the check after).")
-    metric_estimate = _stage("metric", lambda m: m.k, _NAN,
+    metric_estimate = _stage("metric", lambda m: m.metres_per_net_unit, _NAN,
                              "Metres per network unit of the window's own estimate (NaN: "
                              "none; metric_reason says why).")
     metric_reason = _stage("metric", lambda m: m.reason, "")

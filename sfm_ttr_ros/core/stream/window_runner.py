@@ -10,7 +10,7 @@ stream) and the accounting of every frame are written once, in docs/node.md, "Ho
 submit + process everything queued, for synchronous callers (benchmark, tests). The parts:
 :mod:`.settings`, :mod:`.records` (what comes out), :mod:`.frame_queue` (the only part two
 threads share), :mod:`.ledger` (the counters), :mod:`.admission` (the per-frame rules),
-:mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.publisher` (outputs, counted), :mod:`.sfm_feed`
+:mod:`.keyframes`, :mod:`.window_buffer`, :mod:`.frame_outlet` (outputs, counted), :mod:`.sfm_feed`
 (the next window's SfM begun ahead, or each keyframe admitted to the streaming SfM as the
 buffer takes it), :mod:`.path` (the camera's path, extended as each window finishes); this
 module schedules the windows and skips them under overload.
@@ -35,10 +35,10 @@ from sfm_ttr_ros.core.stream.admission import (
     stale_verdict,
     stamp_rule,
 )
+from sfm_ttr_ros.core.stream.frame_outlet import FrameOutlet
 from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE, FrameQueue
 from sfm_ttr_ros.core.stream.keyframes import KeyframeSelector
 from sfm_ttr_ros.core.stream.path import StreamPath
-from sfm_ttr_ros.core.stream.publisher import FramePublisher
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats, unrefined_result
 from sfm_ttr_ros.core.stream.settings import StreamSettings
 from sfm_ttr_ros.core.stream.sfm_feed import SfmFeed
@@ -80,7 +80,7 @@ class WindowRunner:
         self.log = logger or logging.getLogger(__name__)
         self.windows: deque[WindowStats] = deque(maxlen=history)
         self._queue = FrameQueue()
-        self._out = FramePublisher(ttr, self._queue, lambda: self.settings.republish_unrefined,
+        self._out = FrameOutlet(ttr, self._queue, lambda: self.settings.republish_unrefined,
                                    on_output, on_drop, self.log)
 
         # worker-side state (only touched by the thread that calls step / push / flush)

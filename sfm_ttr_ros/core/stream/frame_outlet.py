@@ -20,7 +20,7 @@ from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats
 from sfm_ttr_ros.core.stream.throttle import Throttle
 
 
-class FramePublisher:
+class FrameOutlet:
     """The outputs of one stream, on the worker's thread (module docstring).
 
     ``republish``: whether unrefined frames the live output served are predicted again

@@ -1,4 +1,4 @@
-"""FramePublisher: what leaves the stream, counted before it reaches the sink (unrefined frames
+"""FrameOutlet: what leaves the stream, counted before it reaches the sink (unrefined frames
 predicted again or live-only, prediction failures dropped, verdicts, a window's frames)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from sfm_ttr_ros.core.metric.scale import MetricStatus
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.stream.admission import Verdict
+from sfm_ttr_ros.core.stream.frame_outlet import FrameOutlet
 from sfm_ttr_ros.core.stream.frame_queue import RELEASED_IMAGE, FrameQueue
-from sfm_ttr_ros.core.stream.publisher import FramePublisher
 from sfm_ttr_ros.core.stream.records import WindowStats
 from sfm_ttr_ros.core.stream.settings import StreamSettings
 
@@ -50,7 +50,7 @@ def setup(net: Net, republish: bool = False, n: int = 3):
     """A publisher over a queue from which ``n`` frames (served live) were taken."""
     q = FrameQueue()
     outs, drops, log = [], [], Log()
-    pub = FramePublisher(net, q, lambda: republish, outs.append,
+    pub = FrameOutlet(net, q, lambda: republish, outs.append,
                          lambda f, k, m: drops.append((f.index, k)), log)
     for i in range(n):
         f = Frame(i, np.full((6, 8, 3), i, np.uint8), stamp=float(i))
