@@ -174,27 +174,21 @@ def test_weight_policy_is_validated():
             TTRConfig(**bad)
 
 
-class _FakeSfm:
-    """A stand-in for one window's SfM: every frame registered with 300 observations."""
+def fake_sfm_result(names, rng):
+    """One window's SfM as a stand-in reconstruction gives it: every frame registered with 300
+    observations, the camera still (an :class:`SfmResult`, so every reader sees its fields)."""
+    from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
 
-    def __init__(self, names, rng):
-        from sfm_ttr_ros.core.sfm.result import FrameObservations
-
-        self.ok, self.reason, self.timings = True, "", {}
-        self.frames = {}
-        for n in names:
-            px = np.c_[rng.uniform(0, 47, 300), rng.uniform(0, 31, 300)].astype(np.float32)
-            self.frames[n] = FrameObservations(n, px, rng.uniform(5, 6, 300), np.zeros(300),
-                                               np.zeros(300), np.arange(300), np.eye(4))
-        self.num_registered, self.num_points = len(names), 300
-        self.points_error = np.zeros(300, np.float32)
-        self.reprojection_error = 0.0
-        self.attempts = [{"seed": 0, "registered": len(names), "points": 300,
-                          "reprojection_error": 0.0, "seconds": 0.0, "kept": True}]
-        self.mapping, self.mapping_reason = "", ""  # a batch window's (mapped on its own)
-
-    def points_in_frame(self, name):
-        return np.zeros((300, 3))
+    frames = {}
+    for n in names:
+        px = np.c_[rng.uniform(0, 47, 300), rng.uniform(0, 31, 300)].astype(np.float32)
+        frames[n] = FrameObservations(n, px, rng.uniform(5, 6, 300), np.zeros(300),
+                                      np.zeros(300), np.arange(300), np.eye(4))
+    attempts = [{"seed": 0, "registered": len(names), "points": 300,
+                 "reprojection_error": 0.0, "seconds": 0.0, "kept": True}]
+    return SfmResult(True, "", len(names), frames, point_ids=np.arange(300),
+                     points_xyz=np.zeros((300, 3)), points_error=np.zeros(300, np.float32),
+                     attempts=attempts)
 
 
 def window_run(lr: float, policy: str = "continue"):
@@ -205,7 +199,7 @@ def window_run(lr: float, policy: str = "continue"):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: fake_sfm_result([f.name for f in frames], rng)
     from sfm_ttr_ros.core.frames import Intrinsics
 
     before = snapshot_encoder(ttr.model)
@@ -383,7 +377,7 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: _FakeSfm([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: fake_sfm_result([f.name for f in frames], rng)
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
                                                serve_every_steps=serve_every))
     start = online.serving.predict(IMAGE)[0]
@@ -558,7 +552,7 @@ def two_windows_served_live(reuse_live: bool):
     cfg.check.min_parallax = 0.0
     ttr = SfmTTR(small_model(), cfg)
     rng = np.random.default_rng(3)
-    ttr.sfm.reconstructor.reconstruct = lambda fs, *a, **k: _FakeSfm([f.name for f in fs], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda fs, *a, **k: fake_sfm_result([f.name for f in fs], rng)
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3))
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i)
               for i in range(6)]
