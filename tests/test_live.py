@@ -174,7 +174,7 @@ def test_weight_policy_is_validated():
             TTRConfig(**bad)
 
 
-def fake_sfm_result(names, rng):
+def fake_sfm(names, rng):
     """One window's SfM as a stand-in reconstruction gives it: every frame registered with 300
     observations, the camera still (an :class:`SfmResult`, so every reader sees its fields)."""
     from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
@@ -199,7 +199,7 @@ def window_run(lr: float, policy: str = "continue"):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: fake_sfm_result([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: fake_sfm([f.name for f in frames], rng)
     from sfm_ttr_ros.core.frames import Intrinsics
 
     before = snapshot_encoder(ttr.model)
@@ -377,7 +377,7 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                     name=f"{i:04d}") for i in range(3)]
-    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: fake_sfm_result([f.name for f in frames], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda *a, **k: fake_sfm([f.name for f in frames], rng)
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
                                                serve_every_steps=serve_every))
     start = online.serving.predict(IMAGE)[0]
@@ -552,7 +552,7 @@ def two_windows_served_live(reuse_live: bool):
     cfg.check.min_parallax = 0.0
     ttr = SfmTTR(small_model(), cfg)
     rng = np.random.default_rng(3)
-    ttr.sfm.reconstructor.reconstruct = lambda fs, *a, **k: fake_sfm_result([f.name for f in fs], rng)
+    ttr.sfm.reconstructor.reconstruct = lambda fs, *a, **k: fake_sfm([f.name for f in fs], rng)
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3))
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i)
               for i in range(6)]

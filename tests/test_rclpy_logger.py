@@ -103,7 +103,7 @@ def test_the_refiner_serving_interim_weights_through_the_real_rclpy_logger(rclpy
     """StreamRefiner (core/stream/refiner.py) on the real logger: a window rolled back after
     its interim weights were served (a warning, then an info line), a refined window, a stamp
     that went back and a duplicate; every frame accounted for."""
-    from test_live import fake_sfm_result, small_model
+    from test_live import fake_sfm, small_model
 
     from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
     from sfm_ttr_ros.core.stream.refiner import StreamRefiner
@@ -120,7 +120,7 @@ def test_the_refiner_serving_interim_weights_through_the_real_rclpy_logger(rclpy
     rng = np.random.default_rng(3)
     fs = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
                 name=f"{i:04d}") for i in range(9)]
-    ttr.sfm.reconstructor.reconstruct = lambda frames, *a, **k: fake_sfm_result(
+    ttr.sfm.reconstructor.reconstruct = lambda frames, *a, **k: fake_sfm(
         [f.name for f in frames], rng)
     outs = []
     online = StreamRefiner(ttr, StreamSettings(window_size=3, window_stride=3,
