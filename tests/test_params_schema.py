@@ -270,10 +270,7 @@ def test_schema_and_cli_parsers_import_without_ros():
                      or m.split(".")[0].endswith("_msgs"))
         assert not bad, bad
     """)
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env=env, cwd=REPO, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    _run_in_fresh_python(code)
 
 
 def test_reading_the_schema_imports_the_configs_not_the_pipeline():
@@ -287,10 +284,7 @@ def test_reading_the_schema_imports_the_configs_not_the_pipeline():
         loaded = [m for m in heavy if m in sys.modules]
         assert not loaded, loaded
     """)
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env=env, cwd=REPO, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    _run_in_fresh_python(code)
 
 
 def test_parameters_retired_on_2026_11_29_set_their_config_fields():
@@ -361,3 +355,12 @@ def test_legacy_names_still_work_for_one_release_with_a_warning(tmp_path):
         schema.build({"fx": 700})
     assert schema.build(schema.parse_overrides(["reset_each_window=true"])).ttr.weight_policy \
         == "reset"
+
+
+def _run_in_fresh_python(code: str) -> None:
+    """Run ``code`` in a fresh interpreter with the repository first on the path; its
+    assertions must hold."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
