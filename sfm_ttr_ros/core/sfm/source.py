@@ -4,9 +4,9 @@ chosen once from ``sfm.mode`` by :func:`make_sfm_source`.
 Batch (``sfm.mode: batch``, :class:`BatchSfmSource`): the window worker's reconstructor after
 the window's last frame, or the reconstruction begun ahead
 (:class:`~sfm_ttr_ros.core.sfm.prefetch.SfmPrefetch`) with its gate: no SfM is begun ahead while
-the running window's own SfM has not ended. On a few cores two reconstructions at once slowed
-the current window's (a GPU machine held to 2 cores: first weights 6.8 s after the window's
-last frame instead of 4.2 s); the stream asks again at its next frame. Keyframes are not
+the running window's own SfM has not ended (on a few cores two reconstructions at once slow
+the current window's: docs/decisions.md, "Live serving"); the stream asks again at its next
+frame. Keyframes are not
 admitted one by one: the window does it all after its last frame.
 
 Streaming (``sfm.mode: streaming``, :class:`StreamingSfmSource`): the stream's
