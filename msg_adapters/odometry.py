@@ -3,11 +3,13 @@
 Reading (:func:`odometry_to_position`) is duck-typed: rclpy and rosbags messages alike.
 Writing (:func:`odometry_msg`) builds a rosbags type store's classes (the bag tools) or rclpy's
 from a 4x4 pose (``parent_from_child``: the child frame's pose in the parent frame, metres):
-position = its translation, orientation = its rotation as a unit quaternion (x, y, z, w, w >= 0),
-twist zero; the pose's covariance given (6x6 over x, y, z and the rotations about x, y, z,
-row-major, in the header's frame: nav_msgs' convention) or zero (not estimated), the twist's
-zero. :func:`odometry_to_pose` reads a pose and its covariance back; :func:`transform_msg` and
-:func:`tf_message` write the same pose as a geometry_msgs/TransformStamped on ``/tf``.
+position = its translation, orientation = its rotation as a unit quaternion (x, y, z, w, w >= 0);
+the pose's covariance given (6x6 over x, y, z and the rotations about x, y, z, row-major, in the
+header's frame: nav_msgs' convention) or zero (not estimated); the twist (vx vy vz ωx ωy ωz in
+the child frame) and its covariance given, or zero; a twist covariance whose [0] is -1 says the
+twist is unknown (nav_msgs' convention; its other numbers then zero). :func:`odometry_to_pose`
+reads a pose and its covariance back, :func:`odometry_to_twist` the twist and its covariance;
+:func:`transform_msg` writes the same pose as a geometry_msgs/TransformStamped for ``/tf``.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from msg_adapters.stamp import stamp_to_seconds
 from sfm_ttr_ros.core.errors import InputError
 
 ODOMETRY_MSGTYPE = "nav_msgs/msg/Odometry"
+UNKNOWN = -1.0  # covariance[0] of a quantity not provided
 
 
 class OdometryError(InputError):
@@ -85,28 +88,36 @@ def _checked_pose(parent_from_child) -> tuple[np.ndarray, np.ndarray]:
     return T[:3, 3], rotation_to_quaternion(T[:3, :3])
 
 
-def _checked_covariance(covariance) -> np.ndarray:
+def _checked_covariance(covariance, what: str = "pose") -> np.ndarray:
     """36 finite numbers of a symmetric 6x6 covariance with a non-negative diagonal (zeros
-    when None)."""
+    when None); for a twist also -1 then zeros (unknown)."""
     if covariance is None:
         return np.zeros(36)
     C = np.asarray(covariance, np.float64)
     if C.size != 36 or not np.isfinite(C).all():
-        raise OdometryError(f"a pose covariance must be 36 finite numbers (6x6), got {C.size}")
-    C = C.reshape(6, 6)
-    if not np.allclose(C, C.T) or (np.diag(C) < 0).any():
-        raise OdometryError("a pose covariance must be symmetric with a diagonal >= 0")
-    return C.ravel()
+        raise OdometryError(f"a {what} covariance must be 36 finite numbers (6x6), got {C.size}")
+    C = C.ravel()
+    if what == "twist" and C[0] == UNKNOWN and not C[1:].any():
+        return C
+    M = C.reshape(6, 6)
+    if not np.allclose(M, M.T) or (np.diag(M) < 0).any():
+        raise OdometryError(f"a {what} covariance must be symmetric with a diagonal >= 0")
+    return C
 
 
 def odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str, parent_from_child,
-                 store=None, covariance=None):
+                 store=None, covariance=None, twist=None, twist_covariance=None):
     """A nav_msgs/Odometry stamped ``stamp_ns`` in ``frame_id`` whose pose is the 4x4
     ``parent_from_child`` of ``child_frame_id`` (metres) with the pose's 6x6 ``covariance``
-    (None: zeros, not estimated). ``store``: a rosbags type store (its classes are built, for
-    bags) or None (rclpy's)."""
+    (None: zeros, not estimated), the ``twist`` (six numbers, None: zeros) and its
+    ``twist_covariance`` (module docstring). ``store``: a rosbags type store (its classes are
+    built, for bags) or None (rclpy's)."""
     t, q = _checked_pose(parent_from_child)
     cov = _checked_covariance(covariance)
+    tw = np.zeros(6) if twist is None else np.asarray(twist, np.float64).ravel()
+    if tw.size != 6 or not np.isfinite(tw).all():
+        raise OdometryError(f"a twist must be six finite numbers, got {tw.size}")
+    twist_cov = _checked_covariance(twist_covariance, "twist")
     if store is None:
         classes, of = rclpy_classes(), _rclpy_type
     else:
@@ -119,9 +130,10 @@ def odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str, parent_from_
             orientation=quat(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))),
         covariance=classes.doubles_field(cov))
     twist = of("geometry_msgs/msg/TwistWithCovariance")(
-        twist=of("geometry_msgs/msg/Twist")(linear=vec(x=0.0, y=0.0, z=0.0),
-                                            angular=vec(x=0.0, y=0.0, z=0.0)),
-        covariance=classes.doubles_field(np.zeros(36)))
+        twist=of("geometry_msgs/msg/Twist")(
+            linear=vec(x=float(tw[0]), y=float(tw[1]), z=float(tw[2])),
+            angular=vec(x=float(tw[3]), y=float(tw[4]), z=float(tw[5]))),
+        covariance=classes.doubles_field(twist_cov))
     return of(ODOMETRY_MSGTYPE)(header=make_header(stamp_ns, frame_id, classes),
                                 child_frame_id=str(child_frame_id), pose=pose, twist=twist)
 
@@ -134,6 +146,13 @@ def odometry_to_pose(msg) -> tuple[float, np.ndarray, np.ndarray]:
     T[:3, :3] = quaternion_to_rotation([float(o.x), float(o.y), float(o.z), float(o.w)])
     T[:3, 3] = xyz
     return stamp, T, _checked_covariance(list(msg.pose.covariance)).reshape(6, 6)
+
+
+def odometry_to_twist(msg) -> tuple[np.ndarray, np.ndarray]:
+    """(the twist vx vy vz ωx ωy ωz, its 6x6 covariance) of a nav_msgs/Odometry."""
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    twist = np.array([float(v) for v in (lin.x, lin.y, lin.z, ang.x, ang.y, ang.z)])
+    return twist, _checked_covariance(list(msg.twist.covariance), "twist").reshape(6, 6)
 
 
 def transform_msg(stamp_ns: int, frame_id: str, child_frame_id: str, parent_from_child):

@@ -347,6 +347,26 @@ def test_the_path_of_a_short_generated_drive_drifts_less_than_its_metric_scale_e
     assert drift["length_m"] == pytest.approx(12.57, abs=0.1)
     assert drift["drift_pct"] < 5.0, drift
     assert drift_shape["scale_fitted"] and drift_shape["ate_rmse"] < 0.01 * 12.57, drift_shape
+    _assert_odom_up_is_the_grounds(reported, seq.cam_from_world)
+
+
+def _assert_odom_up_is_the_grounds(reported, cam_from_world) -> None:
+    """~/odom's z against the generated world's up (y down) on a path whose windows measured
+    the ground (camera_height): within 3 degrees, for a mount 8 degrees off the camera's true
+    pitch; the first base pose's axes (no ground) would be the 8 degrees off."""
+    from sfm_ttr_ros.core.stream.base_odometry import BaseOdometry, parse_camera_mount
+
+    mount = parse_camera_mount("0 0 0 -98 0 -90")
+    up = np.array([0.0, -1.0, 0.0])
+    assert reported[0].pose.ground_up is not None  # odom is set at the first pose
+    for ground in (True, False):
+        odometry = BaseOdometry(mount)
+        for p in reported:
+            pose = p.pose if ground else dataclasses.replace(p.pose, ground_up=None)
+            odom = odometry.add(pose).odom_from_base
+            up_in_base = mount[:3, :3] @ cam_from_world[p.frame.index][:3, :3] @ up
+            angle = math.degrees(math.acos(np.clip((odom[:3, :3] @ up_in_base)[2], -1, 1)))
+            assert angle < 3.0 if ground else angle > 5.0, (p.name, ground, angle)
 
 
 def test_the_benchmark_reports_the_path_only_where_the_sequence_has_poses():

@@ -1,6 +1,7 @@
 """``~/odom``: the stream's camera path published by the refiner node in a real ROS 2 graph
-(in-process, like tests/test_node.py), its covariance, its frames, its units' topic, and TF
-refused clearly where tf2_msgs is missing."""
+(in-process, like tests/test_node.py) as the base's odometry (core/stream/base_odometry.py):
+its frames, the base's pose, continuity, twist and covariance message by message, its units'
+topic, and TF refused clearly where tf2_msgs is missing."""
 
 from __future__ import annotations
 
@@ -17,19 +18,29 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from test_node import FRAME_ID, Graph, sequence, wait_for  # noqa: E402, F401
 
-from msg_adapters.odometry import odometry_msg, odometry_to_pose  # noqa: E402
+from msg_adapters.odometry import (  # noqa: E402
+    odometry_msg,
+    odometry_to_pose,
+    odometry_to_twist,
+)
 from sfm_ttr_ros.core.errors import InputError  # noqa: E402
+from sfm_ttr_ros.core.stream.base_odometry import (  # noqa: E402
+    BaseOdometry,
+    parse_camera_mount,
+)
 from sfm_ttr_ros.ros import names  # noqa: E402
 from sfm_ttr_ros.ros.node import RefinerNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
+MOUNT = "0.4 0.1 1.3 -95 0 -90"  # the camera 0.4 m ahead of the base, 1.3 m up, 5 deg down
 
 
 @pytest.fixture
 def graph(context, sequence):  # noqa: F811
     g = Graph(context, window_size=6, window_stride=3, outputs="depth_refined,odom",
               **{"metric.source": "camera_height",
-                 "metric.camera_height": float(sequence.params.camera_height)})
+                 "metric.camera_height": float(sequence.params.camera_height),
+                 "odom.camera_mount": MOUNT})
     yield g
     g.close()
 
@@ -69,19 +80,43 @@ def test_the_node_publishes_the_cameras_path_on_odom_with_covariance(graph, sequ
     stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in odoms]
     assert stamps == sorted(set(stamps))  # forward in time, each frame once
     assert set(stamps) <= {(s.sec, s.nanosec) for s in sent}
-    for msg, pose in zip(odoms, reported, strict=True):
-        assert (msg.header.frame_id, msg.child_frame_id) == ("odom", FRAME_ID)
-        assert msg.header.stamp == pose.frame.header.stamp
-        _, T, cov = odometry_to_pose(msg)
-        np.testing.assert_allclose(T, pose.pose.odom_from_camera, atol=1e-9)
-        np.testing.assert_allclose(cov, pose.pose.covariance())
-        assert (np.diag(cov) > 0).all() and np.isfinite(cov).all()
-    # odom is the first camera's body frame (REP 103): it starts at the origin, the camera's
-    # optical axis along odom's x
-    _, first, _ = odometry_to_pose(odoms[0])
-    np.testing.assert_allclose(first[:3, 3], 0.0, atol=1e-9)
-    np.testing.assert_allclose(first[:3, 2], [1.0, 0.0, 0.0], atol=1e-9)
-    assert np.linalg.norm(odometry_to_pose(odoms[-1])[1][:3, 3]) > 0
+    for units in ("sfm", "m"):  # each topic: the base's odometry of its own poses
+        poses = [p for p in reported if p.units == units]
+        mount = parse_camera_mount(MOUNT)
+        if units == "sfm":  # SfM units: the mount's metres left out
+            mount[:3, 3] = 0.0
+        base = BaseOdometry(mount)
+        for i, (msg, pose) in enumerate(zip(by_units[units], poses, strict=True)):
+            expected = base.add(pose.pose)
+            assert (msg.header.frame_id, msg.child_frame_id) == ("sfm_odom", "base_link")
+            assert msg.header.stamp == pose.frame.header.stamp
+            _, T, cov = odometry_to_pose(msg)
+            twist, twist_cov = odometry_to_twist(msg)
+            np.testing.assert_allclose(T, expected.odom_from_base, atol=1e-9)
+            np.testing.assert_allclose(cov, expected.covariance)
+            assert (np.linalg.eigvalsh(cov) > 0).all()
+            if i == 0:  # no previous pose: the twist is unknown
+                assert twist_cov[0, 0] == -1.0 and not twist.any()
+                np.testing.assert_allclose(T[:3, 3], 0.0, atol=1e-9)  # odom starts at the base
+                continue
+            np.testing.assert_allclose(twist, expected.twist, atol=1e-9)
+            assert (np.linalg.eigvalsh(twist_cov) > 0).all()
+            # the base's pose, not the camera's: the camera it carries (T·mount) moves as the
+            # path's camera did (where no jump was absorbed into odom)
+            if pose.pose.jump is None:
+                _, before, _ = odometry_to_pose(by_units[units][i - 1])
+                np.testing.assert_allclose(
+                    np.linalg.inv(before @ mount) @ T @ mount,
+                    np.linalg.inv(poses[i - 1].pose.odom_from_camera)
+                    @ pose.pose.odom_from_camera, atol=1e-7)
+    metric = by_units["m"]
+    assert len(metric) >= 2
+    _, first, _ = odometry_to_pose(metric[0])
+    assert abs(first[1, 0]) < 1e-9  # odom's x: the first base's heading
+    # a car drives forward: the base moves along odom's x, and odom's z is the ground's up
+    # (camera_height): the base stays near z = 0 while the camera is 5 deg down on it
+    _, last, _ = odometry_to_pose(metric[-1])
+    assert last[0, 3] > 0.5 and abs(last[2, 3]) < 0.1 * last[0, 3]
 
 
 def test_odometry_covariance_is_written_and_read_back_and_a_bad_one_refused():
@@ -96,6 +131,21 @@ def test_odometry_covariance_is_written_and_read_back_and_a_bad_one_refused():
     for bad in (np.ones(35), -np.eye(6), np.triu(np.ones((6, 6))), np.full(36, np.nan)):
         with pytest.raises(InputError, match="covariance"):
             odometry_msg(5, "odom", "cam", T, covariance=bad)
+        with pytest.raises(InputError, match="twist covariance"):
+            odometry_msg(5, "odom", "cam", T, twist_covariance=bad)
+    # a twist and its covariance, or the twist unknown: -1 first, zeros after (nav_msgs)
+    twist = np.array([2.0, 0.1, 0.0, 0.0, 0.0, 0.3])
+    msg = odometry_msg(5, "odom", "base", T, twist=twist, twist_covariance=0.01 * np.eye(6))
+    back, back_cov = odometry_to_twist(msg)
+    np.testing.assert_allclose(back, twist)
+    np.testing.assert_allclose(back_cov, 0.01 * np.eye(6))
+    unknown = np.zeros(36)
+    unknown[0] = -1.0
+    back, back_cov = odometry_to_twist(odometry_msg(5, "odom", "base", T,
+                                                    twist_covariance=unknown))
+    assert back_cov[0, 0] == -1.0 and not back.any()
+    with pytest.raises(InputError, match="twist"):
+        odometry_msg(5, "odom", "base", T, twist=[1.0, 2.0])
 
 
 @pytest.mark.skipif(importlib.util.find_spec("tf2_msgs") is not None,
@@ -107,7 +157,9 @@ def test_tf_without_tf2_msgs_stops_the_start_with_a_clear_error(context):
 
 
 @pytest.mark.parametrize("name, value", [("odom.frame_id", ""), ("odom.frame_id", "/odom"),
-                                         ("odom.child_frame_id", "my camera")])
+                                         ("odom.child_frame_id", "my camera"),
+                                         ("odom.child_frame_id", ""),
+                                         ("odom.camera_mount", "0 0 0 -90 0")])
 def test_frame_names_that_tf_refuses_stop_the_start(context, name, value):
     with pytest.raises(ValueError, match=name.replace(".", r"\.")):
         RefinerNode(model=tiny_model(), context=context,

@@ -44,7 +44,8 @@ def _other_value(p: schema.Param):
     special = {"model_type": "mobilenet", "device": "auto", "camera_info_use_projection": True,
                "check.unsupported_change_ratio": 1.5, "first_window_size": 4,
                "fallback_intrinsics": "700 700 300 200", "outputs": "depth,points",
-               "odom.frame_id": "map", "odom.child_frame_id": "camera_optical_frame"}
+               "odom.frame_id": "map", "odom.child_frame_id": "camera_optical_frame",
+               "odom.camera_mount": "0.5 0 1.2 -90 5 -90"}
     if p.name in special:
         return special[p.name]
     if p.choices:

@@ -37,6 +37,14 @@ the fit's mean squared residual (centres, and angles for the rotation), or at a 
 guessed displacement squared. It is the reconstruction's local precision plus what chaining
 added, not a bound on the drift (measured: tools/benchmark ``path``).
 
+What a continuous odometry needs (core/stream/base_odometry.py): a window chained by ``shared``
+fits its own poses to the path's only in the least-squares sense, so its frames may start off
+the path's end. The first frame it adds (the path's next, when it adds none) carries that
+``jump``: J = P_k·S(T_k)⁻¹, P_k the path's pose of the newest frame the window shares, S(T_k)
+the window's of it (J·S(T) is the window's pose continuing the path). A window whose metres
+came from the ground plane (``metric.source: camera_height``) gives each of its frames the
+plane's up in odom's axes (``ground_up``: R of S times the normal).
+
 Only frames newer than the path's last stamp join it (an odometry stream goes forward in
 time); a frame seen again in a later window is used for the fit, never re-published.
 """
@@ -69,7 +77,8 @@ CHAINS = ("first", "continued", "shared", "break")
 class WindowPoses:
     """What the path takes of one window: ``cam_from_world`` (4x4, SfM units) and stamp (s) per
     registered frame, how it was mapped (``continued``, ``fresh``, "" in batch), its metres per
-    SfM unit (None: unknown) and each frame's variances in SfM units (module docstring)."""
+    SfM unit (None: unknown), each frame's variances in SfM units (module docstring) and its
+    ground plane's up in its SfM world (None: not measured)."""
 
     poses: dict[str, np.ndarray]
     stamps: dict[str, float]
@@ -77,12 +86,15 @@ class WindowPoses:
     metres_per_sfm_unit: float | None = None
     position_var: dict[str, float] = field(default_factory=dict)
     rotation_var: dict[str, float] = field(default_factory=dict)
+    ground_up: np.ndarray | None = None
 
 
 @dataclass
 class PathPose:
     """One frame on the path: ``odom_from_camera`` (4x4, the path's units), its variances
-    (position in units², rotation in rad²), its window and how the window was chained."""
+    (position in units², rotation in rad²), its window and how the window was chained; the
+    ground's up in odom's axes when its window measured it, and on the first frame a window
+    chained by a fit adds, the ``jump`` J that makes it continue the path (module docstring)."""
 
     name: str
     stamp: float
@@ -91,6 +103,8 @@ class PathPose:
     rotation_var: float
     window: int
     chain: str
+    ground_up: np.ndarray | None = None
+    jump: np.ndarray | None = None
 
     @property
     def position(self) -> np.ndarray:
@@ -144,8 +158,11 @@ def result_poses(result: WindowResult, stamps: Mapping[str, float],
     """What the path takes of a window's result (None: it has no reconstruction)."""
     if result.sfm is None or not result.sfm.frames:
         return None
-    return window_poses(result.sfm, stamps, result.sfm_mapping,
-                        metres_per_sfm_unit(result, metres_per_unit))
+    poses = window_poses(result.sfm, stamps, result.sfm_mapping,
+                         metres_per_sfm_unit(result, metres_per_unit))
+    if result.metric is not None:
+        poses.ground_up = result.metric.ground_up
+    return poses
 
 
 @dataclass
@@ -185,6 +202,7 @@ class CameraPath:
         self.chains: Counter[str] = Counter()
         self._segment: _Segment | None = None
         self._windows = 0
+        self._jump: np.ndarray | None = None  # for the next frame added (module docstring)
 
     @property
     def breaks(self) -> int:
@@ -215,6 +233,8 @@ class CameraPath:
         self._segment = segment
         self.chains[chain] += 1
         index, self._windows = self._windows, self._windows + 1
+        if chain in ("shared", "break"):  # a jump waits for the first frame the path adds
+            self._jump = self._fit_jump(window, segment) if chain == "shared" else None
         return self._append(window, segment, chain, index)
 
     def _to_metres(self, factor: float, segment: _Segment) -> None:
@@ -226,8 +246,13 @@ class CameraPath:
         for name, pose in self.poses.items():
             T = pose.odom_from_camera.copy()
             T[:3, 3] *= factor
-            self.poses[name] = replace(pose, odom_from_camera=T,
+            jump = None if pose.jump is None else pose.jump.copy()
+            if jump is not None:
+                jump[:3, 3] *= factor
+            self.poses[name] = replace(pose, odom_from_camera=T, jump=jump,
                                        position_var=pose.position_var * f2)
+        if self._jump is not None:
+            self._jump[:3, 3] *= factor
         S = segment.S
         segment.S = Similarity(S.s * factor, S.R, S.t * factor, S.position_res2 * f2,
                                S.rotation_res2)
@@ -294,6 +319,12 @@ class CameraPath:
         dt = b.stamp - a.stamp
         return None if dt <= 0 else (b.position - a.position) / dt
 
+    def _fit_jump(self, window: WindowPoses, segment: _Segment) -> np.ndarray:
+        """J = P_k·S(T_k)⁻¹ at the newest frame k the window shares with the path (module
+        docstring): what takes the window's poses onto the path where it left it."""
+        k = max((n for n in window.poses if n in self.poses), key=lambda n: self.poses[n].stamp)
+        return self.poses[k].odom_from_camera @ np.linalg.inv(segment.S.apply(window.poses[k]))
+
     def _append(self, window: WindowPoses, segment: _Segment, chain: str,
                 index: int) -> list[PathPose]:
         end = self.last
@@ -302,12 +333,14 @@ class CameraPath:
                       if n not in self.poses and window.stamps[n] > after),
                      key=window.stamps.__getitem__)
         s2 = segment.S.s ** 2
+        up = None if window.ground_up is None else segment.S.R @ window.ground_up
         added = []
         for name in new:
             pose = PathPose(name, window.stamps[name], segment.S.apply(window.poses[name]),
                             segment.position_base + s2 * window.position_var.get(name, 0.0),
                             segment.rotation_base + window.rotation_var.get(name, 0.0),
-                            index, chain)
+                            index, chain, up, self._jump)
+            self._jump = None
             self.poses[name] = pose
             added.append(pose)
             segment.anchor = (pose.position.copy(), camera_centre(window.poses[name]))

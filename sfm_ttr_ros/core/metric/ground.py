@@ -19,7 +19,8 @@ raised tram bed on the other) the plane with the most inliers otherwise is a slo
 
 The best plane is refined by least squares on its inliers, then on those within half the
 tolerance (the lane under the camera, not a cambered road's far side), and each camera's height
-is h_j = n·C_j − c (n oriented so that the cameras lie above). The window's height is the median
+is h_j = n·C_j − c (n oriented so that the cameras lie above: the ground's up, which the camera's
+path takes for its odom frame's z, core/camera_path.py). The window's height is the median
 h_j; metres per SfM unit = camera_height / median h_j.
 
 Refused (no estimate, with the reason) when the cameras' down axes disagree (a rolling
@@ -54,6 +55,7 @@ class GroundPlane:
     pitch_deg: float = float("nan")  # the cameras' mean optical axis against the plane
     extent: float = float("nan")  # the inliers' extent on the plane, in camera heights
     reason: str = ""
+    up: np.ndarray | None = None  # the plane's unit normal towards the cameras (SfM world)
 
 
 def cameras(sfm: SfmResult, registered: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -100,7 +102,7 @@ def ground_plane(sfm: SfmResult, registered: Sequence[str], cfg: MetricConfig,
     elif plane.extent < cfg.min_ground_extent:
         plane.reason = f"the plane spans {plane.extent:.1f} camera heights: not the ground"
     else:
-        plane.height = h
+        plane.height, plane.up = h, n
     return plane
 
 

@@ -64,6 +64,7 @@ class WindowMetric:
     ground_inliers: int = 0
     height_spread: float = float("nan")
     travel_m: float = float("nan")
+    ground_up: np.ndarray | None = None  # camera_height: the ground plane's up (SfM world)
 
     @property
     def ok(self) -> bool:
@@ -84,6 +85,7 @@ def estimate(cfg: MetricConfig, sfm: SfmResult, registered: Sequence[str],
             w.reason = f"no ground plane: {plane.reason}"
             return w
         w.metres_per_sfm_unit = cfg.camera_height / plane.height
+        w.ground_up = plane.up
     else:
         w.metres_per_sfm_unit, w.travel_m, w.reason = _odometry_scale(cfg, sfm, registered,
                                                                       stamps, odometry)

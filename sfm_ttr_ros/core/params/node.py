@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 from sfm_ttr_ros.core.errors import InputError, check_choice
+from sfm_ttr_ros.core.stream.base_odometry import DEFAULT_CAMERA_MOUNT, parse_camera_mount
 
 QOS_RELIABILITIES = ("reliable", "best_effort")
 IMAGE_TRANSPORTS = ("raw", "compressed")  # sensor_msgs/Image on image, CompressedImage on
@@ -97,7 +98,8 @@ class NodeSettings:
     ``relative_depth``: depth, clouds and points not in metres on their relative topics
     (``publish``) or not at all (``drop``); ``compressed_depth_max`` /
     ``compressed_depth_png_level``: the compressedDepth outputs' ``depth_max`` (farther =
-    none) and PNG level."""
+    none) and PNG level. ``odom_*``: ~/odom's frames and the camera's mounting on the base
+    (:func:`~sfm_ttr_ros.core.stream.base_odometry.parse_camera_mount`)."""
 
     fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
@@ -115,13 +117,15 @@ class NodeSettings:
     relative_depth: str = "publish"
     compressed_depth_max: float = 100.0
     compressed_depth_png_level: int = 1
-    odom_frame_id: str = "odom"
-    odom_child_frame_id: str = ""
+    odom_frame_id: str = "sfm_odom"
+    odom_child_frame_id: str = "base_link"
+    odom_camera_mount: str = DEFAULT_CAMERA_MOUNT
     odom_publish_tf: bool = False
 
     def __post_init__(self) -> None:
         _check_frame_id("odom.frame_id", self.odom_frame_id, empty=False)
-        _check_frame_id("odom.child_frame_id", self.odom_child_frame_id, empty=True)
+        _check_frame_id("odom.child_frame_id", self.odom_child_frame_id, empty=False)
+        parse_camera_mount(self.odom_camera_mount)
         parse_fallback_intrinsics(self.fallback_intrinsics)
         parse_outputs(self.outputs)
         parse_use_projection(self.camera_info_use_projection)

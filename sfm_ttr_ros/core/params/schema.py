@@ -307,12 +307,16 @@ PARAMS: tuple[Param, ...] = (
     _p("compressed_depth.depth_max", "node.compressed_depth_max", "compressedDepth outputs: "
        "depths at or beyond this (metres, or the network's units on the relative topics) are "
        "sent as none (image_transport's depth_max).", 1e-3, 1e6),
-    _p("odom.frame_id", "node.odom_frame_id", "~/odom (outputs: odom): the frame the camera's "
-       "path is in (REP 105's odom).", **_START_UP),
-    _p("odom.child_frame_id", "node.odom_child_frame_id", "~/odom: the camera's frame; empty "
-       "= each image's header frame_id.", **_START_UP),
-    _p("odom.publish_tf", "node.odom_publish_tf", "Also publish the camera's path as the "
-       "transform odom.frame_id -> the camera's frame on /tf (needs tf2_msgs).", **_START_UP),
+    _p("odom.frame_id", "node.odom_frame_id", "~/odom (outputs: odom): the frame the base's "
+       "path is in (REP 105's odom, gravity-aligned with metric.source camera_height; not "
+       "'odom': that is wheel odometry's).", **_START_UP),
+    _p("odom.child_frame_id", "node.odom_child_frame_id", "~/odom: the robot's base frame "
+       "whose pose and twist are published (REP 105's base_link).", **_START_UP),
+    _p("odom.camera_mount", "node.odom_camera_mount", "~/odom: the camera optical frame in the "
+       "base frame, 'x y z roll pitch yaw' (metres, degrees; the default: at the base's "
+       "origin looking along its x, REP 103).", **_START_UP),
+    _p("odom.publish_tf", "node.odom_publish_tf", "Also publish the base's path as the "
+       "transform odom.frame_id -> odom.child_frame_id on /tf (needs tf2_msgs).", **_START_UP),
 )
 SCHEMA: dict[str, Param] = {p.name: p for p in PARAMS}
 #: ``section.field`` → the parameter that sets it
