@@ -15,6 +15,7 @@ import importlib
 
 _LOCATIONS = {
     "CameraInfoError": "msg_adapters.camera_info",
+    "UncalibratedCameraInfo": "msg_adapters.camera_info",
     "CompressedDepthError": "msg_adapters.compressed_depth",
     "CompressedImageError": "msg_adapters.compressed",
     "ImageConversionError": "msg_adapters.image",

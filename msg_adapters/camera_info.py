@@ -29,6 +29,11 @@ class CameraInfoError(InputError):
     """A sensor_msgs/CameraInfo that does not describe a usable pinhole camera."""
 
 
+class UncalibratedCameraInfo(CameraInfoError):
+    """A CameraInfo whose matrix is all zero: an uncalibrated camera's driver (REP 104: "K = 0
+    means uncalibrated"), not a broken message."""
+
+
 def _matrix(values, rows: int, cols: int, what: str) -> np.ndarray:
     m = np.asarray(values, dtype=np.float64).reshape(-1)
     if m.size != rows * cols:
@@ -67,7 +72,8 @@ def camera_info_to_intrinsics(msg: CameraInfo, use_projection: bool | None = Non
         hint = ""
         if not use_projection and np.any(P):
             hint = " (P is set: pass use_projection=True to use it)"
-        raise CameraInfoError(f"CameraInfo {what} is all zero: camera not calibrated{hint}")
+        raise UncalibratedCameraInfo(f"CameraInfo {what} is all zero: camera not "
+                                     f"calibrated{hint}")
     fx, fy, cx, cy = float(M[0, 0]), float(M[1, 1]), float(M[0, 2]), float(M[1, 2])
     x0, y0, width, height, bx, by = _roi_and_binning(msg)
     cx, cy = cx - x0, cy - y0

@@ -83,6 +83,16 @@ class Intrinsics:
             return cls(*map(float, vals), width, height)
         raise InputError(f"{path}: expected 9 numbers (K) or 4 (fx fy cx cy), got {vals.size}")
 
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:
+        """Intrinsics assumed for an uncalibrated camera: f = (width / 2) / tan(hfov / 2) for
+        both axes (square pixels), the principal point at the image centre."""
+        if not 0 < float(hfov_deg) < 180:
+            raise InputError(f"a horizontal field of view must be in (0, 180) deg, got "
+                             f"{hfov_deg}")
+        f = 0.5 * int(width) / math.tan(math.radians(float(hfov_deg)) / 2)
+        return cls(f, f, (int(width) - 1) / 2.0, (int(height) - 1) / 2.0, width, height)
+
     def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics of the same camera with the image resized to ``width`` x ``height``."""
         sx, sy = width / self.width, height / self.height
@@ -107,6 +117,10 @@ class Frame:
     # set by the intrinsics resolver (ros/camera.py) when the frame got the fallback fx, fy:
     # the stream lets the first received intrinsics replace them while it holds the frame
     fallback_intrinsics: bool = field(default=False, repr=False, compare=False)
+    # set by the same resolver when the camera is uncalibrated (a CameraInfo with K all zero)
+    # and the intrinsics are assumed from a field of view: SfM refines their focal length
+    # window after window (core/sfm/self_calibration.py)
+    assumed_intrinsics: bool = field(default=False, repr=False, compare=False)
     # opaque, set by the same resolver: where the frame's intrinsics came from (the node
     # publishes the CameraInfo beside its depth from it); passed through like ``header``
     camera: object = field(default=None, repr=False, compare=False)

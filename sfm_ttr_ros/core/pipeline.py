@@ -49,6 +49,7 @@ from sfm_ttr_ros.core.refinement.supervision import (
 )
 from sfm_ttr_ros.core.refinement.trainable import check_trainable
 from sfm_ttr_ros.core.refinement.weights import WeightPolicy
+from sfm_ttr_ros.core.sfm.self_calibration import SelfCalibration
 from sfm_ttr_ros.core.sfm.source import make_sfm_source, reconfigure_sfm_source
 from sfm_ttr_ros.core.window_io import TTRConfig, WindowResult, WindowState, unrefined
 
@@ -73,6 +74,7 @@ class SfmTTR:
         self.checks = WindowJudge()  # the window checks and their references across windows
         self.metric = MetricScale()  # the steady metric factor of the accepted windows
         self.odometry = OdometryTrack()  # positions for metric.source odometry (the node's)
+        self.focal = SelfCalibration()  # the focal length of assumed intrinsics, per window
         self._stop = False
         # called with the step count after each refinement step whose weights may be served
         # before the window ends (core/stream/refiner.py; checks.interim_refusal() says)
@@ -161,11 +163,13 @@ class SfmTTR:
 
     def _reconstruct(self, w: WindowState) -> Stop | None:
         """SfM of the window (Sec. 3.1: D_sfm, p_lj, r_lj) from the SfM source: its own, begun
-        ahead, or the streaming SfM's carried map, how it was mapped in the result; why the
-        window stops here (None = it goes on)."""
-        t = w.timings
-        t0 = time.perf_counter()
+        ahead, or the streaming SfM's carried map, how it was mapped in the result (assumed
+        intrinsics: the carried focal length, refined till it settles); why it stops here."""
+        t, t0 = w.timings, time.perf_counter()
+        w.intrinsics = self.focal.prepare_window(w.frames, w.intrinsics, self.sfm,
+                                                 self.config.sfm)
         sfm, ahead = self.sfm.reconstruct(w.frames, w.intrinsics)
+        w.intrinsics = self.focal.window_done(sfm) or w.intrinsics
         if ahead:
             t["sfm_ahead"] = 1.0  # reconstructed while the previous window refined
         t["sfm"] = time.perf_counter() - t0
@@ -299,10 +303,8 @@ class SfmTTR:
     # -- options, warm-up, status, lifecycle ----------------------------------------------
     def _concrete(self, config: TTRConfig) -> TTRConfig:
         """``config`` with ``refinement.loss`` "auto" resolved for this model (a copy)."""
-        refinement = resolve_loss(config.refinement, self.model)
-        if refinement is config.refinement:
-            return config
-        return dataclasses.replace(config, refinement=refinement)
+        r = resolve_loss(config.refinement, self.model)
+        return config if r is config.refinement else dataclasses.replace(config, refinement=r)
 
     def check_config(self, config: TTRConfig) -> None:
         """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder

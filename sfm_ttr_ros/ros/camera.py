@@ -7,7 +7,14 @@ For each frame, the first that applies:
 3. the fallback fx, fy (both > 0; cx, cy = 0 mean the image centre, ``(size - 1) / 2``): the
    frame is marked (``Frame.fallback_intrinsics``), and the stream lets the first received
    intrinsics of the same image size replace them for the frames it still holds;
-4. none: the frame is HELD, at most ``max_held`` of them (beyond that the oldest is dropped,
+4. intrinsics assumed from the horizontal field of view ``assumed_hfov_deg`` (> 0), once the
+   camera said it is uncalibrated (a CameraInfo with K all zero: :meth:`camera_uncalibrated`):
+   f = (W / 2) / tan(hfov / 2), the principal point at the image centre, the frame marked
+   (``Frame.assumed_intrinsics``: SfM refines the focal length window after window,
+   core/sfm/self_calibration.py; a received calibration replaces them as the fallback's). The
+   frames get the assumed intrinsics; what is published beside their depth carries the
+   estimate so far (``assumed_focal``);
+5. none: the frame is HELD, at most ``max_held`` of them (beyond that the oldest is dropped,
    reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known.
 
 Each decision is also a :class:`CameraSource` (the intrinsics, the message they were read from,
@@ -21,8 +28,8 @@ outside the frame (``cx``, ``cy`` set for a larger image, e.g. KITTI's on a 416x
 live ``cx`` of 5000) is the same case: the fallback gives intrinsics for the smallest image that
 contains that principal point, i.e. for another image size, so the frame is published unrefined
 (``intrinsics_mismatch``) instead of raising. A fallback that cannot make intrinsics at all
-(fx, fy unset, or an error reading it) holds the frame (rule 4). Stamps are integer nanoseconds
-(or None when the frame has none: only rules 2-4 apply); converting messages is msg_adapters'
+(fx, fy unset, or an error reading it) holds the frame (rule 5). Stamps are integer nanoseconds
+(or None when the frame has none: only rules 2-5 apply); converting messages is msg_adapters'
 job.
 """
 
@@ -69,11 +76,18 @@ class FallbackIntrinsics:
 @dataclass(frozen=True)
 class CameraSource:
     """Where a frame's intrinsics came from: ``message`` is what was received with them (the
-    CameraInfo, opaque here) or None for the fallback's (``fallback`` True)."""
+    CameraInfo, opaque here) or None for the fallback's (``fallback`` True) and the assumed
+    ones (``assumed`` True)."""
 
     intrinsics: Intrinsics
     message: object | None = None
     fallback: bool = False
+    assumed: bool = False  # from a field of view (rule 4): SfM refines their focal length
+
+    @property
+    def stand_in(self) -> bool:
+        """The fallback's or assumed intrinsics: a received calibration replaces them."""
+        return self.fallback or self.assumed
 
 
 @dataclass
@@ -88,16 +102,22 @@ class Resolved:
 class IntrinsicsResolver:
     """The per-frame intrinsics rule (module docstring). Thread-safe.
 
-    ``fallback``: called at every decision, so live parameter changes apply at once.
-    ``max_held``: bound of the held frames (>= 1).
+    ``fallback`` and ``assumed_hfov_deg`` (0: no intrinsics are assumed): called at every
+    decision, so live parameter changes apply at once. ``assumed_focal``: the focal length
+    estimated so far for assumed intrinsics of a (width, height) image (None: the assumed
+    one), for what is published. ``max_held``: bound of the held frames (>= 1).
     """
 
     def __init__(self, fallback: Callable[[], FallbackIntrinsics] = FallbackIntrinsics,
-                 max_held: int = 100, keep_by_stamp: int = KEEP_BY_STAMP):
+                 max_held: int = 100, keep_by_stamp: int = KEEP_BY_STAMP, *,
+                 assumed_hfov_deg: Callable[[], float] = lambda: 0.0,
+                 assumed_focal: Callable[[tuple[int, int]], float | None] = lambda size: None):
         if int(max_held) < 1 or int(keep_by_stamp) < 1:
             raise InputError(f"max_held and keep_by_stamp must be >= 1, got {max_held}, "
                              f"{keep_by_stamp}")
         self._fallback = fallback
+        self._hfov, self._focal = assumed_hfov_deg, assumed_focal
+        self._uncalibrated = False  # a CameraInfo said the camera is not calibrated (rule 4)
         self.max_held = int(max_held)
         self._keep = int(keep_by_stamp)
         self._by_stamp: collections.OrderedDict[int, CameraSource] = collections.OrderedDict()
@@ -123,10 +143,34 @@ class IntrinsicsResolver:
         return None if source is None else source.intrinsics
 
     def camera_for(self, size: tuple[int, int], stamp_ns: int | None) -> CameraSource | None:
-        """Rules 1-3 for a ``size`` = (width, height) image stamped ``stamp_ns``, with the
-        message the intrinsics came from; None when nothing is known yet (thread-safe)."""
+        """Rules 1-4 for a ``size`` = (width, height) image stamped ``stamp_ns``, with the
+        message the intrinsics came from (assumed ones: with the focal length estimated so
+        far); None when nothing is known yet (thread-safe)."""
         with self._lock:
-            return self._resolve(size, stamp_ns)
+            source = self._resolve(size, stamp_ns)
+        focal = self._focal(size) if source is not None and source.assumed else None
+        if focal is None:
+            return source
+        i = source.intrinsics
+        return CameraSource(Intrinsics(focal, focal, i.cx, i.cy, i.width, i.height),
+                            assumed=True)
+
+    def kind(self, assumed_state: str) -> str:
+        """Where the intrinsics come from now (``intrinsics.source`` on /diagnostics):
+        ``camera_info``, ``fallback``, ``assumed_state`` (the focal length's: assumed,
+        refining, settled) or ``none``."""
+        if self._latest is not None:
+            return "camera_info"
+        if self._fallback().fx > 0:
+            return "fallback"
+        return assumed_state if self._uncalibrated and self._hfov() > 0 else "none"
+
+    def camera_uncalibrated(self) -> Resolved:
+        """A CameraInfo said the camera is not calibrated (K all zero): rule 4 applies from now
+        on; held frames released."""
+        with self._lock:
+            self._uncalibrated = True
+            return Resolved(ready=self._release())
 
     def window_camera(self, frame: Frame, stamp_ns: int | None) -> CameraSource | None:
         """The camera of a frame out of its window: the CameraInfo its intrinsics were read
@@ -134,7 +178,7 @@ class IntrinsicsResolver:
         description: the stream takes the first one in place of the fallback too), else the
         fallback it had."""
         given = frame.camera if isinstance(frame.camera, CameraSource) else None
-        if given is not None and not given.fallback:
+        if given is not None and not given.stand_in:
             return given
         now = self.camera_for(frame.size, stamp_ns)
         if now is not None and (given is None or not now.fallback):
@@ -152,7 +196,12 @@ class IntrinsicsResolver:
             intr = self._fallback().for_size(*size)
         except InputError:  # a fallback that cannot describe any image: as if unset (held)
             return None
-        return None if intr is None else CameraSource(intr, None, fallback=True)
+        if intr is not None:
+            return CameraSource(intr, None, fallback=True)
+        hfov = float(self._hfov())
+        if self._uncalibrated and 0 < hfov < 180:
+            return CameraSource(Intrinsics.from_fov(*size, hfov), assumed=True)
+        return None
 
     def add_intrinsics(self, intr: Intrinsics, stamp_ns: int, message: object = None) -> Resolved:
         """Intrinsics received for ``stamp_ns`` (read from ``message``, a CameraInfo):
@@ -187,7 +236,30 @@ class IntrinsicsResolver:
             source = self._resolve(frame.size, stamp_ns)
             if source is None:
                 break
-            frame.fallback_intrinsics, frame.camera = source.fallback, source
+            frame.fallback_intrinsics, frame.camera = source.stand_in, source
+            frame.assumed_intrinsics = source.assumed
             self._held.popleft()
             ready.append((frame, source.intrinsics))
         return ready
+
+
+def intrinsics_values(resolver: IntrinsicsResolver, focal) -> dict[str, object]:
+    """The ``intrinsics.*`` values of /diagnostics: ``intrinsics.source`` (camera_info,
+    fallback, assumed, refining, settled or none) and, for assumed intrinsics refined by SfM
+    (``focal``: core/sfm/self_calibration.py), ``intrinsics.focal_px``, the estimate so far."""
+    source = resolver.kind(focal.state)
+    values: dict[str, object] = {"intrinsics.source": source}
+    if source in ("refining", "settled") and focal.focal is not None:
+        values["intrinsics.focal_px"] = round(float(focal.focal), 2)
+    return values
+
+
+def uncalibrated_note(exc: Exception, settings) -> str:
+    """The line logged for an uncalibrated camera's CameraInfo (``settings``: the node's)."""
+    if settings.fallback is not None:
+        return f"{exc}: fallback_intrinsics used"
+    if settings.assumed_hfov_deg > 0:
+        return (f"{exc}: intrinsics assumed from a {settings.assumed_hfov_deg:g} deg horizontal "
+                "field of view, the focal length refined by SfM (intrinsics.source on "
+                "/diagnostics)")
+    return f"{exc}: frames wait (assumed_hfov_deg is 0, fallback_intrinsics unset)"

@@ -29,6 +29,13 @@ def compressed_topic(image_topic: str) -> str:
     return image_topic.rstrip("/") + COMPRESSED_SUFFIX
 
 
+def camera_info_beside(image_topic: str) -> str:
+    """The CameraInfo topic of a resolved image topic (image_transport's camera subscriber:
+    the image topic's namespace + ``/camera_info``; ``/cam/image_raw`` -> ``/cam/camera_info``)."""
+    parent = image_topic.rstrip("/").rsplit("/", 1)[0]
+    return parent + "/" + CAMERA_INFO_TOPIC
+
+
 # publications: image_transport's camera publisher, <base>/image + <base>/camera_info
 IMAGE_SUFFIX = "/image"
 CAMERA_INFO_SUFFIX = "/camera_info"

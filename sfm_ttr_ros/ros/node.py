@@ -48,7 +48,12 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-from msg_adapters import camera_info_to_intrinsics, compressed_to_rgb8, image_to_rgb8
+from msg_adapters import (
+    UncalibratedCameraInfo,
+    camera_info_to_intrinsics,
+    compressed_to_rgb8,
+    image_to_rgb8,
+)
 from msg_adapters.odometry import odometry_to_position
 from msg_adapters.stamp import stamp_to_ns, stamp_to_seconds
 from sfm_ttr_ros.core.errors import InputError
@@ -65,7 +70,7 @@ from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
 from sfm_ttr_ros.core.stream.window_runner import FrameOutput, WindowStats
 from sfm_ttr_ros.requirements import check_sfm_dependencies
-from sfm_ttr_ros.ros import accounting, allocator, dds, names, outputs, subscriptions
+from sfm_ttr_ros.ros import accounting, allocator, camera, dds, names, outputs, subscriptions
 from sfm_ttr_ros.ros.camera import NO_INTRINSICS, FallbackIntrinsics, IntrinsicsResolver, Resolved
 from sfm_ttr_ros.ros.camera_path_output import CameraPathOutput
 from sfm_ttr_ros.ros.containment import ThrottledLog, contained, fault_message, where
@@ -123,10 +128,15 @@ class RefinerNode(Node):
             on_live=self._publish_live, on_refined=self._publish_output,
             on_window=self._on_window, on_fault=self.fault, logger=self.get_logger())
         self.stream = self.online.stream
-        self.intrinsics = IntrinsicsResolver(self._fallback_intrinsics,
-                                             max_held=int(settings.stream.max_pending))
+        self.intrinsics = IntrinsicsResolver(
+            lambda: FallbackIntrinsics(*(self.settings.fallback or ())),
+            max_held=int(settings.stream.max_pending),
+            assumed_hfov_deg=lambda: self.settings.assumed_hfov_deg,
+            assumed_focal=self.ttr.focal.focal_for)
         self.diagnostics = StreamDiagnostics(self.stream, held=lambda: self.intrinsics.held,
                                              live=self.online.counters_live)
+        self.diagnostics.intrinsics_values = lambda: camera.intrinsics_values(
+            self.intrinsics, self.ttr.focal)
         self.final_accounting: dict | None = None
         self._closed = False
         self._stop = threading.Event()
@@ -134,6 +144,7 @@ class RefinerNode(Node):
         image_input = subscriptions.image_input(self, node, self._on_image,
                                                 self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input.topic)
+        self.camera_info_topic = self.resolve_topic_name(subscriptions.camera_info_topic(self))
         self.pubs = OutputPublishers(self, int(node.qos_depth), self._on_incompatible_qos)
         self.scale = ScaleState(self.pubs.depth_scale.publish, self.get_fully_qualified_name())
         self._report_scale()
@@ -145,8 +156,8 @@ class RefinerNode(Node):
             lambda: self.online.worker_alive,
             lambda: self.settings.diagnostics_stale_after_s, self.image_topic)
         subscriptions.subscribe(
-            self, [image_input, *subscriptions.camera_and_odometry(self._on_camera_info,
-                                                                    self._on_odometry)],
+            self, [image_input, *subscriptions.camera_and_odometry(
+                self._on_camera_info, self._on_odometry, subscriptions.camera_info_topic(self))],
             subscriptions.input_qos(node), self._on_incompatible_qos)
         self._log_ready(model)
 
@@ -156,18 +167,14 @@ class RefinerNode(Node):
             f"refiner ready: model {type(model).__name__} (input {model.input_size}), window "
             f"{values['window_size']}/{values['window_stride']}, refinement "
             f"{values['refinement.steps']} steps, weight_policy "
-            f"{values['weight_policy']}, input {self.image_topic} ({node.image_transport}), "
-            f"QoS {node.qos_reliability} depth {node.qos_depth}")
+            f"{values['weight_policy']}, input {self.image_topic} ({node.image_transport}) "
+            f"with {self.camera_info_topic}, QoS {node.qos_reliability} depth {node.qos_depth}")
 
     @property
     def settings(self):
         """The node's own settings (:class:`~sfm_ttr_ros.core.params.node.NodeSettings`), as
         the parameters are now."""
         return self.live_settings.all.node
-
-    def _fallback_intrinsics(self) -> FallbackIntrinsics:
-        k = self.settings.fallback
-        return FallbackIntrinsics(*k) if k is not None else FallbackIntrinsics()
 
     def _publishes(self, output: str) -> bool:
         return output in self.settings.published
@@ -211,7 +218,7 @@ class RefinerNode(Node):
         if self.intrinsics.held:
             self.warn_every(
                 "held", f"{self.intrinsics.held} frame(s) held: no intrinsics yet - waiting for "
-                f"a CameraInfo on {self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set the "
+                f"a CameraInfo on {self.camera_info_topic} or set the "
                 "fallback_intrinsics")
 
     @contained("camera_info_callback")
@@ -219,6 +226,10 @@ class RefinerNode(Node):
         try:
             intr = camera_info_to_intrinsics(msg, self.settings.use_projection)
             stamp_ns = stamp_to_ns(msg.header.stamp)
+        except UncalibratedCameraInfo as exc:  # K all zero: intrinsics assumed (ros/camera.py)
+            self.warn_every("uncalibrated", camera.uncalibrated_note(exc, self.settings))
+            self._hand_over(self.intrinsics.camera_uncalibrated())
+            return
         except Exception as exc:  # it is the message that is bad
             self.diagnostics.camera_info_rejected()
             self.warn_every("camera_info", f"CameraInfo rejected: {_detail(exc)}")
@@ -312,7 +323,7 @@ class RefinerNode(Node):
         self.warn_every(f"no_camera_info:{output}", (
             f"{output} depth of frame {frame.name} published without CameraInfo ({n} so far): "
             f"no intrinsics yet - waiting for a CameraInfo on "
-            f"{self.resolve_topic_name(names.CAMERA_INFO_TOPIC)} or set fallback_intrinsics"))
+            f"{self.camera_info_topic} or set fallback_intrinsics"))
 
     @contained("publish")
     def _on_window(self, stats: WindowStats) -> None:

@@ -1,6 +1,10 @@
 """The ``refiner`` node's inputs: the image (raw, or image_transport's ``<image>/compressed``),
 ``camera_info`` and ``odom``, on one QoS (docs/node.md, "QoS").
 
+The CameraInfo comes from beside the image, as image_transport's camera subscriber takes it
+(:func:`camera_info_topic`): ``-r image:=/cam/image_raw`` brings ``/cam/camera_info``; a remap
+of ``camera_info`` itself still wins.
+
 The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability``: best_effort by default, REP 2003's
 sensor-data subscription, which matches reliable and best-effort publishers alike; reliable
 refuses best-effort publishers. ``--ros-args`` QoS overrides may change it
@@ -63,7 +67,23 @@ def subscribe(node, inputs: list[Input], qos: QoSProfile,
                 incompatible_qos=partial(on_incompatible_qos, topic)))
 
 
-def camera_and_odometry(on_camera_info: Callable, on_odometry: Callable) -> list[Input]:
-    """The ``camera_info`` and ``odom`` subscriptions."""
-    return [Input(CameraInfo, names.CAMERA_INFO_TOPIC, on_camera_info),
+def camera_info_topic(node) -> str:
+    """The CameraInfo topic: ``camera_info`` as remapped when it was remapped (its resolution
+    differs from its plain expansion), else image_transport's rule, the resolved image topic's
+    namespace + ``/camera_info`` (``-r image:=/cam/image_raw`` -> ``/cam/camera_info``). The
+    relative name itself when that is where it resolves anyway (no remap at all): a remap
+    rule applies to the relative name only, so an absolute name is given only when derived."""
+    plain = node.resolve_topic_name(names.CAMERA_INFO_TOPIC, only_expand=True)
+    remapped = node.resolve_topic_name(names.CAMERA_INFO_TOPIC)
+    if remapped != plain:
+        return remapped
+    beside = names.camera_info_beside(node.resolve_topic_name(names.IMAGE_TOPIC))
+    return names.CAMERA_INFO_TOPIC if beside == plain else beside
+
+
+def camera_and_odometry(on_camera_info: Callable, on_odometry: Callable,
+                        camera_info: str = names.CAMERA_INFO_TOPIC) -> list[Input]:
+    """The CameraInfo (on ``camera_info``: :func:`camera_info_topic`) and ``odom``
+    subscriptions."""
+    return [Input(CameraInfo, camera_info, on_camera_info),
             Input(Odometry, names.ODOMETRY_TOPIC, on_odometry)]

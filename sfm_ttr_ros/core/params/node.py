@@ -86,7 +86,9 @@ class NodeSettings:
     """What the node reads itself (the core's configs hold the rest).
 
     ``fallback_intrinsics``: "fx fy cx cy" used until a CameraInfo arrives ("" = none; cx, cy
-    0 = image centre). ``outputs``: the outputs published (:data:`OUTPUTS`, comma-separated).
+    0 = image centre). ``assumed_hfov_deg``: the horizontal field of view intrinsics are
+    assumed from for an uncalibrated camera (a CameraInfo with K all zero; 0 = none, frames
+    wait). ``outputs``: the outputs published (:data:`OUTPUTS`, comma-separated).
     ``camera_info_use_projection``: ``"auto"``, ``"true"``/True (P) or
     ``"false"``/False (K). ``image_transport``: ``"raw"`` (sensor_msgs/Image on ``image``) or
     ``"compressed"`` (sensor_msgs/CompressedImage on ``<image>/compressed``).
@@ -102,6 +104,7 @@ class NodeSettings:
     (:func:`~sfm_ttr_ros.core.stream.base_odometry.parse_camera_mount`)."""
 
     fallback_intrinsics: str = ""
+    assumed_hfov_deg: float = 65.0
     camera_info_use_projection: str | bool = "auto"
     image_transport: str = "raw"
     qos_reliability: str = "best_effort"
@@ -127,6 +130,9 @@ class NodeSettings:
         _check_frame_id("odom.child_frame_id", self.odom_child_frame_id, empty=False)
         parse_camera_mount(self.odom_camera_mount)
         parse_fallback_intrinsics(self.fallback_intrinsics)
+        if not (0 <= self.assumed_hfov_deg < 180):
+            raise InputError(f"assumed_hfov_deg must be in [0, 180) (0 = none), got "
+                             f"{self.assumed_hfov_deg}")
         parse_outputs(self.outputs)
         parse_use_projection(self.camera_info_use_projection)
         check_choice("image_transport", self.image_transport, IMAGE_TRANSPORTS)

@@ -273,6 +273,9 @@ PARAMS: tuple[Param, ...] = (
     _p("fallback_intrinsics", "node.fallback_intrinsics", "Intrinsics 'fx fy cx cy' (px) used "
        "until a CameraInfo arrives (cx, cy 0 = image centre); empty = frames wait for one.",
        constraints="empty or four numbers, fx and fy > 0"),
+    _p("assumed_hfov_deg", "node.assumed_hfov_deg", "Horizontal field of view (deg) that "
+       "intrinsics are assumed from when the CameraInfo's K is all zero (uncalibrated), the "
+       "focal length then refined by SfM window after window; 0 = frames wait.", 0.0, 179.0),
     _p("camera_info_use_projection", "node.camera_info_use_projection", "Intrinsics from "
        "CameraInfo P (rectified images: true) or K (false); auto: P when it is set and D is "
        "zero.", choices=USE_PROJECTION_CHOICES, dynamic_typing=True),

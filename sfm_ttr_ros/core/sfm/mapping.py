@@ -120,6 +120,7 @@ class Mapper:
         if self.runner is not None:
             return self.runner(config, names, token, seed)
 
+        set_camera_model(self.workspace.database_path, config.refine_intrinsics)
         out = self.workspace.path / "sparse"
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
@@ -134,10 +135,33 @@ class Mapper:
         return collect_result(recs, names, timings, config)
 
 
+def set_camera_model(database_path, one_focal: bool) -> None:
+    """The database's camera as the mapper takes it: PINHOLE (fx, fy held fixed), or with
+    ``one_focal`` SIMPLE_PINHOLE, one focal length f = (fx + fy) / 2 that bundle adjustment
+    refines (two free focal lengths drift apart: measured on a generated drive, fx 1570 and
+    fy 39 px from 502 px). The principal point is kept; keypoints and matches do not depend
+    on the model."""
+    import pycolmap
+
+    model = "SIMPLE_PINHOLE" if one_focal else "PINHOLE"
+    with pycolmap.Database.open(database_path) as db:
+        for cam in db.read_all_cameras():
+            if cam.model.name == model:
+                continue
+            K = cam.calibration_matrix()
+            fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+            params = [0.5 * (fx + fy), cx, cy] if one_focal else [fx, fy, cx, cy]
+            new = pycolmap.Camera(model=model, width=cam.width, height=cam.height,
+                                  params=params, camera_id=cam.camera_id)
+            new.has_prior_focal_length = cam.has_prior_focal_length
+            db.update_camera(new)
+
+
 def mapper_options(config: SfmConfig, names: list[str], seed: int):
-    """pycolmap's incremental mapper options for ``names``: one fixed PINHOLE camera (focal
-    length refined only with ``refine_intrinsics``), the forward-driving initialisation
-    thresholds, COLMAP's filters at ``max_reproj_error`` and ``min_tri_angle``."""
+    """pycolmap's incremental mapper options for ``names``: one fixed PINHOLE camera (one
+    focal length refined only with ``refine_intrinsics``: :func:`set_camera_model`), the
+    forward-driving initialisation thresholds, COLMAP's filters at ``max_reproj_error`` and
+    ``min_tri_angle``."""
     import pycolmap
 
     opts = pycolmap.IncrementalPipelineOptions()

@@ -90,7 +90,7 @@ def collect_result(recs, names: Sequence[str], timings: dict[str, float],
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
     result = SfmResult(True, "", len(names), timings=timings)
     cam = next(iter(rec.cameras.values()))
-    fx, fy, cx, cy = (float(v) for v in cam.params[:4])
+    fx, fy, cx, cy = _pinhole(cam)
     result.intrinsics = Intrinsics(fx, fy, cx - 0.5, cy - 0.5, cam.width, cam.height)
     wanted = {image_name(n): n for n in names}
     for image in rec.images.values():
@@ -113,6 +113,13 @@ def collect_result(recs, names: Sequence[str], timings: dict[str, float],
     return result
 
 
+def _pinhole(camera) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of a PINHOLE or SIMPLE_PINHOLE (one focal length: the focal
+    length refined for assumed intrinsics) pycolmap camera, COLMAP's pixel centres."""
+    K = camera.calibration_matrix()
+    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+
+
 def _frame_observations(rec, image, name: str) -> FrameObservations | None:
     """D_sfm, p_lj and r_lj of one registered image (pixel centres moved from COLMAP's +0.5
     to OpenCV's integers); None when it observes no 3D point."""
@@ -125,7 +132,7 @@ def _frame_observations(rec, image, name: str) -> FrameObservations | None:
     pids = np.array([o[1] for o in obs], np.int64)
     X = np.array([rec.points3D[int(i)].xyz for i in pids])
     Xc = X @ R.T + t
-    fx, fy, cx, cy = image.camera.params[:4]
+    fx, fy, cx, cy = _pinhole(image.camera)
     proj = np.stack([fx * Xc[:, 0] / Xc[:, 2] + cx, fy * Xc[:, 1] / Xc[:, 2] + cy], 1)
     track_err = np.array([rec.points3D[int(i)].error for i in pids])
     return FrameObservations(

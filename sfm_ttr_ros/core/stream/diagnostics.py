@@ -79,6 +79,8 @@ class StreamDiagnostics:
         #: depth images published without a CameraInfo, per output ("live", "refined")
         self.without_camera_info: collections.Counter[str] = collections.Counter()
         self._without_camera_info_since_status = 0
+        #: where the intrinsics come from, ``intrinsics.*`` (the node's: ros/camera.py)
+        self.intrinsics_values: Callable[[], dict[str, object]] | None = None
         self._lock = threading.Lock()
 
     # -- counting ------------------------------------------------------------------------------
@@ -160,6 +162,8 @@ class StreamDiagnostics:
         if metric is not None:  # the outputs' units (core/metric/)
             v.update({f"metric.{k}": x for k, x in metric().values().items()})
         v.update(self._last_window_values())
+        if self.intrinsics_values is not None:
+            v.update(self.intrinsics_values())
         return v
 
     def _live_values(self) -> dict[str, object]:
