@@ -94,6 +94,17 @@ class SfmTTR:
         if stop := self._prepare(w):  # SfM, alignment, the checks before refining, Eq. (5)
             return unrefined(res, stop)
         start = self.weights.rollback_point(self.config.weight_policy)
+        try:
+            return self._refine_and_judge(w, start, should_stop)
+        except Exception:  # a window that fails while refining leaves the weights before it
+            self.weights.refuse(start)
+            raise
+
+    def _refine_and_judge(self, w: WindowState, start: dict,
+                          should_stop: Callable[[], bool] | None) -> WindowResult:
+        """Sec. 3.3 from the rollback point ``start``: refine, predict with the refined
+        weights, keep or refuse them."""
+        res = w.result
         res.refinement = self._refine(w, should_stop)  # Adam on the encoder (Sec. 3.3)
         if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
             return unrefined(res, Stop(Unrefined.CANCELLED, "refinement cancelled"))
