@@ -147,7 +147,7 @@ class RefinerNode(Node):
         subscriptions.subscribe(
             self, [image_input, *subscriptions.camera_and_odometry(self._on_camera_info,
                                                                     self._on_odometry)],
-            subscriptions.input_qos(node), self._on_incompatible_qos)
+            subscriptions.input_qos(node), self._on_incompatible_input)
         self._log_ready(model)
 
     def _log_ready(self, model: DepthModel) -> None:
@@ -265,9 +265,19 @@ class RefinerNode(Node):
             "check the other side's reliability/durability (qos_reliability parameter)",
             throttle_duration_sec=WARN_PERIOD_S)
 
+    @contained("qos_event")
+    def _on_incompatible_input(self, topic: str, event) -> None:
+        """An input refused a publisher: counted, and an ERROR naming the fix."""
+        self.diagnostics.qos_event(topic)
+        self.get_logger().error(subscriptions.incompatible_input_message(
+            self.resolve_topic_name(topic), getattr(event, "last_policy_kind", "?"),
+            event.total_count), throttle_duration_sec=WARN_PERIOD_S)
+
     @contained("timer")
     def _on_timer(self) -> None:
         self._hand_over(self.intrinsics.release())  # the fallback may have been set meanwhile
+        for frame in self.intrinsics.expire(self.live_settings.all.stream.idle_flush_s):
+            self.stream.submit(frame, None)  # no intrinsics came: published unrefined
         self._report_scale()
         self.publish_diagnostics()
         warn_if_stale(self.ttr, self.warn_every)  # the metric scale's source stopped

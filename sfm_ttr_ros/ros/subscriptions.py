@@ -1,11 +1,12 @@
 """The ``refiner`` node's inputs: the image (raw, or image_transport's ``<image>/compressed``),
 ``camera_info`` and ``odom``, on one QoS (docs/node.md, "QoS").
 
-The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability``: best_effort by default, REP 2003's
-sensor-data subscription, which matches reliable and best-effort publishers alike; reliable
-refuses best-effort publishers. ``--ros-args`` QoS overrides may change it
+The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability``: reliable by default, so a
+publisher with ROS's default QoS repairs what the transport loses (docs/decisions.md, "A ROS
+citizen on any camera": a best-effort reader lost 26 of 30 real-size frames at 10 Hz);
+best_effort takes best-effort publishers too. ``--ros-args`` QoS overrides may change it
 (``QoSOverridingOptions``); an incompatible QoS on an input calls the node's handler with the
-topic.
+topic, and :func:`incompatible_input_message` says how to fix it.
 """
 
 from __future__ import annotations
@@ -61,6 +62,16 @@ def subscribe(node, inputs: list[Input], qos: QoSProfile,
             msg_type, topic, callback, copy.copy(qos), qos_overriding_options=overrides,
             event_callbacks=SubscriptionEventCallbacks(
                 incompatible_qos=partial(on_incompatible_qos, topic)))
+
+
+def incompatible_input_message(topic: str, policy: object, count: int) -> str:
+    """The ERROR of an input that refused a publisher (``topic`` resolved): a best-effort
+    driver (REP 2003's sensor-data QoS) against the reliable default, and the two fixes."""
+    return (f"incompatible QoS on input {topic} (policy {policy}, {count} so far): its publisher "
+            f"does not offer this subscription's QoS - a best-effort (sensor-data) driver "
+            f"needs `-p qos_overrides.{topic}.subscription.reliability:=best_effort` (or "
+            f"`-p qos_reliability:=best_effort` for every input); until then no message of it "
+            f"arrives")
 
 
 def camera_and_odometry(on_camera_info: Callable, on_odometry: Callable) -> list[Input]:

@@ -102,7 +102,7 @@ class NodeSettings:
     fallback_intrinsics: str = ""
     camera_info_use_projection: str | bool = "auto"
     image_transport: str = "raw"
-    qos_reliability: str = "best_effort"
+    qos_reliability: str = "reliable"
     qos_depth: int = 30
     outputs: str = ",".join(DEFAULT_OUTPUTS)
     cloud_stride: int = 4
