@@ -132,7 +132,7 @@ def test_an_override_of_one_input_stays_on_that_input(monkeypatch):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
     ctx = Context()
     rclpy.init(context=ctx, args=["--ros-args", "-p",
-                                  "qos_overrides./image.subscription.reliability:=reliable"])
+                                  "qos_overrides./image.subscription.reliability:=best_effort"])
     try:
         node = rclpy.create_node(names.NODE_NAME, context=ctx)
         inputs = [subscriptions.Input(Image, names.IMAGE_TOPIC, lambda m: None),
@@ -143,6 +143,6 @@ def test_an_override_of_one_input_stays_on_that_input(monkeypatch):
         node.destroy_node()
     finally:
         ctx.try_shutdown()
-    assert got == {"/image": ReliabilityPolicy.RELIABLE,
-                   "/camera_info": ReliabilityPolicy.BEST_EFFORT,
-                   "/odom": ReliabilityPolicy.BEST_EFFORT}
+    assert got == {"/image": ReliabilityPolicy.BEST_EFFORT,
+                   "/camera_info": ReliabilityPolicy.RELIABLE,
+                   "/odom": ReliabilityPolicy.RELIABLE}

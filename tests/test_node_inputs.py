@@ -2,7 +2,7 @@
 intrinsics that never come is published unrefined after the idle period, never kept; a
 best-effort (sensor-data) driver refused by the reliable default input gets an ERROR, through
 rclpy's real logger, naming the fix; real-size frames from a publisher with ROS's default QoS
-all reach the node (scripts/transport_check.py) at 10 and 20 Hz."""
+all reach the node (sfm_ttr_ros/tools/transport_check.py) at 10 and 20 Hz."""
 
 from __future__ import annotations
 
@@ -115,9 +115,9 @@ def test_real_size_frames_from_a_default_qos_publisher_all_arrive(tmp_path):
     into the node with its defaults: every one received (a best-effort input got 4 and 3)."""
     report = tmp_path / "transport.json"
     out = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / "transport_check.py"), "--frames", "30",
+        [sys.executable, "-m", "sfm_ttr_ros.tools.transport_check", "--frames", "30",
          "--rate", "10", "--rate", "20", "--json", str(report), "--log-dir", str(tmp_path)],
-        capture_output=True, text=True, timeout=300)
+        capture_output=True, text=True, timeout=300, cwd=REPO)
     assert report.is_file(), out.stdout[-2000:] + out.stderr[-2000:]
     runs = json.loads(report.read_text())
     assert [(r["rate_hz"], r["received"], r["published"]) for r in runs] == [

@@ -37,6 +37,7 @@ import os
 import signal
 import sys
 import threading
+from functools import partial
 
 import rclpy
 import torch
@@ -147,7 +148,7 @@ class RefinerNode(Node):
         subscriptions.subscribe(
             self, [image_input, *subscriptions.camera_and_odometry(self._on_camera_info,
                                                                     self._on_odometry)],
-            subscriptions.input_qos(node), self._on_incompatible_input)
+            subscriptions.input_qos(node), partial(subscriptions.input_refused, self))
         self._log_ready(model)
 
     def _log_ready(self, model: DepthModel) -> None:
@@ -264,14 +265,6 @@ class RefinerNode(Node):
             f"incompatible QoS on {what} (policy {policy}, {event.total_count} so far): "
             "check the other side's reliability/durability (qos_reliability parameter)",
             throttle_duration_sec=WARN_PERIOD_S)
-
-    @contained("qos_event")
-    def _on_incompatible_input(self, topic: str, event) -> None:
-        """An input refused a publisher: counted, and an ERROR naming the fix."""
-        self.diagnostics.qos_event(topic)
-        self.get_logger().error(subscriptions.incompatible_input_message(
-            self.resolve_topic_name(topic), getattr(event, "last_policy_kind", "?"),
-            event.total_count), throttle_duration_sec=WARN_PERIOD_S)
 
     @contained("timer")
     def _on_timer(self) -> None:

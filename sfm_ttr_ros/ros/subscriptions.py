@@ -23,6 +23,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from sfm_ttr_ros.core.params.node import NodeSettings
+from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
 from sfm_ttr_ros.ros import names
 
 
@@ -62,6 +63,19 @@ def subscribe(node, inputs: list[Input], qos: QoSProfile,
             msg_type, topic, callback, copy.copy(qos), qos_overriding_options=overrides,
             event_callbacks=SubscriptionEventCallbacks(
                 incompatible_qos=partial(on_incompatible_qos, topic)))
+
+
+def input_refused(node, topic: str, event) -> None:
+    """An input of ``node`` (the refiner) refused a publisher: counted (``qos_incompatible``)
+    and an ERROR naming the fix (:func:`incompatible_input_message`), throttled; an exception
+    here is a fault of ``qos_event``."""
+    try:
+        node.diagnostics.qos_event(topic)
+        node.get_logger().error(incompatible_input_message(
+            node.resolve_topic_name(topic), getattr(event, "last_policy_kind", "?"),
+            event.total_count), throttle_duration_sec=WARN_PERIOD_S)
+    except Exception as exc:  # noqa: BLE001 - contained like every callback of the node
+        node.fault("qos_event", exc)
 
 
 def incompatible_input_message(topic: str, policy: object, count: int) -> str:

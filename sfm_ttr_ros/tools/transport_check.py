@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """Count what the transport delivers: real-size frames from a plain rclpy publisher into the
 refiner with its DEFAULT settings, as a ROS user plugs in a camera.
 
@@ -10,8 +9,8 @@ ROS's default QoS (reliable, KEEP_LAST 10), no profile of ours on the client's s
 node is stopped and its final accounting read: ``frames_received`` against the frames
 published. Exit 0 when every rate delivered every frame.
 
-    .venv/bin/python scripts/transport_check.py --frames 30 --rate 10 --rate 20
-    .venv/bin/python scripts/transport_check.py --set qos_reliability=best_effort   # before
+    python -m sfm_ttr_ros.tools.transport_check --frames 30 --rate 10 --rate 20
+    python -m sfm_ttr_ros.tools.transport_check --set qos_reliability=best_effort
 """
 
 from __future__ import annotations
@@ -26,10 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from sfm_ttr_ros.tools.demo import node_arguments
 
-from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
+#: This package's root folder: the node started here is this checkout's.
+REPO = Path(__file__).resolve().parents[2]
 
 WIDTH, HEIGHT = 1242, 375
 #: KITTI 2011_09_26's rectified left colour camera (P_rect_02): fx, fy, cx, cy.
@@ -106,7 +105,8 @@ def measure(rate_hz: float, n: int, overrides: list[str], log_dir: Path) -> dict
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=log_dir,
                                 env={**os.environ, "PYTHONUNBUFFERED": "1",
-                                     "PYTHONPATH": str(REPO)})
+                                     "PYTHONPATH": os.pathsep.join(filter(None, (
+                                         str(REPO), os.environ.get("PYTHONPATH"))))})
     rclpy.init()
     try:
         published = publish(make_frames(n), rate_hz)
