@@ -25,7 +25,9 @@ Then it waits for the drain and checks: the process is alive; exact accounting f
 /diagnostics (every image received, ``received = refined + unrefined + dropped``, nothing
 pending); ``dropped.bad_image`` = the bad images sent; every valid frame back on
 ``~/depth_refined/image`` or counted dropped or live-only; ``rejected_camera_info`` = the bad
-CameraInfos; no contained fault and no ``Traceback`` in the node's log; RSS bounded (final
+CameraInfos; no contained fault (in the last /diagnostics and in the final accounting the node
+writes as it stops, ``--accounting``: any place, the worker's included) and no frame pending
+at the end; no ``Traceback`` in the node's log; RSS bounded (final
 <= 2 x the RSS after the first phase + 200 MiB); every invalid parameter set refused with a
 reason. Exit 0 when every check passes, 1 otherwise; ``--json`` writes the figures.
 
@@ -51,7 +53,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # msg_adapters / sfm_ttr_ros from this checkout (the client side)
 
-from sfm_ttr_ros.tools.demo import EVERY_FRAME_COUNTS, node_arguments  # noqa: E402
+from sfm_ttr_ros.ros.accounting import ACCOUNTING_ARG, read_accounting  # noqa: E402
+from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
 from sfm_ttr_ros.tools.process import rss_mib  # noqa: E402
 
 # the node under test: cheap windows on top of params/kitti.yaml, a deep input history so DDS
@@ -407,8 +410,10 @@ def run(args: argparse.Namespace) -> dict:
     log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="fuzz_node_"))
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / "refiner.log"
-    cmd = [args.exe, "--ros-args", "--params-file", args.params_file]
-    cmd += node_arguments([*EVERY_FRAME_COUNTS, *LIGHT, *(args.set or [])])
+    accounting_path = log_dir / "accounting.json"  # the node's own, written as it stops
+    cmd = [args.exe, ACCOUNTING_ARG, str(accounting_path), "--ros-args", "--params-file",
+           args.params_file]
+    cmd += node_arguments([*LIGHT, *(args.set or [])])
     t0 = time.monotonic()
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=log_dir,
@@ -446,6 +451,7 @@ def run(args: argparse.Namespace) -> dict:
     report["tracebacks"] = text.count("Traceback")
     report["checks"]["no_traceback"] = report["tracebacks"] == 0
     report["checks"]["clean_exit"] = report["exit_code"] == 0
+    report.update(_final_checks(read_accounting(accounting_path), report["checks"]))
     report["ok"] = all(report["checks"].values())
     return report
 
@@ -559,6 +565,19 @@ def _checks(f: Fuzzer, d: dict[str, str], alive: bool, rss, rss_first, log_path)
         "wrong_answers": [p for p in f.param_sets if p["ok"] is not p["expected_ok"]],
         "log": str(log_path),
     }
+
+
+def _final_checks(final: dict | None, checks: dict) -> dict:
+    """The node's final accounting (``--accounting``, ros/accounting.py), as it stopped: no
+    fault contained in the whole run (any place, the worker's included: a fault the last
+    /diagnostics did not see yet counts too) and no frame pending, held or in the worker's
+    hands; ``checks`` gets both."""
+    final = final or {}
+    faults = {k: v for k, v in final.items() if k.startswith("faults.") and v}
+    checks["final_accounting_written"] = bool(final)
+    checks["no_fault_in_the_run"] = bool(final) and final.get("faults") == 0
+    checks["nothing_pending_at_the_end"] = bool(final) and final.get("frames_pending") == 0
+    return {"final_accounting": final, "faults_by_place": faults}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -48,7 +48,7 @@ REPO = Path(__file__).resolve().parents[1]
 RSS_BUCKET_S = 30.0
 sys.path.insert(0, str(REPO))
 
-from sfm_ttr_ros.tools.demo import EVERY_FRAME_COUNTS, node_arguments  # noqa: E402
+from sfm_ttr_ros.tools.demo import node_arguments  # noqa: E402
 from sfm_ttr_ros.tools.process import rss_mib  # noqa: E402
 
 KITTI_W, KITTI_H = 1242, 375
@@ -332,7 +332,7 @@ def _start_node(args: argparse.Namespace, out: Path) -> tuple[list[str], subproc
     paths made absolute first)."""
     exe = [str(Path(t).absolute()) if Path(t).exists() else t for t in shlex.split(args.exe)]
     cmd = [*exe, "--ros-args", "--params-file", args.params_file]
-    cmd += node_arguments([*EVERY_FRAME_COUNTS, *(args.set or [])])
+    cmd += node_arguments(args.set or [])
     log_path = out / "refiner.log"
     with open(log_path, "w") as log:
         node_env = dict(kv.split("=", 1) for kv in args.node_env or [])

@@ -1,7 +1,7 @@
-"""The node's inputs take any camera driver by default (docs/node.md "QoS"): the image,
-camera_info and odom subscriptions, as ``subscriptions`` creates them with the schema's
-default ``qos_reliability``, receive from a RELIABLE and a BEST_EFFORT publisher alike; under
-``reliable`` a best-effort publisher is refused with an incompatible-QoS event."""
+"""The node's inputs (docs/node.md "QoS"): the image, camera_info and odom subscriptions, as
+``subscriptions`` creates them with the schema's default ``qos_reliability`` (reliable), take a
+publisher with ROS's default QoS and refuse a BEST_EFFORT one with an incompatible-QoS event;
+under ``best_effort`` they take both."""
 
 from __future__ import annotations
 
@@ -101,20 +101,20 @@ def _run(ctx, reliability: str, until) -> tuple[dict, list]:
     return received, incompatible
 
 
-def test_the_default_inputs_take_reliable_and_best_effort_publishers(ros_context):
-    assert SCHEMA["qos_reliability"].default == NodeSettings().qos_reliability == "best_effort"
+def test_best_effort_inputs_take_reliable_and_best_effort_publishers(ros_context):
     both = {"reliable", "best_effort"}
     topics = (names.IMAGE_TOPIC, names.CAMERA_INFO_TOPIC, names.ODOMETRY_TOPIC)
-    received, incompatible = _run(ros_context, NodeSettings().qos_reliability,
+    received, incompatible = _run(ros_context, "best_effort",
                                   lambda got, _: all(got[t] == both for t in topics))
     assert {t: received[t] for t in topics} == {t: both for t in topics}
     assert incompatible == []
 
 
-def test_reliable_inputs_refuse_a_best_effort_publisher(ros_context):
+def test_the_default_reliable_inputs_refuse_a_best_effort_publisher(ros_context):
+    assert SCHEMA["qos_reliability"].default == NodeSettings().qos_reliability == "reliable"
     topics = {names.IMAGE_TOPIC, names.CAMERA_INFO_TOPIC, names.ODOMETRY_TOPIC}
     received, incompatible = _run(
-        ros_context, "reliable",
+        ros_context, NodeSettings().qos_reliability,
         lambda got, bad: set(bad) >= topics and all(got[t] == {"reliable"} for t in topics))
     assert all(received[t] == {"reliable"} for t in topics)  # never the best-effort one
     assert set(incompatible) == topics
@@ -132,7 +132,7 @@ def test_an_override_of_one_input_stays_on_that_input(monkeypatch):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
     ctx = Context()
     rclpy.init(context=ctx, args=["--ros-args", "-p",
-                                  "qos_overrides./image.subscription.reliability:=reliable"])
+                                  "qos_overrides./image.subscription.reliability:=best_effort"])
     try:
         node = rclpy.create_node(names.NODE_NAME, context=ctx)
         inputs = [subscriptions.Input(Image, names.IMAGE_TOPIC, lambda m: None),
@@ -143,6 +143,6 @@ def test_an_override_of_one_input_stays_on_that_input(monkeypatch):
         node.destroy_node()
     finally:
         ctx.try_shutdown()
-    assert got == {"/image": ReliabilityPolicy.RELIABLE,
-                   "/camera_info": ReliabilityPolicy.BEST_EFFORT,
-                   "/odom": ReliabilityPolicy.BEST_EFFORT}
+    assert got == {"/image": ReliabilityPolicy.BEST_EFFORT,
+                   "/camera_info": ReliabilityPolicy.RELIABLE,
+                   "/odom": ReliabilityPolicy.RELIABLE}

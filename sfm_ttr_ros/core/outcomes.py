@@ -47,6 +47,8 @@ class Unrefined(_Outcome):
     INTRINSICS_MISMATCH = "intrinsics_mismatch"
     STAMP_JUMP_BACK = "stamp_jump_back"
     END_OF_STREAM = "end_of_stream"
+    WORKER_FAULT = "worker_fault"
+    NO_INTRINSICS = "no_intrinsics"
 
 
 class Dropped(_Outcome):
@@ -101,6 +103,9 @@ _UNREFINED = {
     Unrefined.INTRINSICS_MISMATCH: "intrinsics are for another image size",
     Unrefined.STAMP_JUMP_BACK: "stamp went back: window reset",
     Unrefined.END_OF_STREAM: "end of stream with a single frame",
+    Unrefined.WORKER_FAULT: "a fault in the window worker: the frames it held went out as they "
+                            "were",
+    Unrefined.NO_INTRINSICS: "no intrinsics came within the idle period",
 }
 _DROPPED = {
     Dropped.OVERFLOW: "input queue full: oldest pending frame dropped",

@@ -96,14 +96,15 @@ class SfmTTR:
         if stop := self._prepare(w):  # SfM, alignment, the checks before refining, Eq. (5)
             return unrefined(res, stop)
         start = self.weights.rollback_point(self.config.weight_policy)
-        res.refinement = self._refine(w, should_stop)  # Adam on the encoder (Sec. 3.3)
-        if res.refinement.cancelled:  # cancel() must return fast: no second prediction pass
-            return unrefined(res, Stop(Unrefined.CANCELLED, "refinement cancelled"))
-        self._predict_after(w)  # the refined weights' depth of every frame
-        if not res.refined:
-            return unrefined(res, Stop(Unrefined.TOO_FEW_POINTS, "no usable frame"))
-        if stop := self._keep_or_refuse(w, start):  # rollback, the checks after refining
-            return unrefined(res, stop, w.before)
+        with self.weights.restored_on_error(start):
+            res.refinement = self._refine(w, should_stop)  # Adam on the encoder (Sec. 3.3)
+            if res.refinement.cancelled:  # cancel() must return fast: no second prediction
+                return unrefined(res, Stop(Unrefined.CANCELLED, "refinement cancelled"))
+            self._predict_after(w)  # the refined weights' depth of every frame
+            if not res.refined:
+                return unrefined(res, Stop(Unrefined.TOO_FEW_POINTS, "no usable frame"))
+            if stop := self._keep_or_refuse(w, start):  # rollback, the checks after refining
+                return unrefined(res, stop, w.before)
         return res
 
     def refinement_inputs(self, frames: Sequence[Frame], intrinsics: Intrinsics

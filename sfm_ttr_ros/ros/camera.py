@@ -15,7 +15,9 @@ For each frame, the first that applies:
    frames get the assumed intrinsics; what is published beside their depth carries the
    estimate so far (``assumed_focal``);
 5. none: the frame is HELD, at most ``max_held`` of them (beyond that the oldest is dropped,
-   reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known.
+   reason :data:`NO_INTRINSICS`), and released oldest first as soon as intrinsics are known;
+   a frame held for the idle period without any (:meth:`IntrinsicsResolver.expire`) is passed
+   on without intrinsics: published unrefined (``unrefined.no_intrinsics``), never kept.
 
 Each decision is also a :class:`CameraSource` (the intrinsics, the message they were read from,
 whether they are the fallback's): set on the frame (``Frame.camera``) when it is released, and
@@ -38,6 +40,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -122,7 +125,8 @@ class IntrinsicsResolver:
         self._keep = int(keep_by_stamp)
         self._by_stamp: collections.OrderedDict[int, CameraSource] = collections.OrderedDict()
         self._latest: CameraSource | None = None
-        self._held: collections.deque[tuple[Frame, int | None]] = collections.deque()
+        # (frame, stamp_ns, when it was held: time.monotonic())
+        self._held: collections.deque[tuple[Frame, int | None, float]] = collections.deque()
         self._lock = threading.Lock()
 
     @property
@@ -218,11 +222,21 @@ class IntrinsicsResolver:
     def add_frame(self, frame: Frame, stamp_ns: int | None) -> Resolved:
         """A frame arrives: ready at once (with the frames held before it) or held."""
         with self._lock:
-            self._held.append((frame, None if stamp_ns is None else int(stamp_ns)))
+            self._held.append((frame, None if stamp_ns is None else int(stamp_ns),
+                               time.monotonic()))
             out = Resolved(ready=self._release())
             while len(self._held) > self.max_held:
                 out.dropped.append(self._held.popleft()[0])
             return out
+
+    def expire(self, held_s: float) -> list[Frame]:
+        """The frames held ``held_s`` seconds or longer (oldest first), no longer held: no
+        intrinsics came for them within the idle period (``held_s`` <= 0: none)."""
+        out: list[Frame] = []
+        with self._lock:
+            while held_s > 0 and self._held and time.monotonic() - self._held[0][2] >= held_s:
+                out.append(self._held.popleft()[0])
+        return out
 
     def release(self) -> Resolved:
         """Release the held frames that now have intrinsics (e.g. fallback just set)."""
@@ -232,7 +246,7 @@ class IntrinsicsResolver:
     def _release(self) -> list[tuple[Frame, Intrinsics]]:
         ready = []
         while self._held:
-            frame, stamp_ns = self._held[0]
+            frame, stamp_ns, _ = self._held[0]
             source = self._resolve(frame.size, stamp_ns)
             if source is None:
                 break

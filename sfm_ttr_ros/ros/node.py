@@ -37,6 +37,7 @@ import os
 import signal
 import sys
 import threading
+from functools import partial
 
 import rclpy
 import torch
@@ -158,7 +159,7 @@ class RefinerNode(Node):
         subscriptions.subscribe(
             self, [image_input, *subscriptions.camera_and_odometry(
                 self._on_camera_info, self._on_odometry, subscriptions.camera_info_topic(self))],
-            subscriptions.input_qos(node), self._on_incompatible_qos)
+            subscriptions.input_qos(node), partial(subscriptions.input_refused, self))
         self._log_ready(model)
 
     def _log_ready(self, model: DepthModel) -> None:
@@ -279,6 +280,8 @@ class RefinerNode(Node):
     @contained("timer")
     def _on_timer(self) -> None:
         self._hand_over(self.intrinsics.release())  # the fallback may have been set meanwhile
+        for frame in self.intrinsics.expire(self.live_settings.all.stream.idle_flush_s):
+            self.stream.submit(frame, None)  # no intrinsics came: published unrefined
         self._report_scale()
         self.publish_diagnostics()
         warn_if_stale(self.ttr, self.warn_every)  # the metric scale's source stopped

@@ -5,11 +5,12 @@ The CameraInfo comes from beside the image, as image_transport's camera subscrib
 (:func:`camera_info_topic`): ``-r image:=/cam/image_raw`` brings ``/cam/camera_info``; a remap
 of ``camera_info`` itself still wins.
 
-The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability``: best_effort by default, REP 2003's
-sensor-data subscription, which matches reliable and best-effort publishers alike; reliable
-refuses best-effort publishers. ``--ros-args`` QoS overrides may change it
+The QoS is KEEP_LAST ``qos_depth`` with ``qos_reliability``: reliable by default, so a
+publisher with ROS's default QoS repairs what the transport loses (docs/decisions.md, "A ROS
+citizen on any camera": a best-effort reader lost 26 of 30 real-size frames at 10 Hz);
+best_effort takes best-effort publishers too. ``--ros-args`` QoS overrides may change it
 (``QoSOverridingOptions``); an incompatible QoS on an input calls the node's handler with the
-topic.
+topic, and :func:`incompatible_input_message` says how to fix it.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from sfm_ttr_ros.core.params.node import NodeSettings
+from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
 from sfm_ttr_ros.ros import names
 
 
@@ -79,6 +81,29 @@ def camera_info_topic(node) -> str:
         return remapped
     beside = names.camera_info_beside(node.resolve_topic_name(names.IMAGE_TOPIC))
     return names.CAMERA_INFO_TOPIC if beside == plain else beside
+
+
+def input_refused(node, topic: str, event) -> None:
+    """An input of ``node`` (the refiner) refused a publisher: counted (``qos_incompatible``)
+    and an ERROR naming the fix (:func:`incompatible_input_message`), throttled; an exception
+    here is a fault of ``qos_event``."""
+    try:
+        node.diagnostics.qos_event(topic)
+        node.get_logger().error(incompatible_input_message(
+            node.resolve_topic_name(topic), getattr(event, "last_policy_kind", "?"),
+            event.total_count), throttle_duration_sec=WARN_PERIOD_S)
+    except Exception as exc:  # noqa: BLE001 - contained like every callback of the node
+        node.fault("qos_event", exc)
+
+
+def incompatible_input_message(topic: str, policy: object, count: int) -> str:
+    """The ERROR of an input that refused a publisher (``topic`` resolved): a best-effort
+    driver (REP 2003's sensor-data QoS) against the reliable default, and the two fixes."""
+    return (f"incompatible QoS on input {topic} (policy {policy}, {count} so far): its publisher "
+            f"does not offer this subscription's QoS - a best-effort (sensor-data) driver "
+            f"needs `-p qos_overrides.{topic}.subscription.reliability:=best_effort` (or "
+            f"`-p qos_reliability:=best_effort` for every input); until then no message of it "
+            f"arrives")
 
 
 def camera_and_odometry(on_camera_info: Callable, on_odometry: Callable,

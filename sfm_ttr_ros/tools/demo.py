@@ -211,13 +211,7 @@ def refiner_command(params_file: Path, overrides: list[str], compressed: bool = 
         cmd += ["-p", "image_transport:=compressed"]
     # the demo scores ~/depth_refined on every frame: unrefined ones must come back there too
     cmd += ["-p", "republish_unrefined:=true"]
-    return cmd + node_arguments([*EVERY_FRAME_COUNTS, *overrides])
-
-
-#: ``--set`` items of a node whose every input frame counts (the demo, the soak, the fuzz
-#: harness): a reliable reader repairs what the transport loses (the default best-effort input
-#: takes any driver); a later ``--set qos_reliability=best_effort`` still wins
-EVERY_FRAME_COUNTS = ("qos_reliability=reliable",)
+    return cmd + node_arguments(overrides)  # the default QoS: every frame counts as it is
 
 
 def node_arguments(items: list[str]) -> list[str]:

@@ -107,7 +107,7 @@ class NodeSettings:
     assumed_hfov_deg: float = 65.0
     camera_info_use_projection: str | bool = "auto"
     image_transport: str = "raw"
-    qos_reliability: str = "best_effort"
+    qos_reliability: str = "reliable"
     qos_depth: int = 30
     outputs: str = ",".join(DEFAULT_OUTPUTS)
     cloud_stride: int = 4

@@ -284,8 +284,9 @@ PARAMS: tuple[Param, ...] = (
        "compressed = sensor_msgs/CompressedImage (JPEG / PNG) on <image>/compressed.",
        choices=IMAGE_TRANSPORTS, **_START_UP),
     _p("qos_reliability", "node.qos_reliability", "Reliability of the image, camera_info and "
-       "odom subscriptions (best_effort matches reliable and best-effort publishers alike; "
-       "reliable refuses best-effort ones, but repairs what the transport loses).",
+       "odom subscriptions (reliable: a reliable publisher repairs what the transport loses, "
+       "a best-effort one is refused with an ERROR naming the fix; best_effort takes both, "
+       "losing what the transport drops).",
        choices=QOS_RELIABILITIES, **_START_UP),
     _p("qos_depth", "node.qos_depth", "History depth (KEEP_LAST) of the subscriptions and "
        "publishers.", 1, 10_000, **_START_UP),

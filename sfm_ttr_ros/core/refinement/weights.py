@@ -11,7 +11,8 @@ One :class:`WeightPolicy` per :class:`~sfm_ttr_ros.core.pipeline.SfmTTR`, after
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.refinement.encoder import restore_encoder, snapshot_encoder
@@ -44,6 +45,16 @@ class WeightPolicy:
         """The weights before the window (what :meth:`refuse` restores), taken just before its
         first step; under ``reset`` the start-up weights."""
         return self.original if weight_policy == "reset" else snapshot_encoder(self.model)
+
+    @contextmanager
+    def restored_on_error(self, start: dict) -> Iterator[None]:
+        """A window that raises while refining or judging leaves the weights before it
+        (``start``, :meth:`rollback_point`)."""
+        try:
+            yield
+        except Exception:
+            self.refuse(start)
+            raise
 
     def refuse(self, start: dict) -> None:
         """A refined window is not kept (rolled back, or refused by a check): the weights before

@@ -84,6 +84,17 @@ class FrameOutlet:
             self.log.error(failure)
         return outs
 
+    def release_taken(self, key: Unrefined, reason: str) -> list[FrameOutput]:
+        """Every frame in the worker's hands (:meth:`FrameQueue.taken`) published unrefined
+        under ``key``, oldest first; those the outlet itself failed to put out are counted
+        under ``key`` all the same, without a depth (never left pending)."""
+        try:
+            return self.unrefined(self.queue.taken(), key, reason)
+        finally:
+            left = self.queue.taken()
+            if left:
+                self.queue.settle([FrameOutput(f, None, False, key, reason) for f in left])
+
     def verdict(self, frame: Frame, v: Verdict, flushed: Sequence[Frame]) -> list[FrameOutput]:
         """What an admission verdict says, in its order (:class:`~.admission.Verdict`): the
         ``flushed`` keyframes unrefined under ``v.flush``, the frame dropped or published
@@ -106,10 +117,20 @@ class FrameOutlet:
         return outs
 
     def _account(self, outs: list[FrameOutput]) -> None:
+        """Count ``outs``, then hand each to the sink; a sink that raises on one output still
+        gets the others, and the first exception is raised after the last (a fault of the
+        worker: :meth:`WindowRunner.recover`)."""
         self.queue.settle(outs)
+        if self.on_output is None:
+            return
+        failed: Exception | None = None
         for o in outs:
-            if self.on_output is not None:
+            try:
                 self.on_output(o)
+            except Exception as exc:  # noqa: BLE001 - raised once every output is out
+                failed = failed or exc
+        if failed is not None:
+            raise failed
 
     def overflow(self, frame: Frame, max_pending: int) -> None:
         """Report the frame the full queue dropped (counted by the queue)."""

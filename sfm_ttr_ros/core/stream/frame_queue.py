@@ -39,7 +39,8 @@ IMAGELESS_QUEUE_FACTOR = 10
 RELEASED_IMAGE = np.zeros((0, 0, 3), np.uint8)
 RELEASED_IMAGE.flags.writeable = False
 
-Queued = tuple[Frame, Intrinsics]
+#: A queued frame and its intrinsics (None: a frame passed on without any, published unrefined).
+Queued = tuple[Frame, Intrinsics | None]
 
 
 class FrameQueue:
@@ -50,7 +51,7 @@ class FrameQueue:
         self._frames: deque[Queued] = deque()
         self._images = 0  # queued frames that still hold their image
         self._seq = 0
-        self._taken: set[int] = set()  # id() of frames out of the queue, not yet accounted
+        self._taken: dict[int, Frame] = {}  # frames out of the queue, not yet accounted (by id)
         self._cancelled = False
         self._last_input = time.monotonic()
         self._arrivals: deque[float] = deque(maxlen=IDLE_CADENCE_FRAMES + 1)  # monotonic s
@@ -59,9 +60,11 @@ class FrameQueue:
         self.ledger = Ledger()
 
     # -- in (any thread) -------------------------------------------------------------------------
-    def put(self, frame: Frame, intrinsics: Intrinsics, settings: StreamSettings) -> Frame | None:
+    def put(self, frame: Frame, intrinsics: Intrinsics | None,
+            settings: StreamSettings) -> Frame | None:
         """Name ``frame`` and queue it, making room first; returns the frame dropped for
-        overflow, if any (counted, not yet reported)."""
+        overflow, if any (counted, not yet reported). ``intrinsics`` None: the frame has none
+        (the worker publishes it unrefined)."""
         with self._cv:
             self.ledger.received += 1
             frame.name = f"{self._seq:010d}"
@@ -134,7 +137,7 @@ class FrameQueue:
                 return None
             frame, intr = self._frames.popleft()
             self._images -= frame.image is not RELEASED_IMAGE
-            self._taken.add(id(frame))
+            self._taken[id(frame)] = frame
             return frame, intr
 
     def settle(self, outs: Iterable[FrameOutput]) -> None:
@@ -142,14 +145,22 @@ class FrameQueue:
         outs = list(outs)
         with self._cv:
             self.ledger.account(outs)
-            self._taken.difference_update(id(o.frame) for o in outs)
+            for o in outs:
+                self._taken.pop(id(o.frame), None)
 
     def drop_taken(self, frames: Iterable[Frame], key: Dropped) -> None:
         """Frames taken that are dropped with ``key``: counted, no longer pending."""
         frames = list(frames)
         with self._cv:
             self.ledger.drop(key, len(frames))
-            self._taken.difference_update(map(id, frames))
+            for f in frames:
+                self._taken.pop(id(f), None)
+
+    def taken(self) -> list[Frame]:
+        """The frames out of the queue not yet accounted for (in the worker's hands), in the
+        order they were taken."""
+        with self._cv:
+            return list(self._taken.values())
 
     @contextmanager
     def locked(self) -> Iterator[Ledger]:

@@ -151,16 +151,35 @@ class StreamRefiner:
             if ready is not None:
                 ready.set()
         while not self._stop.is_set():
-            try:
-                self.stream.step(timeout=0.1)
-            except Exception as exc:  # noqa: BLE001 - never let the worker die
-                if self._stop.is_set():
-                    break
-                if self.on_fault is not None:
-                    self.on_fault("worker", exc)
-                else:
-                    self.log.error(f"worker: {type(exc).__name__}: {exc}")
+            if not self.step_contained(timeout=0.1):
                 time.sleep(0.1)
+
+    def step_contained(self, timeout: float | None = 0.1) -> bool:
+        """One step of the worker (:meth:`WindowRunner.step`); an exception is a fault: counted
+        (``on_fault("worker", exc)``), then the frames the worker held are published unrefined
+        (``worker_fault``) and the window state reset (:meth:`WindowRunner.recover`), any
+        interim weights of the window withdrawn from serving. False after a fault."""
+        try:
+            self.stream.step(timeout=timeout)
+            return True
+        except Exception as exc:  # noqa: BLE001 - never let the worker die
+            if self._stop.is_set():
+                return False
+            self._fault(exc)
+            reason = f"worker fault: {type(exc).__name__}: {exc}"
+        try:
+            self.stream.recover(reason)
+        except Exception as exc:  # noqa: BLE001 - the frames are counted all the same
+            self._fault(exc)
+        if self.serving.revert():
+            self.serving_reverts += 1
+        return False
+
+    def _fault(self, exc: Exception) -> None:
+        if self.on_fault is not None:
+            self.on_fault("worker", exc)
+        else:
+            self.log.error(f"worker: {type(exc).__name__}: {exc}")
 
     def stop(self, timeout: float | None = 3.0) -> bool:
         """Cancel the running window, stop serving; True when the worker has ended

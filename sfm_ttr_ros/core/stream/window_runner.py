@@ -95,8 +95,9 @@ class WindowRunner:
         self._sfm = SfmFeed(ttr, self._queue, self._out.warn)
 
     # -- input (any thread) ----------------------------------------------------------------------
-    def submit(self, frame: Frame, intrinsics: Intrinsics) -> None:
-        """Queue a frame (thread-safe, never blocks on heavy work)."""
+    def submit(self, frame: Frame, intrinsics: Intrinsics | None) -> None:
+        """Queue a frame (thread-safe, never blocks on heavy work); ``intrinsics`` None: a
+        frame that has none (held too long for them), published unrefined as it comes out."""
         dropped = self._queue.put(frame, intrinsics, self.settings)
         self._sfm.prefetch_next(self.settings)
         if dropped is not None:
@@ -106,6 +107,17 @@ class WindowRunner:
         """Count a received frame that is not processed at all (bad image, no intrinsics...)."""
         self._queue.reject(reason_key)
         self._out.drop(frame, reason_key, message)
+
+    def recover(self, reason: str) -> list[FrameOutput]:
+        """After a fault that escaped :meth:`step` (the caller contained it): the window state
+        reset (no window running, an empty buffer, the keyframes anew) and the frames in the
+        worker's hands published unrefined under ``WORKER_FAULT``: the next frames flow."""
+        self._queue.end_window()
+        self._buffer = WindowBuffer()
+        self.keyframes.reset()
+        outs = self._out.release_taken(Unrefined.WORKER_FAULT, reason)
+        self._sfm.retain([])
+        return outs
 
     def cancel(self) -> None:
         """Stop: the running window ends at its next step, :meth:`step` returns at once."""
@@ -210,9 +222,12 @@ class WindowRunner:
             except Exception as exc:  # keep the last good config
                 self._out.warn("config", f"SfM-TTR options not updated: {exc}")
 
-    def _consume(self, frame: Frame, intr: Intrinsics) -> list[FrameOutput]:
+    def _consume(self, frame: Frame, intr: Intrinsics | None) -> list[FrameOutput]:
         """One frame taken from the queue: the admission rules in their order, then the
         keyframe rule, then the window when one is due."""
+        if intr is None:  # held for intrinsics that never came
+            return self._out.unrefined([frame], Unrefined.NO_INTRINSICS,
+                                       "no intrinsics within the idle period")
         self._refresh_settings()
         s = self.settings
         verdict = stamp_rule(frame.stamp, self._last_stamp, self._buffer.unpublished)
