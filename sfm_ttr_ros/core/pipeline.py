@@ -120,7 +120,7 @@ class SfmTTR:
         w = self._predict_before(frames, intrinsics)
         if stop := self._prepare(w):
             return stop
-        return w.supervision, self._photometric_frames(w)
+        return w.supervision, photometric_frames(self.model, self.config, w)
 
     def _begin(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> WindowState:
         """A window begins: its input checked, no SfM begun ahead until its own has ended,
@@ -248,7 +248,7 @@ class SfmTTR:
         try:
             refinement = refine_encoder(
                 self.model, w.supervision, cfg.refinement, should_stop=stop,
-                photometric=self._photometric_frames(w),
+                photometric=photometric_frames(self.model, self.config, w),
                 on_step=self.on_refine_step if serve else None)
         finally:
             interim = self.checks.disarm_interim()
@@ -291,15 +291,6 @@ class SfmTTR:
         res.cloud_frame, res.cloud_xyz, res.cloud_error = window_cloud(
             res.sfm, w.registered, res.alignment, self.metres_per_unit)
         return None
-
-    def _photometric_frames(self, w: WindowState) -> list[PhotometricFrame]:
-        """The window's photometric terms once per window (Ph-TTR, the hybrid): the SfM poses'
-        translations times ŝ (SfM units → network depth units); [] for ``sfm``."""
-        r, res = self.config.refinement, w.result
-        if not r.uses_photometric:
-            return []
-        return prepare_frames(self.model, w.names, w.images, res.sfm.frames, res.scale,
-                              w.intrinsics, r.photometric_config())
 
     # -- options, warm-up, status, lifecycle ----------------------------------------------
     def _concrete(self, config: TTRConfig) -> TTRConfig:
@@ -355,3 +346,14 @@ class SfmTTR:
 
     def close(self) -> None:
         self.sfm.close()
+
+
+def photometric_frames(model: DepthModel, config: TTRConfig,
+                       w: WindowState) -> list[PhotometricFrame]:
+    """The window's photometric terms once per window (Ph-TTR, the hybrid): the SfM poses'
+    translations times ŝ (SfM units → network depth units); [] for ``sfm``."""
+    r, res = config.refinement, w.result
+    if not r.uses_photometric:
+        return []
+    return prepare_frames(model, w.names, w.images, res.sfm.frames, res.scale, w.intrinsics,
+                          r.photometric_config())

@@ -68,7 +68,6 @@ from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
 from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
-from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
 from sfm_ttr_ros.core.stream.window_runner import FrameOutput, WindowStats
 from sfm_ttr_ros.requirements import check_sfm_dependencies
 from sfm_ttr_ros.ros import accounting, allocator, camera, dds, names, outputs, subscriptions
@@ -78,7 +77,7 @@ from sfm_ttr_ros.ros.containment import ThrottledLog, contained, fault_message, 
 from sfm_ttr_ros.ros.encoder_file import load_encoder, save_encoder
 from sfm_ttr_ros.ros.live_settings import LiveSettings
 from sfm_ttr_ros.ros.metric_watch import warn_if_stale
-from sfm_ttr_ros.ros.publishers import OutputPublishers
+from sfm_ttr_ros.ros.publishers import OutputPublishers, output_refused
 from sfm_ttr_ros.ros.units import ScaleState
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
@@ -146,7 +145,8 @@ class RefinerNode(Node):
                                                 self._on_compressed_image)
         self.image_topic = self.resolve_topic_name(image_input.topic)
         self.camera_info_topic = self.resolve_topic_name(subscriptions.camera_info_topic(self))
-        self.pubs = OutputPublishers(self, int(node.qos_depth), self._on_incompatible_qos)
+        self.pubs = OutputPublishers(self, int(node.qos_depth),
+                                     partial(output_refused, self))
         self.scale = ScaleState(self.pubs.depth_scale.publish, self.get_fully_qualified_name())
         self._report_scale()
         self.camera_path = CameraPathOutput(self, node, int(node.qos_depth))  # ~/odom
@@ -267,15 +267,6 @@ class RefinerNode(Node):
             self.stream.reject(NO_INTRINSICS, "no intrinsics (no CameraInfo, "
                                f"fallback_intrinsics unset): held frame dropped (max_pending="
                                f"{self.intrinsics.max_held})", frame)
-
-    @contained("qos_event")
-    def _on_incompatible_qos(self, what: str, event) -> None:
-        self.diagnostics.qos_event(what)
-        policy = getattr(event, "last_policy_kind", "?")
-        self.get_logger().warning(
-            f"incompatible QoS on {what} (policy {policy}, {event.total_count} so far): "
-            "check the other side's reliability/durability (qos_reliability parameter)",
-            throttle_duration_sec=WARN_PERIOD_S)
 
     @contained("timer")
     def _on_timer(self) -> None:

@@ -23,6 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
+from sfm_ttr_ros.core.stream.throttle import WARN_PERIOD_S
 from sfm_ttr_ros.ros import names, outputs
 
 DIAGNOSTICS_QOS_DEPTH = 10
@@ -58,6 +59,19 @@ def output_publisher(node, msg_type, topic: str, qos: QoSProfile | int,
         msg_type, topic, profile, event_callbacks=events,
         qos_overriding_options=(QoSOverridingOptions.with_default_policies() if overridable
                                 else None))
+
+
+def output_refused(node, topic: str, event) -> None:
+    """An output of ``node`` (the refiner) refused a subscriber: counted (``qos_incompatible``)
+    and a WARN, throttled; an exception here is a fault of ``qos_event``."""
+    try:
+        node.diagnostics.qos_event(topic)
+        node.get_logger().warning(
+            f"incompatible QoS on {topic} (policy {getattr(event, 'last_policy_kind', '?')}, "
+            f"{event.total_count} so far): check the other side's reliability/durability "
+            "(qos_overrides of this output)", throttle_duration_sec=WARN_PERIOD_S)
+    except Exception as exc:  # noqa: BLE001 - contained like every callback of the node
+        node.fault("qos_event", exc)
 
 
 class OutputPublishers:
