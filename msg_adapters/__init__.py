@@ -26,6 +26,8 @@ _LOCATIONS = {
     "SUPPORTED_ENCODINGS": "msg_adapters.image",
     "camera_info_for": "msg_adapters.camera_info",
     "camera_info_msg": "msg_adapters.camera_info",
+    "camera_info_distortion": "msg_adapters.camera_info",
+    "rectified_camera_info": "msg_adapters.camera_info",
     "clock_message": "msg_adapters.stamp",
     "compressed_depth_to_depth": "msg_adapters.compressed_depth",
     "compressed_to_rgb8": "msg_adapters.compressed",

@@ -8,7 +8,10 @@ Beside each depth image the node publishes a CameraInfo (image_transport's camer
 convention): :func:`camera_info_for` republishes the CameraInfo the camera sent, with the
 image's header, scaled by :func:`scale_camera_info` only when the image has another size;
 :func:`intrinsics_to_camera_info` describes bare intrinsics (the node's fallback).
-:func:`projection_of` reads the pinhole a consumer such as depth_image_proc uses (P)."""
+:func:`projection_of` reads the pinhole a consumer such as depth_image_proc uses (P).
+A distorted camera's lens (D != 0) is read by :func:`camera_info_distortion` into the core's
+:class:`~sfm_ttr_ros.core.undistort.Distortion`; :func:`rectified_camera_info` describes its
+rectified images (D = 0)."""
 
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import numpy as np
 from msg_adapters.classes import MessageClasses, empty_header, rclpy_classes
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Intrinsics
+from sfm_ttr_ros.core.undistort import Distortion
 
 if TYPE_CHECKING:
     from sensor_msgs.msg import CameraInfo
@@ -84,6 +88,44 @@ def camera_info_to_intrinsics(msg: CameraInfo, use_projection: bool | None = Non
         return Intrinsics(fx, fy, cx, cy, width, height)
     except InputError as exc:
         raise CameraInfoError(f"CameraInfo {what}: {exc}") from exc
+
+
+def camera_info_distortion(msg) -> Distortion | None:
+    """The lens distortion of the images that come with ``msg`` (a CameraInfo), or None when D
+    is empty or all zero (a pinhole camera, or images already rectified). K and P are those of
+    the images as received: ROI and binning applied as in :func:`camera_info_to_intrinsics`
+    (the distortion acts on normalised coordinates, which neither changes). Raises
+    :class:`CameraInfoError` for non-finite coefficients."""
+    D = np.asarray(msg.d, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(D)):
+        raise CameraInfoError(f"CameraInfo D has non-finite values: {D.tolist()}")
+    if not np.any(D):
+        return None
+    K = _matrix(msg.k, 3, 3, "K").copy()
+    P = _matrix(msg.p, 3, 4, "P").copy()
+    p_set = bool(np.any(P))
+    x0, y0, width, height, bx, by = _roi_and_binning(msg)
+    for M in (K, P):
+        M[0, 2] -= x0
+        M[1, 2] -= y0
+        M[0] /= bx
+        M[1] /= by
+    if not p_set:  # unset: stays all zero (the ROI shift above made its cx, cy nonzero)
+        P[:] = 0.0
+    return Distortion(str(msg.distortion_model), tuple(D.tolist()), tuple(K.ravel().tolist()),
+                      tuple(_matrix(msg.r, 3, 3, "R").ravel().tolist()),
+                      tuple(P.ravel().tolist()), width // bx, height // by)
+
+
+def rectified_camera_info(distortion: Distortion, K: np.ndarray, header=None):  # noqa: N803
+    """The CameraInfo of the rectified images of the camera ``distortion`` describes, whose
+    intrinsics are ``K`` (3x3): D all zero (``plumb_bob``), R the identity (the rectified image
+    is already rotated by R), P the camera's when set (its Tx, Ty kept), else [K | 0]."""
+    P = distortion.matrix("P")
+    if not np.any(P):
+        P = np.hstack([np.asarray(K, np.float64), np.zeros((3, 1))])
+    return camera_info_msg(distortion.width, distortion.height, K, P, D=np.zeros(5),
+                           header=header)
 
 
 def camera_info_msg(

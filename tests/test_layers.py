@@ -190,7 +190,7 @@ def test_no_import_goes_up_a_layer():
 #: schema reading every config.
 CORE_RANKS = (
     ("errors", "outcomes", "threads"),
-    ("frames", "geometry", "models", "visualize", "evaluation"),
+    ("frames", "geometry", "models", "visualize", "evaluation", "undistort"),
     ("sfm", "prediction"),
     ("alignment",),
     ("refinement", "checks", "metric"),

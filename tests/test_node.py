@@ -540,7 +540,7 @@ def test_faults_in_callbacks_are_counted_never_fatal(graph_factory, sequence, mo
              "the image dropped")
     monkeypatch.undo()
     # the CameraInfo adapter raising: the CameraInfo is rejected
-    monkeypatch.setattr(node_module, "camera_info_to_intrinsics", boom)
+    monkeypatch.setattr(node_module.camera, "camera_info_to_intrinsics", boom)
     g.send_info(intr, 1.0)
     wait_for(lambda: refiner.diagnostics.rejected_camera_info == 1, 10, "CameraInfo rejected")
     monkeypatch.undo()

@@ -124,6 +124,9 @@ class Frame:
     # opaque, set by the same resolver: where the frame's intrinsics came from (the node
     # publishes the CameraInfo beside its depth from it); passed through like ``header``
     camera: object = field(default=None, repr=False, compare=False)
+    # set by the same resolver when the image was undistorted (core/undistort.py): the frame's
+    # depth is then of the rectified image, published beside a CameraInfo with D = 0
+    rectified: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.name:

@@ -24,6 +24,16 @@ whether they are the fallback's): set on the frame (``Frame.camera``) when it is
 looked up for any stamp by :meth:`IntrinsicsResolver.camera_for`, so that the node publishes
 beside each depth image the CameraInfo of the camera that took it.
 
+A distorted camera (a CameraInfo with D != 0 whose images are not declared rectified by
+``camera_info_use_projection`` true) has its frames undistorted where they get their
+intrinsics (:meth:`IntrinsicsResolver.rectified` on arrival, so that live serving and the
+window share the one remapped image; or when a held frame is released): a copy of the frame
+with the rectified image (``Frame.rectified``), whose intrinsics are the rectified image's
+(core/undistort.py, the maps built once per distinct CameraInfo by :class:`CameraInfoReader`),
+its depth published beside a CameraInfo with D = 0 and that K (:meth:`CameraSource.message_for`).
+A frame served live before its camera was known keeps its raw image there, and the received
+CameraInfo beside that depth.
+
 Intrinsics for another image size than the frame's are returned as they are: the stream
 publishes such a frame unrefined (``intrinsics_mismatch``). A fallback principal point that lies
 outside the frame (``cx``, ``cy`` set for a larger image, e.g. KITTI's on a 416x128 frame, or a
@@ -38,15 +48,27 @@ job.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from msg_adapters.camera_info import (
+    camera_info_distortion,
+    camera_info_to_intrinsics,
+    rectified_camera_info,
+)
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.outcomes import Dropped
+from sfm_ttr_ros.core.undistort import (
+    Distortion,
+    Rectifier,
+    RectifierCache,
+    UnknownDistortionModel,
+)
 
 NO_INTRINSICS = Dropped.NO_INTRINSICS  # a held frame pushed out by a newer one
 KEEP_BY_STAMP = 64
@@ -86,6 +108,17 @@ class CameraSource:
     message: object | None = None
     fallback: bool = False
     assumed: bool = False  # from a field of view (rule 4): SfM refines their focal length
+    # a distorted camera: its frames are undistorted by ``rectifier``, ``intrinsics`` and
+    # ``rectified_message`` are those of the rectified images
+    rectifier: Rectifier | None = None
+    rectified_message: object | None = None
+
+    def message_for(self, rectified: bool) -> object | None:
+        """The CameraInfo beside a frame's depth: the rectified images' for a ``rectified``
+        frame of a distorted camera, else the one received."""
+        if rectified and self.rectified_message is not None:
+            return self.rectified_message
+        return self.message
 
     @property
     def stand_in(self) -> bool:
@@ -207,10 +240,21 @@ class IntrinsicsResolver:
             return CameraSource(Intrinsics.from_fov(*size, hfov), assumed=True)
         return None
 
+    def rectified(self, frame: Frame, stamp_ns: int | None) -> Frame:
+        """``frame`` with its image undistorted when its camera as known now is a distorted
+        one (a copy, ``Frame.rectified``), else ``frame`` itself (module docstring)."""
+        with self._lock:
+            source = self._resolve(frame.size, stamp_ns)
+        return _rectify(frame, source)
+
     def add_intrinsics(self, intr: Intrinsics, stamp_ns: int, message: object = None) -> Resolved:
         """Intrinsics received for ``stamp_ns`` (read from ``message``, a CameraInfo):
         remembered, held frames released."""
-        source = CameraSource(intr, message)
+        return self.add_camera(CameraSource(intr, message), stamp_ns)
+
+    def add_camera(self, source: CameraSource, stamp_ns: int) -> Resolved:
+        """A camera received for ``stamp_ns`` (:meth:`CameraInfoReader.read`): remembered,
+        held frames released (undistorted when it is a distorted camera)."""
         with self._lock:
             self._latest = source
             self._by_stamp[int(stamp_ns)] = source
@@ -250,11 +294,59 @@ class IntrinsicsResolver:
             source = self._resolve(frame.size, stamp_ns)
             if source is None:
                 break
+            frame = _rectify(frame, source)
             frame.fallback_intrinsics, frame.camera = source.stand_in, source
             frame.assumed_intrinsics = source.assumed
             self._held.popleft()
             ready.append((frame, source.intrinsics))
         return ready
+
+
+def _rectify(frame: Frame, source: CameraSource | None) -> Frame:
+    """A copy of ``frame`` with its image undistorted by ``source``'s rectifier, when it has
+    one for the frame's size and the frame is not rectified yet; else ``frame``."""
+    rectifier = None if source is None else source.rectifier
+    if rectifier is None or frame.rectified or frame.size != rectifier.size:
+        return frame
+    return dataclasses.replace(frame, image=rectifier.remap(frame.image), rectified=True,
+                               served_live=False)
+
+
+class CameraInfoReader:
+    """Each CameraInfo read into the :class:`CameraSource` of its camera: its pinhole
+    intrinsics (msg_adapters) and, for a distorted camera, the rectifier of its images (built
+    once per distinct camera, :class:`~sfm_ttr_ros.core.undistort.RectifierCache`) with the
+    intrinsics and CameraInfo of the rectified images. A lens model that cannot be undistorted
+    is refused: counted (``on_refused``) and logged at WARN (``logger``) once per distinct
+    CameraInfo, pointing at image_proc's rectified ``image_rect``."""
+
+    def __init__(self, logger, on_refused: Callable[[], None]):
+        self.rectifiers = RectifierCache()
+        self._logger, self._on_refused = logger, on_refused
+        self._refused: set[Distortion] = set()
+
+    def read(self, msg, use_projection: bool | None) -> CameraSource | None:
+        """The camera ``msg`` describes (``use_projection``: the node's
+        ``camera_info_use_projection``; True declares the images rectified: never
+        undistorted), or None when refused. Raises what msg_adapters raises for a CameraInfo
+        that cannot be read (``UncalibratedCameraInfo`` for K all zero)."""
+        intr = camera_info_to_intrinsics(msg, use_projection)
+        distortion = None if use_projection else camera_info_distortion(msg)
+        if distortion is None:
+            return CameraSource(intr, msg)
+        try:
+            rectifier = self.rectifiers.get(distortion)
+        except UnknownDistortionModel as exc:
+            self._on_refused()
+            if distortion not in self._refused:
+                self._refused.add(distortion)
+                self._logger.warning(
+                    f"CameraInfo refused: {exc}; subscribe to rectified images instead "
+                    "(image_proc's image_rect) with camera_info_use_projection true")
+            return None
+        return CameraSource(Intrinsics.from_K(rectifier.K, *rectifier.size), msg,
+                            rectifier=rectifier,
+                            rectified_message=rectified_camera_info(distortion, rectifier.K))
 
 
 def intrinsics_values(resolver: IntrinsicsResolver, focal) -> dict[str, object]:

@@ -51,7 +51,6 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from msg_adapters import (
     UncalibratedCameraInfo,
-    camera_info_to_intrinsics,
     compressed_to_rgb8,
     image_to_rgb8,
 )
@@ -137,6 +136,8 @@ class RefinerNode(Node):
                                              live=self.online.counters_live)
         self.diagnostics.intrinsics_values = lambda: camera.intrinsics_values(
             self.intrinsics, self.ttr.focal)
+        self.cameras = camera.CameraInfoReader(self.get_logger(),
+                                               self.diagnostics.camera_info_rejected)
         self.final_accounting: dict | None = None
         self._closed = False
         self._stop = threading.Event()
@@ -160,16 +161,7 @@ class RefinerNode(Node):
             self, [image_input, *subscriptions.camera_and_odometry(
                 self._on_camera_info, self._on_odometry, subscriptions.camera_info_topic(self))],
             subscriptions.input_qos(node), partial(subscriptions.input_refused, self))
-        self._log_ready(model)
-
-    def _log_ready(self, model: DepthModel) -> None:
-        values, node = self.live_settings.start_values, self.settings
-        self.get_logger().info(
-            f"refiner ready: model {type(model).__name__} (input {model.input_size}), window "
-            f"{values['window_size']}/{values['window_stride']}, refinement "
-            f"{values['refinement.steps']} steps, weight_policy "
-            f"{values['weight_policy']}, input {self.image_topic} ({node.image_transport}) "
-            f"with {self.camera_info_topic}, QoS {node.qos_reliability} depth {node.qos_depth}")
+        self.get_logger().info(_ready_line(self, model))
 
     @property
     def settings(self):
@@ -213,6 +205,7 @@ class RefinerNode(Node):
         except Exception as exc:
             self.stream.reject(Dropped.BAD_IMAGE, f"image rejected: {_detail(exc)}")
             return
+        frame = self.intrinsics.rectified(frame, stamp_ns)  # once, for live and the window
         if not self.settings.published.isdisjoint(LIVE_OUTPUTS):
             self.online.submit_live(frame)  # live depth needs no intrinsics
         self._hand_over(self.intrinsics.add_frame(frame, stamp_ns))
@@ -225,7 +218,7 @@ class RefinerNode(Node):
     @contained("camera_info_callback")
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            intr = camera_info_to_intrinsics(msg, self.settings.use_projection)
+            source = self.cameras.read(msg, self.settings.use_projection)  # None: refused
             stamp_ns = stamp_to_ns(msg.header.stamp)
         except UncalibratedCameraInfo as exc:  # K all zero: intrinsics assumed (ros/camera.py)
             self.warn_every("uncalibrated", camera.uncalibrated_note(exc, self.settings))
@@ -235,7 +228,8 @@ class RefinerNode(Node):
             self.diagnostics.camera_info_rejected()
             self.warn_every("camera_info", f"CameraInfo rejected: {_detail(exc)}")
             return
-        self._hand_over(self.intrinsics.add_intrinsics(intr, stamp_ns, msg))
+        if source is not None:
+            self._hand_over(self.intrinsics.add_camera(source, stamp_ns))
 
     @contained("odometry_callback")
     def _on_odometry(self, msg: Odometry) -> None:
@@ -454,6 +448,17 @@ def _stop(node: RefinerNode | None, executor, accounting_file, log) -> bool:
         node.destroy_node()
     rclpy.try_shutdown()
     return stuck
+
+
+def _ready_line(node: RefinerNode, model: DepthModel) -> str:
+    """The line logged once the node is ready."""
+    values, settings = node.live_settings.start_values, node.settings
+    return (f"refiner ready: model {type(model).__name__} (input {model.input_size}), window "
+            f"{values['window_size']}/{values['window_stride']}, refinement "
+            f"{values['refinement.steps']} steps, weight_policy {values['weight_policy']}, "
+            f"input {node.image_topic} ({settings.image_transport}) with "
+            f"{node.camera_info_topic}, QoS {settings.qos_reliability} depth "
+            f"{settings.qos_depth}")
 
 
 def _detail(exc: Exception) -> str:

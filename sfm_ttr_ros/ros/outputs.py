@@ -97,15 +97,18 @@ def _timed(timings: Timings | None, key: str, build: Callable, *args):
         timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
 
 
-def camera_info_message(camera: CameraSource | None, size: tuple[int, int], header):
+def camera_info_message(camera: CameraSource | None, size: tuple[int, int], header,
+                        rectified: bool = False):
     """The CameraInfo beside a ``size`` = (width, height) image with ``header``: the CameraInfo
     ``camera`` was read from, republished (header replaced; scaled when it describes another
-    image size), or for the fallback intrinsics one built from them (K, P = [K | 0], D empty);
-    None when ``camera`` is None (no intrinsics known)."""
+    image size; for the depth of a ``rectified`` frame of a distorted camera, that of its
+    rectified images: D = 0, their K), or for the fallback intrinsics one built from them (K,
+    P = [K | 0], D empty); None when ``camera`` is None (no intrinsics known)."""
     if camera is None:
         return None
-    if camera.message is not None:
-        return camera_info_for(camera.message, size[0], size[1], header)
+    message = camera.message_for(rectified)
+    if message is not None:
+        return camera_info_for(message, size[0], size[1], header)
     return intrinsics_to_camera_info(camera.intrinsics, header, size=size)
 
 
@@ -122,7 +125,8 @@ def live_messages(out: LiveOutput, published: Collection[str] = DEFAULT_OUTPUTS,
     docstring)."""
     header = out.frame.header
     size = (int(out.depth.shape[1]), int(out.depth.shape[0]))
-    info = _timed(timings, "camera_info", camera_info_message, camera, size, header)
+    info = _timed(timings, "camera_info", camera_info_message, camera, size, header,
+                  out.frame.rectified)
     msgs: dict[str, object] = {}
     if "depth" in published:
         msgs[names.DEPTH_TOPIC] = _timed(timings, "depth_image", depth_to_image, out.depth,
@@ -154,7 +158,8 @@ def frame_messages(out: FrameOutput, camera: CameraSource | None = None,
                                               header)}
     _compressed(msgs, names.DEPTH_REFINED_TOPIC, out.depth, header, compressed, timings)
     size = (int(out.depth.shape[1]), int(out.depth.shape[0]))
-    info = _timed(timings, "camera_info", camera_info_message, camera, size, header)
+    info = _timed(timings, "camera_info", camera_info_message, camera, size, header,
+                  out.frame.rectified)
     if info is not None:
         msgs[names.DEPTH_REFINED_INFO_TOPIC] = info
     return units.route(msgs, out.metres_per_unit is not None, relative)
