@@ -275,8 +275,7 @@ class RefinerNode(Node):
         warn_if_stale(self.ttr, self.warn_every)  # the metric scale's source stopped
 
     def _report_scale(self) -> None:
-        """~/depth_scale (latched) when the depth's scale changed, and the log line of where
-        the depth goes when its state did (ros/units.py)."""
+        """~/depth_scale (latched) and the log of where the depth goes, on a change (units)."""
         self.scale.update(self.ttr.metric_status(), self.settings.relative_depth)
 
     def _describe_depth(self, status, relative: str) -> str:
