@@ -48,6 +48,30 @@ def format_value(value: object) -> str:
     return str(value)
 
 
+def make_diagnostic_status(name: str, hardware_id: str, level: str, message: str,
+                           values: dict[str, object] | None = None) -> DiagnosticStatus:
+    """A DiagnosticStatus. ``level``: ``'ok'``, ``'warn'``, ``'error'`` or ``'stale'``
+    (case-insensitive). ``values`` become KeyValue pairs (see :func:`format_value`), in the
+    dict's order."""
+    key = str(level).lower()
+    if key not in LEVELS:
+        raise InputError(f"diagnostic level must be one of {sorted(LEVELS)}, got {level!r}")
+    status = DiagnosticStatus(
+        level=LEVELS[key], name=str(name), message=str(message), hardware_id=str(hardware_id)
+    )
+    status.values = [KeyValue(key=str(k), value=format_value(v)) for k, v in (values or {}).items()]
+    return status
+
+
+def diagnostic_array(stamp, statuses: list[DiagnosticStatus]) -> DiagnosticArray:
+    """A DiagnosticArray of ``statuses``; ``stamp``: builtin_interfaces Time, rclpy Time,
+    seconds (float) or None (zero)."""
+    arr = DiagnosticArray()
+    arr.header.stamp = _stamp(stamp)
+    arr.status = list(statuses)
+    return arr
+
+
 def make_diagnostic_array(
     stamp,
     name: str,
@@ -56,28 +80,17 @@ def make_diagnostic_array(
     message: str,
     values: dict[str, object] | None = None,
 ) -> DiagnosticArray:
-    """A DiagnosticArray holding one DiagnosticStatus.
-
-    ``stamp``: builtin_interfaces Time, rclpy Time, seconds (float) or None (zero).
-    ``level``: ``'ok'``, ``'warn'``, ``'error'`` or ``'stale'`` (case-insensitive).
-    ``values`` become KeyValue pairs (see :func:`format_value`), in the dict's order.
-    """
-    key = str(level).lower()
-    if key not in LEVELS:
-        raise InputError(f"diagnostic level must be one of {sorted(LEVELS)}, got {level!r}")
-    status = DiagnosticStatus(
-        level=LEVELS[key], name=str(name), message=str(message), hardware_id=str(hardware_id)
-    )
-    status.values = [KeyValue(key=str(k), value=format_value(v)) for k, v in (values or {}).items()]
-    arr = DiagnosticArray()
-    arr.header.stamp = _stamp(stamp)
-    arr.status = [status]
-    return arr
+    """A DiagnosticArray holding one DiagnosticStatus (:func:`make_diagnostic_status`),
+    stamped as :func:`diagnostic_array`."""
+    return diagnostic_array(stamp, [make_diagnostic_status(name, hardware_id, level, message,
+                                                           values)])
 
 
-def diagnostic_values(array_msg: DiagnosticArray | DiagnosticStatus, name: str | None = None):
-    """The KeyValues of a DiagnosticArray (all statuses merged, later ones winning, or only the
-    status called ``name``) or of a single DiagnosticStatus, as ``dict[str, str]``."""
+def diagnostic_values(array_msg: DiagnosticArray | DiagnosticStatus, name: str | None = None,
+                      hardware_id: str | None = None):
+    """The KeyValues of a DiagnosticArray (all statuses merged, later ones winning; only the
+    status called ``name`` and / or those of ``hardware_id``) or of a single DiagnosticStatus,
+    as ``dict[str, str]``."""
     if isinstance(array_msg, DiagnosticStatus):
         statuses = [array_msg]
     else:
@@ -86,6 +99,10 @@ def diagnostic_values(array_msg: DiagnosticArray | DiagnosticStatus, name: str |
         statuses = [s for s in statuses if s.name == name]
         if not statuses:
             raise KeyError(f"no diagnostic status named {name!r}")
+    if hardware_id is not None:
+        statuses = [s for s in statuses if s.hardware_id == hardware_id]
+        if not statuses:
+            raise KeyError(f"no diagnostic status of hardware_id {hardware_id!r}")
     out: dict[str, str] = {}
     for s in statuses:
         for kv in s.values:

@@ -125,11 +125,11 @@ class Fuzzer:
             self.live_back += 1
 
     def _on_diag(self, msg) -> None:
-        for status in msg.status:
-            if status.name == self.names.DIAG_NAME:
-                v = self.diagnostic_values(msg)
-                with self._lock:
-                    self.diag = v
+        # the node's statuses (stream, scale, live, worker), each key in one: merged
+        if any(s.hardware_id == self.names.NODE_FQN for s in msg.status):
+            v = self.diagnostic_values(msg, hardware_id=self.names.NODE_FQN)
+            with self._lock:
+                self.diag = v
 
     def last_diag(self) -> dict[str, str]:
         with self._lock:

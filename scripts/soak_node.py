@@ -246,8 +246,9 @@ class Client:
             sink.append((sent - self.t0, received - sent))
 
     def _on_diag(self, msg) -> None:
-        if any(s.name == self.names.DIAG_NAME for s in msg.status):
-            v = self.diagnostic_values(msg)
+        # the node's statuses (stream, scale, live, worker), each key in one: merged
+        if any(s.hardware_id == self.names.NODE_FQN for s in msg.status):
+            v = self.diagnostic_values(msg, hardware_id=self.names.NODE_FQN)
             with self._lock:
                 self.diag = v
 

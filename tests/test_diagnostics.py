@@ -1,5 +1,6 @@
-"""The node's /diagnostics counters and status, ROS-free (sfm_ttr_ros.core.stream.diagnostics), and
-the DiagnosticArray built from them (sfm_ttr_ros.ros.outputs)."""
+"""The node's /diagnostics counters and statuses, one per concern, ROS-free
+(sfm_ttr_ros.core.stream.diagnostics), and the DiagnosticArray built from them
+(sfm_ttr_ros.ros.outputs)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,14 @@ import numpy as np
 import pytest
 
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
+from sfm_ttr_ros.core.metric.scale import MetricStatus
 from sfm_ttr_ros.core.outcomes import Unrefined
 from sfm_ttr_ros.core.pipeline import WindowResult
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
-from sfm_ttr_ros.core.stream.diagnostics import Status, StreamDiagnostics
+from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
 from sfm_ttr_ros.core.stream.health import Health, RateMeter
 from sfm_ttr_ros.core.stream.records import WindowStats
+from sfm_ttr_ros.core.stream.status import Status
 from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 INTR = Intrinsics(100.0, 100.0, 15.5, 7.5, 32, 16)
@@ -22,7 +25,7 @@ FRAME_KEYS = ["frames_received", "frames_refined", "frames_unrefined", "frames_d
 INPUT_AND_WINDOW_KEYS = ["rejected_bad_image", "rejected_camera_info", "non_monotonic_stamps",
                          "qos_incompatible", "windows_ok", "windows_failed",
                          "windows_skipped_overload", "windows_disabled",
-                         "windows_rejected_by_check", "windows_remapped", "faults"]
+                         "windows_rejected_by_check", "windows_remapped"]
 KEYFRAME_KEYS = ["keyframes.policy", "keyframes.interval_s", "keyframes.needed_s",
                  "keyframes.reason", "keyframes.stale", "keyframes.behind_s"]
 
@@ -37,6 +40,13 @@ def stream() -> WindowRunner:
     return WindowRunner(ttr=None)
 
 
+def status_of(diag: StreamDiagnostics, task: str = "stream") -> Status:
+    """The status of ``task`` among the diagnostics' statuses now (reporting resets their
+    since-last-status counts)."""
+    (status,) = [s for s in diag.statuses() if s.task == task]
+    return status
+
+
 def adds_up(v: dict) -> bool:
     return v["frames_received"] == (v["frames_refined"] + v["frames_unrefined"]
                                     + v["frames_dropped"] + v["frames_pending"])
@@ -44,8 +54,9 @@ def adds_up(v: dict) -> bool:
 
 def test_an_idle_stream_is_ok_with_every_counter_at_zero(stream):
     diag = StreamDiagnostics(stream)
-    status = diag.status()
+    status, worker = diag.statuses()  # no model's scale, no live output, no health
     assert status == Status("ok", "0 refined, 0 window(s) ok", status.values)
+    assert worker == Status("ok", "0 fault(s) contained so far", {"faults": 0}, "worker")
     assert list(status.values) == FRAME_KEYS + INPUT_AND_WINDOW_KEYS + KEYFRAME_KEYS
     assert {status.values[k] for k in FRAME_KEYS + INPUT_AND_WINDOW_KEYS} == {0}
     # the keyframe rule, before any frame: every frame a keyframe, nothing behind
@@ -68,10 +79,10 @@ def test_held_frames_count_as_received_and_pending(stream):
     keys = list(diag.values())
     assert keys[len(FRAME_KEYS):len(FRAME_KEYS) + 2] == ["dropped.bad_image",
                                                           "dropped.no_intrinsics"]
-    status = diag.status()
+    status = status_of(diag)
     assert status.level == "warn" and status.message == "no intrinsics: frames held"
     held[0] = 0
-    assert diag.status().level == "ok"
+    assert status_of(diag).level == "ok"
 
 
 def test_input_problems_and_unrefined_frames_make_a_warning_once(stream):
@@ -85,31 +96,37 @@ def test_input_problems_and_unrefined_frames_make_a_warning_once(stream):
     # frames the keyframe rule passed on by design are no problem
     diag.output_published(refined=False, reason_key=Unrefined.NOT_KEYFRAME)
     diag.output_published(refined=False, reason_key=Unrefined.STALE)
-    status = diag.status()
+    status = status_of(diag)
     assert status.level == "warn"
     assert status.message == "2 frame(s) passed through unrefined; incompatible QoS"
     assert (status.values["rejected_camera_info"], status.values["qos_incompatible"]) == (1, 2)
     assert diag.qos_incompatible == {"image": 1, "~/depth": 1}
     # the unrefined frames are reported once; the QoS problem stays
-    assert diag.status().message == "incompatible QoS"
+    assert status_of(diag).message == "incompatible QoS"
+
+
+LIVE_COUNTS = {
+    "received": 3, "published": 3, "skipped": {}, "pending": 0, "version": 0,
+    "weights_age_s": 0.0, "serving_updates": 0, "interim_step": 0, "serving_previews": 0,
+    "serving_reverts": 0, "serving_interim_refused": 0,
+    **{k: 0.0 for k in ("latency_p50_s", "latency_p95_s", "latency_max_s", "publish_max_s")}}
 
 
 def test_depth_without_camera_info_is_counted_per_output_and_warned_once(stream):
-    diag = StreamDiagnostics(stream, live=lambda: {
-        "received": 3, "published": 3, "skipped": {}, "pending": 0, "version": 0,
-        "weights_age_s": 0.0, "serving_updates": 0, "interim_step": 0, "serving_previews": 0,
-        "serving_reverts": 0, "serving_interim_refused": 0,
-        **{k: 0.0 for k in ("latency_p50_s", "latency_p95_s", "latency_max_s",
-                            "publish_max_s")}})
+    diag = StreamDiagnostics(stream, live=lambda: LIVE_COUNTS)
     assert diag.values()["live.without_camera_info"] == 0
     assert diag.camera_info_missing("live") == 1 and diag.camera_info_missing("live") == 2
     diag.camera_info_missing("refined")
-    status = diag.status()
-    assert status.level == "warn"
-    assert status.message == "3 depth image(s) without CameraInfo (no intrinsics yet)"
-    assert status.values["live.without_camera_info"] == 2
-    assert status.values["frames_without_camera_info"] == 1
-    assert diag.status().level == "ok"  # reported once; the counters stay
+    windowed, live, _ = diag.statuses()  # each output's in the status of its concern
+    assert (windowed.task, windowed.level, live.task, live.level) == ("stream", "warn", "live",
+                                                                      "warn")
+    assert live.message == "2 depth image(s) without CameraInfo (no intrinsics yet)"
+    assert windowed.message == "1 depth image(s) without CameraInfo (no intrinsics yet)"
+    assert live.values["live.without_camera_info"] == 2
+    assert windowed.values["frames_without_camera_info"] == 1
+    # reported once; the counters stay
+    assert [(s.level, s.message) for s in diag.statuses()[:2]] == [
+        ("ok", "0 refined, 0 window(s) ok"), ("ok", "3 published, served weights of window 0")]
 
 
 def test_the_last_window_is_reported_with_its_timings(stream):
@@ -121,7 +138,7 @@ def test_the_last_window_is_reported_with_its_timings(stream):
     stream.windows.append(WindowStats(index=4, new_frames=3, steps=5, result=WindowResult(
         ["a", "b", "c"], {}, {}, refined=False, reason="SfM failed: too few matches",
         reason_key="sfm_failed", sfm=sfm, timings={"sfm": 1.25, "predict_before": 0.5})))
-    status = diag.status()
+    status = status_of(diag)
     assert status.level == "warn"
     assert status.message == "last window not refined: SfM failed: too few matches"
     v = status.values
@@ -133,29 +150,84 @@ def test_the_last_window_is_reported_with_its_timings(stream):
     assert list(v)[-2:] == ["last_window.time.sfm_s", "last_window.time.predict_before_s"]
     stream.windows.append(WindowStats(index=5, new_frames=1,
                                       result=WindowResult(["c", "d"], {}, {}, refined=True)))
-    assert diag.status() == Status("ok", "0 refined, 0 window(s) ok", diag.values())
+    assert status_of(diag) == Status("ok", "0 refined, 0 window(s) ok", diag.stream_values())
 
 
 @pytest.mark.ros
-def test_the_status_becomes_a_diagnostic_array():
+def test_the_statuses_become_one_diagnostic_array_named_as_diagnostic_updater_names():
     pytest.importorskip("diagnostic_msgs")
     from diagnostic_msgs.msg import DiagnosticStatus
 
     from msg_adapters import diagnostic_values
     from sfm_ttr_ros.ros import names, outputs
 
-    status = Status("warn", "incompatible QoS", {"frames_received": 3, "last_window.scale": 0.5,
+    stream = Status("warn", "incompatible QoS", {"frames_received": 3, "last_window.scale": 0.5,
                                                  "last_window.refined": True})
+    worker = Status("ok", "0 fault(s) contained so far", {"faults": 0}, "worker")
     timings: dict[str, float] = {}
-    arr = outputs.diagnostics_message(status, 12.5, timings=timings)
-    (s,) = arr.status
-    assert (s.name, s.hardware_id, s.level, s.message) == (
-        "sfm_ttr_ros: refiner", "/refiner", DiagnosticStatus.WARN, "incompatible QoS")
-    assert s.name == names.DIAG_NAME
-    assert diagnostic_values(arr) == {"frames_received": "3", "last_window.scale": "0.5",
-                                      "last_window.refined": "true"}
+    arr = outputs.diagnostics_message([stream, worker], 12.5, timings=timings)
+    assert [(s.name, s.hardware_id, s.level, s.message) for s in arr.status] == [
+        ("refiner: stream", "/refiner", DiagnosticStatus.WARN, "incompatible QoS"),
+        ("refiner: worker", "/refiner", DiagnosticStatus.OK, "0 fault(s) contained so far")]
+    assert [s.name for s in arr.status] == [names.DIAG_NAMES["stream"], names.DIAG_NAMES["worker"]]
+    assert diagnostic_values(arr, names.DIAG_NAMES["stream"]) == {
+        "frames_received": "3", "last_window.scale": "0.5", "last_window.refined": "true"}
+    assert diagnostic_values(arr, hardware_id="/refiner")["faults"] == "0"
     assert (arr.header.stamp.sec, arr.header.stamp.nanosec) == (12, 500_000_000)
     assert set(timings) == {"diagnostics"} and timings["diagnostics"] >= 0
+
+
+class FakeTTR:
+    """A model's metric status, as SfmTTR gives it (and an SfM source without counters)."""
+
+    def __init__(self, status: MetricStatus) -> None:
+        self.status = status
+        self.sfm = SfmWithoutCounters()
+
+    def metric_status(self) -> MetricStatus:
+        return self.status
+
+
+def test_the_scale_has_a_status_of_its_own_warn_until_the_depth_is_in_metres():
+    relative = MetricStatus("none", "not_metric", None, float("nan"), 0, 0, 0)
+    ttr = FakeTTR(relative)
+    diag = StreamDiagnostics(WindowRunner(ttr=ttr))
+    scale = status_of(diag, "scale")
+    assert (scale.level, scale.message) == ("warn", "depth not in metres (metric.source none, "
+                                                    "not_metric)")
+    assert list(scale.values) == ["metric.source", "metric.state", "metric.reason",
+                                  "metric.metres_per_unit", "metric.spread", "metric.windows",
+                                  "metric.odometry_received", "metric.odometry_rejected",
+                                  "metric.odometry_resets", "metric.re_anchors"]
+    assert status_of(diag).level == "ok"  # the stream is fine: the units are the scale's
+    ttr.status = MetricStatus("fixed", "metric", 2.0, 0.0, 0, 0, 0)
+    assert status_of(diag, "scale").level == "ok"
+    # the node says which topic carries the depth (ros/units.py describe_depth)
+    diag = StreamDiagnostics(WindowRunner(ttr=FakeTTR(relative)),
+                             scale=lambda s: ("warn", f"depth relative ({s.source})"))
+    assert status_of(diag, "scale").message == "depth relative (none)"
+
+
+def test_every_key_is_in_the_status_of_its_concern_once(stream):
+    health = Health(lambda: True, lambda: 5.0)
+    diag = StreamDiagnostics(WindowRunner(ttr=FakeTTR(MetricStatus(
+        "none", "not_metric", None, float("nan"), 0, 0, 0))), live=lambda: LIVE_COUNTS,
+        health=health)
+    diag.fault("timer")
+    statuses = diag.statuses()
+    assert [s.task for s in statuses] == ["stream", "scale", "live", "worker"]
+    keys = [k for s in statuses for k in s.values]
+    assert keys == list(diag.values())  # the final accounting: every status's keys, in order
+    by_task = {s.task: s.values for s in statuses}
+    assert "input.silent_s" in by_task["stream"] and "metric.state" in by_task["scale"]
+    assert {"rate.image_hz", "live.received", "serving.version"} <= set(by_task["live"])
+    assert list(by_task["worker"]) == ["worker_alive", "faults", "faults.timer"]
+    assert statuses[-1].level == "warn" and statuses[-1].message == "1 fault(s) contained"
+
+
+class SfmWithoutCounters:
+    def counters(self) -> dict[str, dict]:
+        return {"sfm_ahead": {}, "sfm_streaming": {}}
 
 
 class FakeClock:
@@ -182,70 +254,78 @@ def test_rates_are_taken_over_the_recent_interval():
     assert meter.hz() == 0.0 and meter.count == 10
 
 
-def test_health_is_error_when_the_worker_died_and_stale_when_the_input_is_silent():
+def test_health_tells_a_dead_worker_and_a_silent_input():
     clock = FakeClock()
     alive, limit = [True], [2.0]
     health = Health(lambda: alive[0], lambda: limit[0], "/cam1/image", clock=clock)
-    assert health.problem() is None
+    assert (health.worker_problem(), health.input_problem()) == (None, None)
     clock.now += 2.5  # no image since start-up
-    level, why = health.problem()
-    assert level == "stale" and "/cam1/image" in why and "none yet" in why
+    why = health.input_problem()
+    assert "/cam1/image" in why and "none yet" in why
     health.image_received()
     health.published("depth")
-    assert health.problem() is None
+    assert health.input_problem() is None
     clock.now += 2.5
-    assert health.problem()[0] == "stale" and "since the last image" in health.problem()[1]
-    limit[0] = 0.0  # never stale
-    assert health.problem() is None
+    assert "since the last image" in health.input_problem()
+    limit[0] = 0.0  # never silent
+    assert health.input_problem() is None
     alive[0] = False
-    assert health.problem()[0] == "error" and "worker has died" in health.problem()[1]
-    v = health.values()
-    assert list(v) == ["rate.image_hz", "rate.depth_hz", "rate.depth_refined_hz",
-                       "input.silent_s", "worker_alive"]
-    assert v["rate.image_hz"] == pytest.approx(1 / 5.0) and v["rate.depth_refined_hz"] == 0.0
-    assert v["input.silent_s"] == pytest.approx(2.5) and v["worker_alive"] is False
+    assert "worker has died" in health.worker_problem()
+    assert list(health.rate_values()) == ["rate.image_hz", "rate.depth_hz",
+                                          "rate.depth_refined_hz"]
+    assert health.rate_values()["rate.image_hz"] == pytest.approx(1 / 5.0)
+    assert health.rate_values()["rate.depth_refined_hz"] == 0.0
+    assert health.input_values() == {"input.silent_s": pytest.approx(2.5)}
+    assert health.worker_values() == {"worker_alive": False}
 
 
-def test_error_and_stale_lead_the_status_before_the_warnings(stream):
+def test_silence_is_a_warning_and_a_dead_worker_an_error_never_stale(stream):
+    """STALE is the aggregator's (no status received): the node's own statuses say WARN for a
+    silent input and ERROR for a dead worker, first in the message."""
     clock = FakeClock()
     alive = [True]
     health = Health(lambda: alive[0], lambda: 1.0, clock=clock)
     diag = StreamDiagnostics(stream, health=health)
     health.image_received()
-    assert diag.status().level == "ok" and diag.status().values["worker_alive"] is True
+    assert [s.level for s in diag.statuses()] == ["ok", "ok", "ok"]  # stream, live, worker
+    assert status_of(diag, "worker").values["worker_alive"] is True
     diag.qos_event("image")
     clock.now += 1.5
-    status = diag.status()
-    assert status.level == "stale"
+    status = status_of(diag)
+    assert status.level == "warn"
     assert status.message.startswith("no image on image for 1.5 s") and \
         status.message.endswith("; incompatible QoS")
     alive[0] = False
-    assert diag.status().level == "error"
-    # the rates come after the counters, before the per-window values
-    keys = list(status.values)
-    assert keys.index("faults") < keys.index("rate.image_hz") < keys.index("keyframes.policy")
+    stream_status, _, worker = diag.statuses()
+    assert (stream_status.level, worker.level) == ("error", "error")
+    assert stream_status.message.startswith("window worker has died: no window will run")
+    assert "; no image on image for" in stream_status.message
+    assert worker.message.startswith("window worker has died")
 
 
 @pytest.mark.ros
-def test_each_level_maps_to_its_message_and_the_name_follows_the_namespace():
+def test_each_level_maps_to_its_message_and_the_name_is_the_node_name_and_task():
     pytest.importorskip("diagnostic_msgs")
     from diagnostic_msgs.msg import DiagnosticStatus
 
     from sfm_ttr_ros.ros import names, outputs
 
     for level, code in (("ok", DiagnosticStatus.OK), ("warn", DiagnosticStatus.WARN),
-                        ("error", DiagnosticStatus.ERROR), ("stale", DiagnosticStatus.STALE)):
-        (s,) = outputs.diagnostics_message(Status(level, "m"), 1.0, "/cam1/refiner").status
-        assert (s.level, s.name, s.hardware_id) == (code, "sfm_ttr_ros: cam1/refiner",
-                                                    "/cam1/refiner")
-    assert names.status_name("/cam2/refiner") != names.status_name("/cam1/refiner")
-    assert names.status_name(names.NODE_FQN) == names.DIAG_NAME == "sfm_ttr_ros: refiner"
+                        ("error", DiagnosticStatus.ERROR)):
+        (s,) = outputs.diagnostics_message([Status(level, "m", task="scale")], 1.0, "refiner",
+                                           "/cam1/refiner").status
+        # diagnostic_updater's "<node name>: <task>"; the namespace is in the hardware_id
+        assert (s.level, s.name, s.hardware_id) == (code, "refiner: scale", "/cam1/refiner")
+    assert names.status_name("cam_node", "live") == "cam_node: live"
+    assert names.DIAG_NAMES == {task: f"refiner: {task}" for task in ("stream", "scale", "live",
+                                                                       "worker")}
 
 
 @pytest.mark.ros
-def test_a_namespaced_node_goes_stale_reports_its_rates_then_errors(context):
-    """The node in namespace cam1: STALE before any image, its input and output rates while a
-    (reliable) camera feeds it at ~20 Hz, ERROR once its window worker is gone."""
+def test_a_namespaced_node_warns_of_silence_reports_its_rates_then_errors(context):
+    """The node in namespace cam1: its stream status a WARN before any image, its input and
+    output rates (the live status) while a (reliable) camera feeds it at ~20 Hz, ERROR (stream
+    and worker) once its window worker is gone; never STALE."""
     import threading
     import time
 
@@ -268,7 +348,7 @@ def test_a_namespaced_node_goes_stale_reports_its_rates_then_errors(context):
     camera = rclpy_node("camera", context)
     statuses: list[DiagnosticStatus] = []
     camera.create_subscription(DiagnosticArray, names.DIAGNOSTICS_TOPIC, lambda m: statuses.extend(
-        s for s in m.status if s.name == "sfm_ttr_ros: cam1/refiner"), 50)
+        s for s in m.status if s.hardware_id == "/cam1/refiner"), 50)
     pub = camera.create_publisher(Image, "/cam1/image", 10)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(refiner)
@@ -291,18 +371,25 @@ def test_a_namespaced_node_goes_stale_reports_its_rates_then_errors(context):
             time.sleep(0.05)
         raise AssertionError(f"no status {what}; last: {statuses[-1:]}")
 
+    stream, live, worker = (names.status_name("refiner", t) for t in ("stream", "live", "worker"))
     try:
-        s = wait_for(lambda s: s.level == DiagnosticStatus.STALE, False, "STALE")
+        s = wait_for(lambda s: s.name == stream and s.level == DiagnosticStatus.WARN
+                     and "no image" in s.message, False, "WARN no image")
         assert "no image on /cam1/image" in s.message and "none yet" in s.message
-        assert s.hardware_id == "/cam1/refiner"
-        s = wait_for(lambda s: s.level < DiagnosticStatus.ERROR and float(
+        s = wait_for(lambda s: s.name == live and float(
             diagnostic_values(s)["rate.depth_hz"]) > 5, True, "with the camera's rate")
-        v = diagnostic_values(s)
-        assert 5 < float(v["rate.image_hz"]) < 40 and v["worker_alive"] == "true"
+        assert 5 < float(diagnostic_values(s)["rate.image_hz"]) < 40
+        s = wait_for(lambda s: s.name == worker, False, "the worker's status")
+        assert diagnostic_values(s)["worker_alive"] == "true"
         refiner.online.stop(10)  # the worker gone: no window will run again
-        s = wait_for(lambda s: s.level == DiagnosticStatus.ERROR, False, "ERROR")
+        s = wait_for(lambda s: s.name == worker and s.level == DiagnosticStatus.ERROR, False,
+                     "ERROR")
         assert s.message.startswith("window worker has died")
         assert diagnostic_values(s)["worker_alive"] == "false"
+        s = wait_for(lambda s: s.name == stream and s.level == DiagnosticStatus.ERROR, False,
+                     "the stream's ERROR")
+        assert s.message.startswith("window worker has died")
+        assert not any(s.level == DiagnosticStatus.STALE for s in statuses)
     finally:
         executor.shutdown()
         refiner.destroy_node()

@@ -188,3 +188,38 @@ def test_the_outputs_are_in_metres_once_there_is_a_factor():
     serving.preview(state, 2, step=5)
     serving.set_metres_per_unit(3.0)
     assert serving.revert() and serving.metres_per_unit == 2.0
+
+
+@pytest.mark.parametrize("source", ["camera_height", "odometry", "fixed"])
+def test_a_metric_source_on_relative_inverse_depth_is_refused_before_and_after_loading(source):
+    """Affine-invariant inverse depth (up to scale and shift) has no factor to metres: a metric
+    source on such a network is refused where the settings are built (an explicit
+    ``output_kind``, before any model is loaded) and where the model meets its options (the
+    kind the model says, detected or a plug-in's: the node does not start, nor do the CLI's
+    run and benchmark); ``none`` and networks that predict depth are let through."""
+    from conftest import tiny_model
+
+    from sfm_ttr_ros.core.params import values
+    from sfm_ttr_ros.core.pipeline import SfmTTR
+    from sfm_ttr_ros.core.window_io import TTRConfig
+
+    hf = {"model_type": "hf", "model_path": "some/model", "metric.source": source}
+    why = values.validate({**hf, "output_kind": "relative_inverse_depth"})
+    assert f"metric.source '{source}'" in why and "relative_inverse_depth" in why
+    assert values.validate({**hf, "output_kind": "relative_depth"}) == ""
+    assert values.validate({**hf, "output_kind": ""}) == ""  # detected at loading: below
+    assert values.validate({**hf, "metric.source": "none",
+                            "output_kind": "relative_inverse_depth"}) == ""
+    model = tiny_model()
+    model.output_kind = "relative_inverse_depth"
+    config = TTRConfig(metric=MetricConfig(source=source))
+    with pytest.raises(InputError, match="affine-invariant"):
+        SfmTTR(model, config)
+    ttr = SfmTTR(model, TTRConfig())  # metric.source none: the relative topics
+    try:
+        with pytest.raises(InputError, match=f"metric.source '{source}'"):
+            ttr.set_config(config)  # a live change is refused alike
+    finally:
+        ttr.close()
+    model.output_kind = "metric_depth"
+    SfmTTR(model, config).close()

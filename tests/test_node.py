@@ -155,10 +155,20 @@ class Graph:
         return msg
 
     def last_diag(self) -> dict[str, str]:
+        """The key/values of the node's last statuses (stream, scale, live, worker: each key
+        in one of them), merged."""
         for msg in reversed(self.diags):
-            if msg.status and msg.status[0].name == names.DIAG_NAME:
-                return diagnostic_values(msg)
+            if any(s.hardware_id == names.NODE_FQN for s in msg.status):
+                return diagnostic_values(msg, hardware_id=names.NODE_FQN)
         return {}
+
+    def last_status(self, task: str) -> DiagnosticStatus:
+        """The node's last status of ``task`` (``stream``, ``scale``, ``live``, ``worker``)."""
+        for msg in reversed(self.diags):
+            for status in msg.status:
+                if status.name == names.DIAG_NAMES[task]:
+                    return status
+        raise AssertionError(f"no {task} status received")
 
 
 @pytest.fixture
@@ -448,7 +458,7 @@ def test_bad_input_is_counted_never_fatal(graph_factory, sequence):
     assert (d["rejected_bad_image"], d["rejected_camera_info"], d["non_monotonic_stamps"]) == \
         ("3", "1", "1")
     assert d["unrefined.sfm_failed"] == "3" and d["dropped.duplicate_stamp"] == "1"
-    assert g.diags[-1].status[0].level == DiagnosticStatus.WARN  # frames passed unrefined
+    assert g.last_status("stream").level == DiagnosticStatus.WARN  # frames passed unrefined
 
 
 def test_fallback_intrinsics_and_camera_info_projection(graph_factory, sequence):

@@ -159,3 +159,48 @@ def test_a_remapped_depth_topic_takes_its_compressed_depth_along(context, one_th
         node.destroy_node()
     assert topic == "/front/depth/compressedDepth"
     assert relative == "/cam1/refiner/depth_relative/image/compressedDepth"
+
+
+def test_the_node_says_where_its_depth_goes_in_its_log_and_its_scale_status(context, one_thread,
+                                                                            capfd):
+    """As a user starts it (no parameter file, in a namespace, rclpy's real logger): the
+    start-up line says which topic carries the depth and why (WARN: not metres), the ``scale``
+    status on /diagnostics says it too (WARN), and a change of where the depth goes is logged
+    again; in metres (a fixed factor) the line is an INFO and the status OK."""
+    from sfm_ttr_ros.ros import outputs
+
+    def said(what: str) -> list[str]:
+        return [x for x in capfd.readouterr().err.splitlines() if what in x]
+
+    line = ("depth on /cam1/refiner/depth_relative/image, /cam1/refiner/depth_refined_relative/"
+            "image (relative: metric.source none; set metric.source to camera_height, odometry "
+            "or fixed to get metres on /cam1/refiner/depth/image, "
+            "/cam1/refiner/depth_refined/image)")
+    node = RefinerNode(model=tiny_model(), context=context, namespace="cam1")
+    try:
+        (start,) = said(line)
+        assert start.startswith("[WARN]")
+        scale = {s.task: s for s in node.diagnostics.statuses()}["scale"]
+        assert (scale.level, scale.message) == ("warn", line)
+        (named,) = outputs.diagnostics_message([scale], 0.0, node.get_name(),
+                                               node.get_fully_qualified_name()).status
+        assert (named.name, named.hardware_id) == ("refiner: scale", "/cam1/refiner")
+        results = node.set_parameters([Parameter("relative_depth", value="drop")])
+        assert all(r.successful for r in results), [r.reason for r in results]
+        node._on_timer()  # the diagnostics timer's tick: the scale is checked
+        node._on_timer()  # no change: said once
+        (dropped,) = said("depth not published (relative: metric.source none")
+        assert dropped.startswith("[WARN]") and dropped.endswith("; relative_depth drop)")
+    finally:
+        node.destroy_node()
+    node = RefinerNode(model=tiny_model(), context=context, namespace="cam1",
+                       parameter_overrides=[Parameter("metric.source", value="fixed")])
+    try:
+        metres = ("depth in metres on /cam1/refiner/depth/image, /cam1/refiner/depth_refined/"
+                  "image (metric.source fixed, metric; 1 m per network unit)")
+        (start,) = said(metres)
+        assert start.startswith("[INFO]")
+        scale = {s.task: s for s in node.diagnostics.statuses()}["scale"]
+        assert (scale.level, scale.message) == ("ok", metres)
+    finally:
+        node.destroy_node()

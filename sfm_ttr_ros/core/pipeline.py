@@ -29,6 +29,7 @@ from sfm_ttr_ros.core.alignment.window_alignment import align_window
 from sfm_ttr_ros.core.checks.judge import WindowJudge
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, check_window
+from sfm_ttr_ros.core.metric.metric_config import check_source_for_output
 from sfm_ttr_ros.core.metric.odometry_track import OdometryTrack
 from sfm_ttr_ros.core.metric.scale import MetricScale, MetricStatus, estimate
 from sfm_ttr_ros.core.models.base import DepthModel, warm_up_image
@@ -299,14 +300,15 @@ class SfmTTR:
         return config if r is config.refinement else dataclasses.replace(config, refinement=r)
 
     def check_config(self, config: TTRConfig) -> None:
-        """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
-        without the staged-encoder protocol, or all of its levels)."""
+        """InputError if ``config`` cannot run on this model (frozen encoder levels it lacks; a
+        photometric loss or a metric source on affine-invariant inverse depth)."""
         frozen_stage_count(self.model.staged_encoder, config.refinement.frozen_encoder_levels)
         r = config.refinement
         check_trainable(self.model, r.trainable, r.trainable_blocks)
         if r.uses_photometric and is_affine_output(self.model):
             raise InputError(f"refinement.loss {r.loss!r} needs depth up to scale; this model "
                              "predicts affine-invariant inverse depth: use 'sfm'")
+        check_source_for_output(config.metric.source, getattr(self.model, "output_kind", ""))
 
     def set_config(self, config: TTRConfig) -> None:
         """New options, used from the next window on."""

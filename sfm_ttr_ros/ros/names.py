@@ -1,4 +1,4 @@
-"""Names of the ``refiner`` node, its topics and its diagnostics status, defined once.
+"""Names of the ``refiner`` node, its topics and its diagnostics statuses, defined once.
 
 Pure constants (no rclpy): the node, the launch file's test, the demo, the bag tools and the
 benchmarks read them from here. Input topics are relative (remap them with ``-r image:=...``);
@@ -13,6 +13,8 @@ DepthCloud take them as they are. The live and the windowed depth each have thei
 """
 
 from __future__ import annotations
+
+from sfm_ttr_ros.core.stream.status import TASKS
 
 PACKAGE = "sfm_ttr_ros"
 NODE_NAME = "refiner"
@@ -106,11 +108,12 @@ def resolve(topic: str, node_name: str = NODE_NAME, namespace: str = "/") -> str
     return f"{ns}/{topic}"
 
 
-def status_name(node_fqn: str) -> str:
-    """The node's DiagnosticStatus name on /diagnostics: the package and the node's fully
-    qualified name without its leading slash (``sfm_ttr_ros: cam1/refiner``), so that nodes in
-    different namespaces do not collide."""
-    return f"{PACKAGE}: {node_fqn.lstrip('/')}"
+def status_name(node_name: str, task: str) -> str:
+    """A DiagnosticStatus name on /diagnostics as diagnostic_updater gives it: ``<node name>:
+    <task>`` (``refiner: stream``), the node's name without its namespace (``get_name()``);
+    the hardware_id, the node's fully qualified name, tells apart two nodes of one name in
+    different namespaces."""
+    return f"{node_name}: {task}"
 
 
 def relative_twin_of(topic: str) -> str | None:
@@ -123,7 +126,8 @@ def relative_twin_of(topic: str) -> str | None:
 
 
 NODE_FQN = resolve("~")  # "/refiner": the diagnostics' hardware_id
-DIAG_NAME = status_name(NODE_FQN)  # "sfm_ttr_ros: refiner", the default node's status name
+#: task -> the default node's status name on /diagnostics ("stream" -> "refiner: stream")
+DIAG_NAMES = {task: status_name(NODE_NAME, task) for task in TASKS}
 DEPTH_TOPIC_RESOLVED = resolve(DEPTH_TOPIC)  # "/refiner/depth/image"
 DEPTH_INFO_TOPIC_RESOLVED = resolve(DEPTH_INFO_TOPIC)  # "/refiner/depth/camera_info"
 DEPTH_COLORED_TOPIC_RESOLVED = resolve(DEPTH_COLORED_TOPIC)

@@ -63,7 +63,7 @@ from sfm_ttr_ros.core.models.registry import build_model
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.params.node import LIVE_OUTPUTS
 from sfm_ttr_ros.core.pipeline import SfmTTR
-from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics
+from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics, scale_level
 from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.live import LiveOutput
 from sfm_ttr_ros.core.stream.refiner import StreamRefiner
@@ -77,7 +77,7 @@ from sfm_ttr_ros.ros.encoder_file import load_encoder, save_encoder
 from sfm_ttr_ros.ros.live_settings import LiveSettings
 from sfm_ttr_ros.ros.metric_watch import warn_if_stale
 from sfm_ttr_ros.ros.publishers import OutputPublishers, output_refused
-from sfm_ttr_ros.ros.units import ScaleState
+from sfm_ttr_ros.ros.units import ScaleState, describe_depth
 
 STOP_TIMEOUT_S = 3.0  # how long shutdown waits for the worker to finish its current step
 EXIT_START_UP = 1  # the node could not start (parameters, model, weights)
@@ -132,8 +132,9 @@ class RefinerNode(Node):
             max_held=int(settings.stream.max_pending),
             assumed_hfov_deg=lambda: self.settings.assumed_hfov_deg,
             assumed_focal=self.ttr.focal.focal_for)
-        self.diagnostics = StreamDiagnostics(self.stream, held=lambda: self.intrinsics.held,
-                                             live=self.online.counters_live)
+        self.diagnostics = StreamDiagnostics(
+            self.stream, held=lambda: self.intrinsics.held, live=self.online.counters_live,
+            scale=lambda s: (scale_level(s), self._describe_depth(s, self.settings.relative_depth)))
         self.diagnostics.intrinsics_values = lambda: camera.intrinsics_values(
             self.intrinsics, self.ttr.focal)
         self.cameras = camera.CameraInfoReader(self.get_logger(),
@@ -148,7 +149,8 @@ class RefinerNode(Node):
         self.camera_info_topic = self.resolve_topic_name(subscriptions.camera_info_topic(self))
         self.pubs = OutputPublishers(self, int(node.qos_depth),
                                      partial(output_refused, self))
-        self.scale = ScaleState(self.pubs.depth_scale.publish, self.get_fully_qualified_name())
+        self.scale = ScaleState(self.pubs.depth_scale.publish, self.get_fully_qualified_name(),
+                                self.get_logger(), self._describe_depth)
         self._report_scale()
         self.camera_path = CameraPathOutput(self, node, int(node.qos_depth))  # ~/odom
         self.create_timer(float(node.diagnostics_period_s), self._on_timer)
@@ -272,8 +274,11 @@ class RefinerNode(Node):
         warn_if_stale(self.ttr, self.warn_every)  # the metric scale's source stopped
 
     def _report_scale(self) -> None:
-        """~/depth_scale (latched) when the depth's scale changed (ros/units.py)."""
+        """~/depth_scale (latched) and the log of where the depth goes, on a change (units)."""
         self.scale.update(self.ttr.metric_status(), self.settings.relative_depth)
+
+    def _describe_depth(self, status, relative: str) -> str:
+        return describe_depth(status, relative, self.resolve_topic_name, self.settings.published)
 
     # -- outputs (live thread, worker thread) --------------------------------------------------
     def _publish_live(self, out: LiveOutput) -> None:
@@ -334,8 +339,9 @@ class RefinerNode(Node):
     def publish_diagnostics(self) -> None:
         if self._stop.is_set() or not self._publishes("diagnostics"):
             return
-        self.pubs.publish_status(self.diagnostics.status, self.get_clock().now,
-                                 self.get_fully_qualified_name(), self._stop.is_set)
+        self.pubs.publish_statuses(self.diagnostics.statuses, self.get_clock().now,
+                                   self.get_name(), self.get_fully_qualified_name(),
+                                   self._stop.is_set)
 
     # -- shutdown ------------------------------------------------------------------------------
     def stop_worker(self, timeout: float = 5.0) -> None:

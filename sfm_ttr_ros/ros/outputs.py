@@ -15,9 +15,10 @@ which the node counts).
 * per window (:func:`window_messages`): ``~/points``, the window's sparse SfM cloud (x, y, z,
   reprojection_error) with the header of the image whose optical frame it is in, when the
   window has a cloud;
-* ``/diagnostics`` (:func:`diagnostics_message`): one status named after the node's fully
-  qualified name (:func:`~sfm_ttr_ros.ros.names.status_name`; the default node's:
-  :data:`~sfm_ttr_ros.ros.names.DIAG_NAME`).
+* ``/diagnostics`` (:func:`diagnostics_message`): one status per concern (``stream``,
+  ``scale``, ``live``, ``worker``), named ``<node name>: <task>`` as diagnostic_updater names
+  them (:func:`~sfm_ttr_ros.ros.names.status_name`; the default node's:
+  :data:`~sfm_ttr_ros.ros.names.DIAG_NAMES`), hardware_id the node's fully qualified name.
 
 Units (REP 118, :mod:`sfm_ttr_ros.ros.units`): each message is built on its metric topic and
 goes out there only when its depth is in metres (the frame's ``metres_per_unit`` is known, or
@@ -36,7 +37,7 @@ the seconds spent building each message under ``depth_image``, ``colored_image``
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Collection, MutableMapping
+from collections.abc import Callable, Collection, MutableMapping, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -46,14 +47,15 @@ from msg_adapters import (
     depth_to_colored_image,
     depth_to_image,
     depth_to_pointcloud2,
+    diagnostic_array,
     intrinsics_to_camera_info,
-    make_diagnostic_array,
+    make_diagnostic_status,
     numpy_to_pointcloud2,
 )
 from msg_adapters.compressed_depth import depth_to_compressed_depth
 from sfm_ttr_ros.core.params.node import DEFAULT_OUTPUTS
-from sfm_ttr_ros.core.stream.diagnostics import Status
 from sfm_ttr_ros.core.stream.live import LiveOutput
+from sfm_ttr_ros.core.stream.status import Status
 from sfm_ttr_ros.core.stream.window_runner import FrameOutput, WindowStats
 from sfm_ttr_ros.ros import names, units
 from sfm_ttr_ros.ros.camera import CameraSource
@@ -179,11 +181,15 @@ def window_messages(stats: WindowStats, points: bool = True,
     return units.route({names.POINTS_TOPIC: cloud}, metric, relative)
 
 
-def diagnostics_message(status: Status, stamp, hardware_id: str = names.NODE_FQN,
-                        timings: Timings | None = None):
-    """The ``/diagnostics`` DiagnosticArray of ``status`` (``stamp``: an rclpy Time, a
-    builtin_interfaces Time or seconds; ``hardware_id``: the node's fully qualified name, which
-    also names the status, :func:`~sfm_ttr_ros.ros.names.status_name`)."""
-    return _timed(timings, "diagnostics", make_diagnostic_array, stamp,
-                  names.status_name(hardware_id), hardware_id, status.level, status.message,
-                  status.values)
+def diagnostics_message(statuses: Sequence[Status], stamp, node_name: str = names.NODE_NAME,
+                        hardware_id: str = names.NODE_FQN, timings: Timings | None = None):
+    """The ``/diagnostics`` DiagnosticArray of ``statuses`` (``stamp``: an rclpy Time, a
+    builtin_interfaces Time or seconds), each named ``<node_name>: <task>``
+    (:func:`~sfm_ttr_ros.ros.names.status_name`; ``node_name`` without its namespace) with
+    ``hardware_id`` the node's fully qualified name."""
+    def build():
+        return diagnostic_array(stamp, [make_diagnostic_status(
+            names.status_name(node_name, s.task), hardware_id, s.level, s.message, s.values)
+            for s in statuses])
+
+    return _timed(timings, "diagnostics", build)

@@ -7,7 +7,7 @@ each depth image, the latched ``~/depth_scale`` and ``/diagnostics``.
 ROS's ``qos_overrides.<topic>.publisher.<policy>`` parameters (rclpy's
 ``QoSOverridingOptions``, as the inputs', :mod:`sfm_ttr_ros.ros.subscriptions`), publishes the
 ``{topic: message}`` dicts :mod:`sfm_ttr_ros.ros.outputs` builds, in their order, and one
-diagnostics status at a time.
+diagnostics array (the node's statuses) at a time.
 """
 
 from __future__ import annotations
@@ -104,12 +104,13 @@ class OutputPublishers:
         for topic, msg in messages.items():
             self.by_topic[topic].publish(msg)
 
-    def publish_status(self, status: Callable[[], object], stamp: Callable[[], object],
-                       hardware_id: str, stopping: Callable[[], bool]) -> None:
-        """``status()`` on /diagnostics, stamped ``stamp()``; a publication that fails once
-        ``stopping()`` (the context shut down under it) is let go."""
+    def publish_statuses(self, statuses: Callable[[], list], stamp: Callable[[], object],
+                         node_name: str, hardware_id: str, stopping: Callable[[], bool]) -> None:
+        """``statuses()`` in one array on /diagnostics, stamped ``stamp()``, named after
+        ``node_name`` (:func:`~sfm_ttr_ros.ros.outputs.diagnostics_message`); a publication
+        that fails once ``stopping()`` (the context shut down under it) is let go."""
         with self._diag_lock:
-            msg = outputs.diagnostics_message(status(), stamp(), hardware_id)
+            msg = outputs.diagnostics_message(statuses(), stamp(), node_name, hardware_id)
             try:
                 self.diagnostics.publish(msg)
             except Exception as exc:  # context shut down under us

@@ -5,12 +5,26 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from sfm_ttr_ros.core.alignment.affine import AFFINE_OUTPUT_KINDS
 from sfm_ttr_ros.core.errors import InputError, check_choice
 
 #: Where the metric scale comes from: none (the network's units, said in the diagnostics),
 #: camera_height (a ground plane under the camera), odometry (travelled distance), fixed (a
 #: factor the user gives).
 METRIC_SOURCES = ("none", "camera_height", "odometry", "fixed")
+
+
+def check_source_for_output(source: str, output_kind: str) -> None:
+    """InputError when ``source`` gives metres (any but ``none``) to a network whose output is
+    ``output_kind`` affine-invariant inverse depth: up to a scale AND a shift, so no factor
+    makes it depth in metres (``fixed`` would publish factor x inverse depth as metres; an
+    estimate of ``camera_height`` / ``odometry`` scales SfM depth, not that output)."""
+    if source != "none" and output_kind in AFFINE_OUTPUT_KINDS:
+        raise InputError(
+            f"metric.source {source!r} needs a network that predicts depth (metric or up to "
+            f"scale); this one predicts {output_kind} (affine-invariant: up to scale and "
+            "shift), which no factor turns into metres: set metric.source none (the depth "
+            "goes out on the relative topics) or use a depth network")
 
 
 @dataclass

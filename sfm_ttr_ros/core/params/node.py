@@ -95,8 +95,8 @@ class NodeSettings:
     ``cloud_stride``: ~/cloud takes every this-many-th pixel of the live depth, in both
     directions; ``cloud_max_range``: ~/cloud leaves out points farther than this from the camera
     (depth units; 0 = no limit). ``torch_num_threads`` 0 = torch's default.
-    ``diagnostics_stale_after_s``: /diagnostics is STALE after this long without an image (0 =
-    never);
+    ``diagnostics_stale_after_s``: the stream status warns after this long without an image
+    (0 = never);
     ``relative_depth``: depth, clouds and points not in metres on their relative topics
     (``publish``) or not at all (``drop``); ``compressed_depth_max`` /
     ``compressed_depth_png_level``: the compressedDepth outputs' ``depth_max`` (farther =

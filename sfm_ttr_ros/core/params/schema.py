@@ -300,9 +300,9 @@ PARAMS: tuple[Param, ...] = (
        "camera are left out, in the depth's units; 0 = no limit.", 0.0, 1e9),
     _p("diagnostics_period_s", "node.diagnostics_period_s", "Period of the /diagnostics timer, "
        "seconds.", 0.05, 3600.0, **_START_UP),
-    _p("diagnostics.stale_after_s", "node.diagnostics_stale_after_s", "/diagnostics is STALE "
-       "after this long without an input image (counted from start-up before the first), "
-       "seconds; 0 = never.", 0.0, 3600.0),
+    _p("diagnostics.stale_after_s", "node.diagnostics_stale_after_s", "The stream status on "
+       "/diagnostics warns after this long without an input image (counted from start-up "
+       "before the first), seconds; 0 = never.", 0.0, 3600.0),
     _p("relative_depth", "node.relative_depth", "Depth, ~/cloud and ~/points not (yet) in "
        "metres (metric state not_metric or waiting): publish = on their relative twins "
        "(~/depth_relative, ~/depth_refined_relative, ~/cloud_relative, ~/points_relative); "

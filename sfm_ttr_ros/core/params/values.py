@@ -19,7 +19,7 @@ from typing import Any
 from sfm_ttr_ros.core.alignment.scale import AlignmentConfig
 from sfm_ttr_ros.core.checks.measures import CheckConfig
 from sfm_ttr_ros.core.errors import InputError
-from sfm_ttr_ros.core.metric.metric_config import MetricConfig
+from sfm_ttr_ros.core.metric.metric_config import MetricConfig, check_source_for_output
 from sfm_ttr_ros.core.models.registry import ModelConfig
 from sfm_ttr_ros.core.params import legacy
 from sfm_ttr_ros.core.params.docs import number
@@ -116,6 +116,8 @@ def _check_model(values: Mapping[str, Any]) -> None:
                          "id, e.g. depth-anything/Depth-Anything-V2-Small-hf")
     if bool(str(values["encoder_path"]).strip()) != bool(str(values["decoder_path"]).strip()):
         raise InputError("give both encoder_path and decoder_path, or neither")
+    if kind.lower() == "hf":  # a detected output kind is checked once the model is loaded
+        check_source_for_output(str(values["metric.source"]), str(values["output_kind"]))
 
 
 def build(values: Mapping[str, Any], *, as_node: bool = False) -> Settings:

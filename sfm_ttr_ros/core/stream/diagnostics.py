@@ -1,32 +1,34 @@
 """What the node reports on ``/diagnostics``, ROS-free: the counters the stream does not keep
 (rejected CameraInfos, incompatible-QoS events, frames published unrefined since the last
-report, faults contained in a callback) and the status built from them and from the stream's
-frame accounting.
+report, faults contained in a callback) and one status per concern built from them and from the
+stream's frame accounting (:mod:`.status`): ``stream``, ``scale``, ``live`` and ``worker``.
 
 A *fault* is an exception no check foresaw, caught at a callback boundary of the node (a
 subscription, the timer, the parameter callback, the worker, a publication) so that it cannot
 end the process: counted per place (``faults.<place>``), logged (throttled) and reported as a
-WARN status; the frame it concerned, if any, is still accounted for (dropped with a reason).
+WARN of the ``worker`` status; the frame it concerned, if any, is still accounted for (dropped
+with a reason).
 
-``msg_adapters.make_diagnostic_array`` turns a :class:`Status` into a DiagnosticArray; the keys
-are listed in README "Diagnostics". The frame accounting of the windowed output
-(``~/depth_refined``) always satisfies
+``msg_adapters.make_diagnostic_status`` turns each :class:`Status` into a DiagnosticStatus; the
+keys are listed in docs/node.md "Diagnostics". The frame accounting of the windowed output
+(``~/depth_refined``, the ``stream`` status) always satisfies
 ``frames_received = frames_refined + frames_unrefined + frames_dropped + frames_pending``
 (frames held for want of intrinsics count as received and pending); that of the live output
-(``~/depth``, when a ``live`` provider is given) ``live.received = live.published +
-live.skipped + live.pending``, with the served weights' ``serving.version`` (the window that
-produced them, 0 = start-up), ``serving.interim_step`` (the refinement step of interim weights
-of a window still refining, ``serve_every_steps``; 0 = a finished window's) and
-``serving.age_s``.
+(``~/depth``, when a ``live`` provider is given; the ``live`` status) ``live.received =
+live.published + live.skipped + live.pending``, with the served weights' ``serving.version``
+(the window that produced them, 0 = start-up), ``serving.interim_step`` (the refinement step of
+interim weights of a window still refining, ``serve_every_steps``; 0 = a finished window's)
+and ``serving.age_s``.
 
 A depth image published without a CameraInfo beside it (the node knew no intrinsics for it
 yet: no CameraInfo received and no fallback) is counted, per output:
 ``live.without_camera_info`` and ``frames_without_camera_info`` (the windowed output); the
-status is WARN while it happens.
+status of that output is WARN while it happens.
 
 With a :class:`~sfm_ttr_ros.core.stream.health.Health` (the node gives one) the values also hold
-the input and output rates, and the status is ERROR when the window worker has died and STALE
-when no image arrived for ``diagnostics.stale_after_s`` (core/stream/health.py).
+the input and output rates (``live``), the input's silence (``stream``: WARN when no image
+arrived for ``diagnostics.stale_after_s``) and whether the worker lives (``worker``, and
+``stream``: ERROR when it has died).
 """
 
 from __future__ import annotations
@@ -34,12 +36,13 @@ from __future__ import annotations
 import collections
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
+from sfm_ttr_ros.core.metric.scale import MetricStatus
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.stream.health import Health
 from sfm_ttr_ros.core.stream.keyframes import keyframe_interval
 from sfm_ttr_ros.core.stream.live import LATENCY_KEYS
+from sfm_ttr_ros.core.stream.status import LIVE_TASK, SCALE_TASK, WORKER_TASK, Status
 from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
 #: Unrefined frames the keyframe rule passed on by design (below its floor or motion, or skipped
@@ -48,29 +51,44 @@ from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 SELECTED_OUT = frozenset({Unrefined.NOT_KEYFRAME, Unrefined.STALE})
 
 
-@dataclass(frozen=True)
-class Status:
-    """One diagnostic status: ``level`` ``"ok"``, ``"warn"``, ``"error"`` or ``"stale"``, a
-    one-line message and the key/values in the order they are published."""
+#: (level, message) of the ``scale`` status for the outputs' units now
+ScaleDescription = Callable[[MetricStatus], tuple[str, str]]
 
-    level: str
-    message: str
-    values: dict[str, object] = field(default_factory=dict)
+
+def scale_level(status: MetricStatus) -> str:
+    """The level of the depth's scale (the ``scale`` status, ``~/depth_scale``): OK in state
+    ``metric``, WARN in every other (the depth not in metres, or in metres not yet confirmed
+    by a second window, or whose source stopped)."""
+    return "ok" if status.state == "metric" else "warn"
+
+
+def describe_scale(status: MetricStatus) -> tuple[str, str]:
+    """(level, message) of the ``scale`` status without the node's topic names (the node says
+    which topic carries the depth: ros/units.py ``describe_depth``)."""
+    metres = "in metres" if status.metres_per_unit is not None else "not in metres"
+    why = f": {status.reason}" if status.reason else ""
+    return scale_level(status), (f"depth {metres} (metric.source {status.source}, "
+                                 f"{status.state}{why})")
 
 
 class StreamDiagnostics:
     """Counters and status of a :class:`WindowRunner` fed by a node. Thread-safe.
 
     ``held``: how many frames wait outside the stream (for intrinsics); they count as received
-    and pending. ``health``: rates, ERROR and STALE (none: OK or WARN only).
+    and pending. ``live``: the live output's counts (none: no ``live`` status without
+    ``health``). ``health``: rates, silence and the worker (none: no ERROR). ``scale``: (level,
+    message) of the ``scale`` status (:func:`describe_scale` by default; the node names its
+    topics), given when the stream's model has a metric status.
     """
 
     def __init__(self, stream: WindowRunner, held: Callable[[], int] = lambda: 0,
-                 live: Callable[[], dict] | None = None, health: Health | None = None):
+                 live: Callable[[], dict] | None = None, health: Health | None = None,
+                 scale: ScaleDescription = describe_scale):
         self.stream = stream
         self.health = health
         self._held = held
         self._live = live
+        self._describe_scale = scale
         self.rejected_camera_info = 0
         self.qos_incompatible: collections.Counter[str] = collections.Counter()
         self._unrefined_since_status = 0
@@ -78,7 +96,7 @@ class StreamDiagnostics:
         self._faults_since_status = 0
         #: depth images published without a CameraInfo, per output ("live", "refined")
         self.without_camera_info: collections.Counter[str] = collections.Counter()
-        self._without_camera_info_since_status = 0
+        self._without_camera_info_since_status: collections.Counter[str] = collections.Counter()
         #: where the intrinsics come from, ``intrinsics.*`` (the node's: ros/camera.py)
         self.intrinsics_values: Callable[[], dict[str, object]] | None = None
         self._lock = threading.Lock()
@@ -106,7 +124,7 @@ class StreamDiagnostics:
         returns how many so far on that output."""
         with self._lock:
             self.without_camera_info[output] += 1
-            self._without_camera_info_since_status += 1
+            self._without_camera_info_since_status[output] += 1
             return self.without_camera_info[output]
 
     def output_published(self, refined: bool, reason_key: Unrefined | None = None) -> None:
@@ -118,7 +136,15 @@ class StreamDiagnostics:
 
     # -- reporting -----------------------------------------------------------------------------
     def values(self) -> dict[str, object]:
-        """Every key/value of the status (README "Diagnostics"), in publishing order."""
+        """Every key/value of every status (docs/node.md "Diagnostics"), in publishing order:
+        what the final accounting keeps."""
+        out = self.stream_values()
+        for part in (self.scale_values(), self.live_values(), self.worker_values()):
+            out.update(part)
+        return out
+
+    def stream_values(self) -> dict[str, object]:
+        """The ``stream`` status's key/values: the frames, the input, the windows."""
         c = self.stream.counters()
         held = int(self._held())
         v: dict[str, object] = {
@@ -149,22 +175,44 @@ class StreamDiagnostics:
             "windows_disabled": c["windows_disabled"],
             "windows_rejected_by_check": c["windows_rejected"],
             "windows_remapped": c["windows_remapped"],
-            "faults": sum(self.faults.values()),
         })
-        v.update({f"faults.{k}": n for k, n in sorted(self.faults.items())})
-        if self.health is not None:  # rates, silence, the worker
-            v.update(self.health.values())
-        if self._live is not None:  # ~/depth: received = published + skipped + pending
-            v.update(self._live_values())
+        if self.health is not None:  # the input's silence
+            v.update(self.health.input_values())
         v.update(self._keyframe_values())
         v.update(self._streaming_sfm_values(c.get("sfm_streaming") or {}))
-        metric = getattr(self.stream.ttr, "metric_status", None)
-        if metric is not None:  # the outputs' units (core/metric/)
-            v.update({f"metric.{k}": x for k, x in metric().values().items()})
         v.update(self._last_window_values())
         if self.intrinsics_values is not None:
             v.update(self.intrinsics_values())
         return v
+
+    def _metric_status(self) -> MetricStatus | None:
+        metric = getattr(self.stream.ttr, "metric_status", None)
+        return metric() if metric is not None else None
+
+    def scale_values(self) -> dict[str, object]:
+        """The ``scale`` status's key/values: the outputs' units (core/metric/); none without
+        a model that has a metric status."""
+        metric = self._metric_status()
+        if metric is None:
+            return {}
+        return {f"metric.{k}": x for k, x in metric.values().items()}
+
+    def live_values(self) -> dict[str, object]:
+        """The ``live`` status's key/values: ~/depth's counts, the serving weights, the live
+        latencies (with a ``live`` provider) and the rates (with ``health``)."""
+        out: dict[str, object] = {}
+        if self._live is not None:  # ~/depth: received = published + skipped + pending
+            out.update(self._live_values())
+        if self.health is not None:
+            out.update(self.health.rate_values())
+        return out
+
+    def worker_values(self) -> dict[str, object]:
+        """The ``worker`` status's key/values: alive (with ``health``), faults contained."""
+        out: dict[str, object] = self.health.worker_values() if self.health is not None else {}
+        out["faults"] = sum(self.faults.values())
+        out.update({f"faults.{k}": n for k, n in sorted(self.faults.items())})
+        return out
 
     def _live_values(self) -> dict[str, object]:
         """~/depth's counts, the serving weights and the live latencies."""
@@ -233,38 +281,82 @@ class StreamDiagnostics:
         out.update({f"last_window.time.{k}_s": t for k, t in w.timings.items()})
         return out
 
-    def status(self) -> Status:
-        """The status now: ERROR (the worker died) or STALE (no input) first in the message,
-        then what went wrong since the last status (frames passed through unrefined, the last
-        window not refined, frames held, incompatible QoS, faults contained) at WARN, else OK.
-        Resets the since-last-status counts."""
+    def statuses(self) -> list[Status]:
+        """One status per concern now: ``stream``, then ``scale`` (with a metric status),
+        ``live`` (with a ``live`` provider or ``health``) and ``worker``. What went wrong since
+        the last statuses is reported once (their counts reset), what lasts while it lasts."""
         with self._lock:
-            v = self.values()
-            w = self.stream.last_window
-            problems = []
-            if self._unrefined_since_status:
-                problems.append(f"{self._unrefined_since_status} frame(s) passed through "
-                                "unrefined")
-            if w is not None and not w.refined:
-                problems.append(f"last window not refined: {w.reason}")
-            if v.get("metric.state") == "waiting" and w is not None:
-                problems.append("depth not metric yet" + (f": {w.metric_reason}"
-                                                          if w.metric_reason else ""))
-            if v["frames_held_no_intrinsics"]:
-                problems.append("no intrinsics: frames held")
-            if v["qos_incompatible"]:
-                problems.append("incompatible QoS")
-            if self._faults_since_status:
-                problems.append(f"{self._faults_since_status} fault(s) contained")
-            if self._without_camera_info_since_status:
-                problems.append(f"{self._without_camera_info_since_status} depth image(s) "
-                                "without CameraInfo (no intrinsics yet)")
+            out = [self._stream_status(), self._scale_status(), self._live_status(),
+                   self._worker_status()]
             self._unrefined_since_status = 0
             self._faults_since_status = 0
-            self._without_camera_info_since_status = 0
-        severe = self.health.problem() if self.health is not None else None
-        if severe is not None:
-            return Status(severe[0], "; ".join([severe[1], *problems]), v)
+            self._without_camera_info_since_status.clear()
+        return [s for s in out if s is not None]
+
+    def _stream_status(self) -> Status:
+        """ERROR (the worker died: no window will run), else WARN for the input's silence and
+        what went wrong since the last status (frames passed through unrefined, the last window
+        not refined, frames held, incompatible QoS, ~/depth_refined without CameraInfo), else
+        OK."""
+        v = self.stream_values()
+        w = self.stream.last_window
+        problems = []
+        if self._unrefined_since_status:
+            problems.append(f"{self._unrefined_since_status} frame(s) passed through unrefined")
+        if w is not None and not w.refined:
+            problems.append(f"last window not refined: {w.reason}")
+        if v["frames_held_no_intrinsics"]:
+            problems.append("no intrinsics: frames held")
+        if v["qos_incompatible"]:
+            problems.append("incompatible QoS")
+        if self._without_camera_info_since_status["refined"]:
+            problems.append(_without_camera_info(
+                self._without_camera_info_since_status["refined"]))
+        silent = self.health.input_problem() if self.health is not None else None
+        dead = self.health.worker_problem() if self.health is not None else None
+        problems = [p for p in (dead, silent) if p] + problems
         if problems:
-            return Status("warn", "; ".join(problems), v)
+            return Status("error" if dead else "warn", "; ".join(problems), v)
         return Status("ok", f"{v['frames_refined']} refined, {v['windows_ok']} window(s) ok", v)
+
+    def _scale_status(self) -> Status | None:
+        """The depth's units (``describe_scale``); while waiting for a scale, why the last
+        window gave none."""
+        metric = self._metric_status()
+        if metric is None:
+            return None
+        level, message = self._describe_scale(metric)
+        w = self.stream.last_window
+        if metric.state == "waiting" and w is not None and w.metric_reason:
+            message += f"; last window: {w.metric_reason}"
+        return Status(level, message, {f"metric.{k}": x for k, x in metric.values().items()},
+                      SCALE_TASK)
+
+    def _live_status(self) -> Status | None:
+        """WARN while live depths go out without CameraInfo, else OK."""
+        if self._live is None and self.health is None:
+            return None
+        v = self.live_values()
+        missing = self._without_camera_info_since_status["live"]
+        if missing:
+            return Status("warn", _without_camera_info(missing), v, LIVE_TASK)
+        if "live.published" not in v:
+            return Status("ok", "rates only (no live output counts)", v, LIVE_TASK)
+        return Status("ok", f"{v['live.published']} published, served weights of window "
+                      f"{v['serving.version']}", v, LIVE_TASK)
+
+    def _worker_status(self) -> Status:
+        """ERROR when the worker has died, WARN for faults contained since the last status,
+        else OK."""
+        v = self.worker_values()
+        dead = self.health.worker_problem() if self.health is not None else None
+        problems = [dead] if dead else []
+        if self._faults_since_status:
+            problems.append(f"{self._faults_since_status} fault(s) contained")
+        if problems:
+            return Status("error" if dead else "warn", "; ".join(problems), v, WORKER_TASK)
+        return Status("ok", f"{v['faults']} fault(s) contained so far", v, WORKER_TASK)
+
+
+def _without_camera_info(n: int) -> str:
+    return f"{n} depth image(s) without CameraInfo (no intrinsics yet)"

@@ -1,17 +1,19 @@
-"""Is the node alive and fed? The levels above WARN of its ``/diagnostics`` status and the
-rates among its values, ROS-free (docs/node.md "Diagnostics").
+"""Is the node alive and fed? The worker's ERROR and the input's silence of its
+``/diagnostics`` statuses and the rates among their values, ROS-free (docs/node.md
+"Diagnostics").
 
 The levels follow diagnostic_msgs/DiagnosticStatus and the diagnostic_aggregator's reading of
 them (REP 107's diagnostics, ROS 2 ``diagnostic_updater``): ERROR when the node cannot do its
-job, the window worker thread has died (no window will run again; ``worker_alive``); STALE when
-its data is old, no input image for ``diagnostics.stale_after_s`` seconds, counted from the
-node's start before the first image (so a wrong remap or an unmatched QoS is STALE, not OK;
-0 = never STALE). ERROR wins over STALE, which wins over WARN and OK.
+job, the window worker thread has died (no window will run again; ``worker_alive``); a WARN
+when no input image arrived for ``diagnostics.stale_after_s`` seconds, counted from the node's
+start before the first image (so a wrong remap or an unmatched QoS is a WARN, not OK; 0 =
+never). STALE is not the node's to say: the aggregator reserves it for a status no longer
+received.
 
 Rates (:class:`RateMeter`) are events per second over the last :data:`RATE_INTERVAL_S`
 seconds (the time since the node started while that is shorter), on the steady clock: what
 arrived and left the node on the wall clock, whatever clock stamps the messages (a bag replayed
-at twice its speed reads twice the camera's rate; a paused bag goes STALE).
+at twice its speed reads twice the camera's rate; a paused bag goes silent).
 """
 
 from __future__ import annotations
@@ -90,23 +92,33 @@ class Health:
         """A frame left on ``output`` (one of :data:`RATED_OUTPUTS`)."""
         self.outputs[output].tick()
 
-    def values(self) -> dict[str, object]:
-        """``rate.image_hz``, ``rate.<output>_hz``, ``input.silent_s`` and ``worker_alive``."""
+    def rate_values(self) -> dict[str, object]:
+        """``rate.image_hz`` and ``rate.<output>_hz``."""
         out: dict[str, object] = {"rate.image_hz": self.images.hz()}
         out.update({f"rate.{name}_hz": meter.hz() for name, meter in self.outputs.items()})
-        out["input.silent_s"] = self.images.silent_s()
-        out["worker_alive"] = bool(self._worker_alive())
         return out
 
-    def problem(self) -> tuple[str, str] | None:
-        """``("error", why)`` when the worker has died, ``("stale", why)`` when the input has
-        been silent too long, else None."""
+    def input_values(self) -> dict[str, object]:
+        """``input.silent_s``: seconds since the last image (since start-up before one)."""
+        return {"input.silent_s": self.images.silent_s()}
+
+    def worker_values(self) -> dict[str, object]:
+        """``worker_alive``."""
+        return {"worker_alive": bool(self._worker_alive())}
+
+    def worker_problem(self) -> str | None:
+        """Why the node cannot do its job (an ERROR): the worker has died; else None."""
         if not self._worker_alive():
-            return "error", "window worker has died: no window will run (restart the node)"
+            return "window worker has died: no window will run (restart the node)"
+        return None
+
+    def input_problem(self) -> str | None:
+        """Why the input looks cut off (a WARN): silent longer than ``stale_after_s``; else
+        None."""
         limit = float(self._stale_after_s())
         silent = self.images.silent_s()
         if limit > 0 and silent > limit:
             since = "the last image" if self.images.count else "start-up, none yet"
-            return "stale", (f"no image on {self.input_topic} for {silent:.1f} s (since "
-                             f"{since}; diagnostics.stale_after_s {limit:g})")
+            return (f"no image on {self.input_topic} for {silent:.1f} s (since {since}; "
+                    f"diagnostics.stale_after_s {limit:g})")
         return None

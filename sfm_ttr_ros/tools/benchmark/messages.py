@@ -97,7 +97,7 @@ class MessageCost:
         if not self.publish_diagnostics or self.diagnostics is None:
             return
         stamp = ws.cloud_frame.stamp if ws.cloud_frame is not None else time.time()
-        self._send(self._outputs.diagnostics_message(self.diagnostics.status(), stamp,
+        self._send(self._outputs.diagnostics_message(self.diagnostics.statuses(), stamp,
                                                      timings=self.t))
 
     def warm_up(self, shape: tuple[int, int]) -> None:
@@ -114,6 +114,6 @@ class MessageCost:
             cloud_xyz=np.zeros((1, 3), np.float32), cloud_error=np.zeros(1, np.float32)))
         for m in self._outputs.window_messages(cloud).values():
             self._send(m)
-        self._send(self._outputs.diagnostics_message(Status("ok", "", {"a": 1}), 0.0))
+        self._send(self._outputs.diagnostics_message([Status("ok", "", {"a": 1})], 0.0))
         self.t.clear()
         self.bytes = self.messages = 0
