@@ -191,7 +191,7 @@ class Fuzzer:
 
     def info(self, kind: str, width: int, height: int, k, p=None, *, binning=(0, 0),
              roi=(0, 0, 0, 0)) -> None:
-        from msg_adapters import camera_info_to_intrinsics
+        from msg_adapters import UncalibratedCameraInfo, camera_info_to_intrinsics
 
         msg = self.CameraInfo(width=width, height=height)
         msg.header.stamp = self._stamp("next")
@@ -203,6 +203,8 @@ class Fuzzer:
         msg.roi.x_offset, msg.roi.y_offset, msg.roi.width, msg.roi.height = roi
         try:  # the node reads P (kitti.yaml: camera_info_use_projection true)
             camera_info_to_intrinsics(msg, True)
+        except UncalibratedCameraInfo:
+            pass  # K all zero: the node assumes intrinsics (docs/node.md, "Intrinsics")
         except ValueError:
             self.bad_infos += 1
         self.pub_info.publish(msg)
