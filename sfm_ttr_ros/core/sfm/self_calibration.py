@@ -89,11 +89,11 @@ class SelfCalibration(FocalCalibration):
                        ) -> Intrinsics:
         """The intrinsics the window of ``frames`` starts from, with ``source`` (the stream's
         SfM source) set to refine the focal length or not. Frames of assumed intrinsics
-        (``Frame.assumed_intrinsics``) under ``sfm.mode: batch`` start from the carried
-        estimate and refine it until it settled; every other window maps as ``config`` says
-        (the streaming map holds the assumed intrinsics fixed)."""
-        calibrating = (config.mode == "batch" and len(frames) > 0
-                       and all(f.assumed_intrinsics for f in frames))
+        (``Frame.assumed_intrinsics``) start from the carried estimate and refine it until it
+        settled (the streaming source maps such windows on their own meanwhile:
+        :class:`~sfm_ttr_ros.core.sfm.source.StreamingSfmSource`); every other window maps as
+        ``config`` says."""
+        calibrating = len(frames) > 0 and all(f.assumed_intrinsics for f in frames)
         if calibrating:
             intrinsics = self.start(intrinsics)
         self.refining = calibrating and not self.settled
