@@ -1,7 +1,8 @@
 """An uncalibrated camera (a CameraInfo with K all zero): intrinsics assumed from a field of
 view (ros/camera.py, rule 4), their focal length refined by SfM window after window and carried
-over (core/sfm/self_calibration.py) in either sfm.mode, ``intrinsics.source`` on /diagnostics going from assumed
-to settled. ROS-free: the node's resolver and diagnostics values over the stream it feeds."""
+over (core/sfm/self_calibration.py) in either sfm.mode, ``intrinsics.source`` on /diagnostics
+going from assumed to settled. ROS-free: the node's resolver and diagnostics values over the
+stream it feeds."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.sfm.self_calibration import SETTLED, FocalCalibration, SelfCalibration
-from sfm_ttr_ros.core.sfm.source import make_sfm_source
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
+from sfm_ttr_ros.core.sfm.source import make_sfm_source
 from sfm_ttr_ros.core.stream.window_runner import StreamSettings, WindowRunner
 from sfm_ttr_ros.core.window_io import TTRConfig
 from sfm_ttr_ros.ros.camera import IntrinsicsResolver, intrinsics_values
