@@ -1,7 +1,8 @@
 """An uncalibrated camera (a CameraInfo with K all zero): intrinsics assumed from a field of
 view (ros/camera.py, rule 4), their focal length refined by SfM window after window and carried
-over (core/sfm/self_calibration.py), ``intrinsics.source`` on /diagnostics going from assumed
-to settled. ROS-free: the node's resolver and diagnostics values over the stream it feeds."""
+over (core/sfm/self_calibration.py) in either sfm.mode, ``intrinsics.source`` on /diagnostics
+going from assumed to settled. ROS-free: the node's resolver and diagnostics values over the
+stream it feeds."""
 
 from __future__ import annotations
 
@@ -13,8 +14,9 @@ from conftest import tiny_model
 from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
-from sfm_ttr_ros.core.sfm.self_calibration import SETTLED, FocalCalibration
+from sfm_ttr_ros.core.sfm.self_calibration import SETTLED, FocalCalibration, SelfCalibration
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
+from sfm_ttr_ros.core.sfm.source import make_sfm_source
 from sfm_ttr_ros.core.stream.window_runner import StreamSettings, WindowRunner
 from sfm_ttr_ros.core.window_io import TTRConfig
 from sfm_ttr_ros.ros.camera import IntrinsicsResolver, intrinsics_values
@@ -40,7 +42,7 @@ def test_assumed_intrinsics_from_a_field_of_view():
     assert off.add_frame(Frame(0, frame.image), 1).ready == [] and off.held == 1
 
 
-def test_the_estimate_is_the_median_and_settles_below_one_percent():
+def test_the_estimate_is_the_median_and_settles_below_one_percent_when_windows_agree():
     cal = FocalCalibration()
     start = Intrinsics.from_fov(W, H, HFOV)
     assert cal.start(start) == start and cal.state == "assumed"
@@ -51,15 +53,46 @@ def test_the_estimate_is_the_median_and_settles_below_one_percent():
         assert cal.state == state
     assert cal.focal == pytest.approx(357.5) and cal.start(start).fx == pytest.approx(357.5)
     assert cal.start(Intrinsics.from_fov(320, 96, HFOV)).fx != cal.focal  # another size: anew
+    # medians 300, 350, 350 (not moved, but 400 is 14 % off it: not settled), 351 (settled)
+    for f, state in ((300.0, "refining"), (400.0, "refining"), (350.0, "refining"),
+                     (352.0, SETTLED)):
+        cal.update(Intrinsics(f, f, 159.5, 47.5, 320, 96))
+        assert cal.state == state, f
+
+
+def test_streaming_maps_windows_on_their_own_while_the_focal_length_is_refined():
+    import numpy as np
+
+    base = SfmConfig(mode="streaming")  # the stream's configuration (the pipeline's)
+    source = make_sfm_source(base)
+    cal, assumed = SelfCalibration(), Intrinsics.from_fov(W, H, HFOV)
+    frame = Frame(0, np.zeros((H, W, 3), "uint8"), assumed_intrinsics=True)
+    assert cal.prepare_window([frame], assumed, source, base) == assumed
+    assert cal.refining and source.config.refine_intrinsics and source.calibrating is not None
+    assert source.admit(frame, assumed) is False  # nothing admitted ahead: the window maps
+    assert not source.reconstruct([frame], assumed)[0].ok  # one frame: refused, not mapped
+    cal.update(Intrinsics(360.0, 360.0, assumed.cx, assumed.cy, W, H))
+    cal.update(Intrinsics(362.0, 362.0, assumed.cx, assumed.cy, W, H))
+    cal.update(Intrinsics(361.0, 361.0, assumed.cx, assumed.cy, W, H))
+    assert cal.settled
+    carried = cal.prepare_window([frame], assumed, source, base)
+    assert carried.fx == pytest.approx(361.0) and not cal.refining
+    assert source.calibrating is None and not source.config.refine_intrinsics  # a fresh map
+    source.reconstruct([frame], carried)
+    # the next keyframes admitted with the settled focal length, not the assumed one
+    assert source._as_mapped(frame, assumed) == carried
+    assert source._as_mapped(Frame(1, frame.image), assumed) == assumed  # a calibrated frame
+    source.close()
 
 
 @pytest.mark.slow
-def test_a_drive_with_k_zeroed_refines_and_its_focal_length_converges(one_thread):
+@pytest.mark.parametrize("mode", ["batch", "streaming"])
+def test_a_drive_with_k_zeroed_refines_and_its_focal_length_converges(one_thread, mode):
     from sfm_ttr_ros.data.synthetic import make_sequence
 
     seq = make_sequence(seed=0, domain="A", num_frames=NUM_FRAMES, width=W, height=H)
     true_f = seq.intrinsics.fx
-    ttr = SfmTTR(tiny_model(), TTRConfig(sfm=SfmConfig(first_octave=0),
+    ttr = SfmTTR(tiny_model(), TTRConfig(sfm=SfmConfig(first_octave=0, mode=mode),
                                          refinement=RefinementConfig(steps=2),
                                          min_supervision_points=20))
     stream = WindowRunner(ttr, StreamSettings(window_size=WINDOW, window_stride=STRIDE,

@@ -7,7 +7,10 @@ and :class:`FocalCalibration` keeps what the windows found. A single short windo
 driving constrains f poorly (measured on generated drives: one window's f lands anywhere within
 about ±30 % of the truth, docs/decisions.md), so the estimate carried to the next window is the
 median of the windows' focal lengths so far, and it is *settled* once a window moved it by
-less than :data:`SETTLED_CHANGE`: from then on the focal length is held fixed (the
+less than :data:`SETTLED_CHANGE` and the last :data:`AGREEING` windows' focal lengths agree with
+it within :data:`AGREEMENT` (a median that stands still between windows that disagree is not
+settled: on a forward drive with little rotation f is barely observable, see
+docs/decisions.md "A ROS citizen on any camera"): from then on the focal length is held fixed (the
 paper's fixed-K SfM), as for a calibrated camera.
 
 States (the ``intrinsics.source`` of /diagnostics): ``assumed`` (no window refined f yet),
@@ -28,6 +31,9 @@ SETTLED_CHANGE = 0.01  # relative change of the estimate between two windows: se
 #: a window's focal length further than this factor from the assumed one is not kept (a
 #: bundle adjustment that collapsed: 62 px for 361 px measured on a generated drive)
 PLAUSIBLE_FACTOR = 2.0
+#: settled only when the last AGREEING kept windows' focal lengths lie within AGREEMENT
+#: (relative) of the estimate
+AGREEING, AGREEMENT = 2, 0.05
 ASSUMED, REFINING, SETTLED = "assumed", "refining", "settled"
 
 
@@ -67,15 +73,20 @@ class FocalCalibration:
     def update(self, refined: Intrinsics) -> None:
         """A window's bundle adjustment refined the focal length to ``refined``: the estimate
         becomes the median of the windows' so far; settled when it moved by less than
-        :data:`SETTLED_CHANGE` (relative) from the previous window's estimate. A focal length
-        more than :data:`PLAUSIBLE_FACTOR` from the assumed one is left out."""
+        :data:`SETTLED_CHANGE` (relative) from the previous window's estimate and the last
+        :data:`AGREEING` windows' lie within :data:`AGREEMENT` of it. A focal length more than
+        :data:`PLAUSIBLE_FACTOR` from the assumed one is left out."""
         f = 0.5 * (refined.fx + refined.fy)
         if self.assumed is not None and not (self.assumed / PLAUSIBLE_FACTOR <= f
                                              <= self.assumed * PLAUSIBLE_FACTOR):
             return
         self.estimates.append(f)
         before, self.focal = self.focal, float(statistics.median(self.estimates))
-        settled = before is not None and abs(self.focal - before) < SETTLED_CHANGE * before
+        recent = self.estimates[-AGREEING:]
+        agree = len(recent) == AGREEING and all(abs(e - self.focal) <= AGREEMENT * self.focal
+                                                 for e in recent)
+        settled = (before is not None and agree
+                   and abs(self.focal - before) < SETTLED_CHANGE * before)
         self.state = SETTLED if settled else REFINING
 
 
@@ -89,11 +100,11 @@ class SelfCalibration(FocalCalibration):
                        ) -> Intrinsics:
         """The intrinsics the window of ``frames`` starts from, with ``source`` (the stream's
         SfM source) set to refine the focal length or not. Frames of assumed intrinsics
-        (``Frame.assumed_intrinsics``) under ``sfm.mode: batch`` start from the carried
-        estimate and refine it until it settled; every other window maps as ``config`` says
-        (the streaming map holds the assumed intrinsics fixed)."""
-        calibrating = (config.mode == "batch" and len(frames) > 0
-                       and all(f.assumed_intrinsics for f in frames))
+        (``Frame.assumed_intrinsics``) start from the carried estimate and refine it until it
+        settled (the streaming source maps such windows on their own meanwhile:
+        :class:`~sfm_ttr_ros.core.sfm.source.StreamingSfmSource`); every other window maps as
+        ``config`` says."""
+        calibrating = len(frames) > 0 and all(f.assumed_intrinsics for f in frames)
         if calibrating:
             intrinsics = self.start(intrinsics)
         self.refining = calibrating and not self.settled

@@ -175,22 +175,48 @@ class BatchSfmSource:
 
 class StreamingSfmSource:
     """``sfm.mode: streaming``: the stream's carried map (:class:`StreamingSfm`), each keyframe
-    admitted as the stream takes it (:class:`SfmSource`)."""
+    admitted as the stream takes it (:class:`SfmSource`).
+
+    While the focal length of assumed intrinsics is refined (``refine_intrinsics``, set window
+    by window by :class:`~sfm_ttr_ros.core.sfm.self_calibration.SelfCalibration` till it
+    settles), each window is mapped on its own by a batch :class:`SfmReconstructor` (the
+    carried map holds one camera fixed) and nothing is admitted ahead; once it is off again a
+    fresh map starts, its keyframes admitted with the focal length the windows are mapped
+    with (the settled estimate), not the assumed one."""
 
     mode = "streaming"
 
     def __init__(self, config: SfmConfig, workspace: str | Path | None = None):
         self.config = config
-        self.workspace = workspace  # unused here; carried to a batch source (mode change)
+        self.workspace = workspace  # the calibrating windows' (and a batch source's) folder
         self.nice = 0  # no thread of its own
         self.streaming = StreamingSfm(config)
+        self.calibrating: SfmReconstructor | None = None  # while refine_intrinsics is on
+        self._extracted_before = 0  # frames extracted by the calibrating reconstructors gone
+        # the intrinsics the last window of assumed intrinsics was mapped with
+        self._assumed_as: Intrinsics | None = None
 
     def set_config(self, config: SfmConfig) -> None:
         self.config = config
+        if config.refine_intrinsics:
+            if self.calibrating is None:
+                self.calibrating = SfmReconstructor(config, self.workspace)
+            self.calibrating.config = config
+            return
+        if self.calibrating is not None:  # the focal length settled: a fresh map with it
+            self._extracted_before += self.calibrating.frames_extracted
+            self.calibrating.close()
+            self.calibrating = None
+            self.streaming.close()
+            self.streaming = StreamingSfm(config)
         self.streaming.set_config(config)
 
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
                     ) -> tuple[SfmResult, bool]:
+        if frames and all(f.assumed_intrinsics for f in frames):
+            self._assumed_as = intrinsics
+        if self.calibrating is not None:
+            return self.calibrating.reconstruct(frames, intrinsics), False
         return self.streaming.reconstruct(frames, intrinsics), False
 
     def begin_window(self) -> None:
@@ -201,9 +227,21 @@ class StreamingSfmSource:
         return False
 
     def admit(self, frame: Frame, intrinsics: Intrinsics) -> bool:
-        """The keyframe's features, matches and registration into the carried map now."""
-        self.streaming.admit(frame, intrinsics)
+        """The keyframe's features, matches and registration into the carried map now (assumed
+        intrinsics: with the focal length the windows are mapped with); nothing while the
+        focal length is refined (False: the window maps it all)."""
+        if self.calibrating is not None:
+            return False
+        self.streaming.admit(frame, self._as_mapped(frame, intrinsics))
         return True
+
+    def _as_mapped(self, frame: Frame, intrinsics: Intrinsics) -> Intrinsics:
+        """``intrinsics``, or for a frame of assumed ones of the last such window's image and
+        principal point, the intrinsics that window was mapped with (its focal length)."""
+        last = self._assumed_as
+        same = last is not None and (last.width, last.height, last.cx, last.cy) == (
+            intrinsics.width, intrinsics.height, intrinsics.cx, intrinsics.cy)
+        return last if frame.assumed_intrinsics and same else intrinsics
 
     def retain(self, names: Sequence[str]) -> None:
         """The admitted frames outside ``names`` are forgotten (:meth:`StreamingSfm.retain`)."""
@@ -217,12 +255,18 @@ class StreamingSfmSource:
 
     @property
     def frames_extracted(self) -> int:
-        return self.streaming.frontend.frames_extracted
+        calibrating = self.calibrating.frames_extracted if self.calibrating is not None else 0
+        return self._extracted_before + calibrating + self.streaming.frontend.frames_extracted
 
     def cancel(self) -> None:
-        """Nothing to interrupt: a window's mapping runs to its end (never cancelled)."""
+        """Interrupt a calibrating window's reconstruction; a window's mapping of the carried
+        map runs to its end (never cancelled)."""
+        if self.calibrating is not None:
+            self.calibrating.cancel()
 
     def close(self) -> None:
+        if self.calibrating is not None:
+            self.calibrating.close()
         self.streaming.close()
 
 
