@@ -343,7 +343,7 @@ def test_parameters_page_is_up_to_date(capsys):
     assert main(["params", "--table"]) == 0
     table = capsys.readouterr().out
     assert table in page and len(table.splitlines()) == len(schema.PARAMS) + 2
-    assert "| `refinement.steps` | integer | `200` | 0 … 1e6 | live |" in table
+    assert "| `refinement.steps` | integer | `70` | 0 … 1e6 | live |" in table
     assert "| `model_type` | string | `\"default\"` |" in table and "start-up" in table
 
 
