@@ -305,8 +305,8 @@ class SfmTTR:
         return dataclasses.replace(config, refinement=refinement)
 
     def check_config(self, config: TTRConfig) -> None:
-        """InputError if ``config`` cannot run on this model (frozen encoder levels on an encoder
-        without the staged-encoder protocol, or all of its levels)."""
+        """InputError if ``config`` cannot run on this model (frozen encoder levels out of range
+        for its staged encoder, or all of its levels; an encoder without stages trains whole)."""
         frozen_stage_count(self.model.staged_encoder, config.refinement.frozen_encoder_levels)
         r = config.refinement
         check_trainable(self.model, r.trainable, r.trainable_blocks)
