@@ -16,14 +16,14 @@ and including its L-th feature map as well (L = 2: everything that produces the 
 maps; at most 4, so that the 1/32 stages always train). Those outputs (the image's early
 features and skip connections) then do not change between steps, so they are computed once per
 frame and each step runs only the remaining stages, the decoder and the backward pass through
-them: at high resolution these are the costliest layers of a step. ``L = 0`` (the default) is
-the paper's whole-encoder refinement. Stages are cached through the model's ``staged_encoder``
-when it implements the staged-encoder protocol (``num_stages``, ``level_stages``,
-``stage_modules(i)``, ``forward_stages(x, start, stop, features)``), as the MobileNetV2 and
-ResNet encoders here do, and Depth Anything's DINOv2 backbone through
-:mod:`~sfm_ttr_ros.core.models.hf_stages` (its stages: the patch embedding, then one per
-transformer block). There, ``trainable_blocks = N``
-caches every block before the last N the same way (:func:`block_prefix_stages`). With
+them: at high resolution these are the costliest layers of a step. ``L = 0`` is the paper's
+whole-encoder refinement (the default is 2, the real-footage setting). Stages are cached
+through the model's ``staged_encoder`` when it implements the staged-encoder protocol
+(``num_stages``, ``level_stages``, ``stage_modules(i)``, ``forward_stages(x, start, stop,
+features)``), as the MobileNetV2 and ResNet encoders here do, and Depth Anything's DINOv2
+backbone through :mod:`~sfm_ttr_ros.core.models.hf_stages` (its stages: the patch embedding,
+then one per transformer block). There, ``trainable_blocks = N`` caches every block before the
+last N the same way (:func:`block_prefix_stages`). With
 ``bn_mode="train"`` the frozen stages normalise with the frame's own statistics once (their
 running statistics are updated once per frame, not once per step). An encoder without the
 protocol (a plug-in, a transformer without stages) has no levels to keep fixed: with L > 0 its
