@@ -225,14 +225,14 @@ class _SplitRun:
         self.write()
 
     def write(self, interrupted: bool = False) -> dict[str, Any]:
-        from sfm_ttr_ros.tools.split import report
+        from sfm_ttr_ros.tools.split import split_report
 
-        res = report.build_results(
+        res = split_report.build_results(
             self.specs, self.records, self.reused, _modes(self.job.command, self.job.options),
             split_file=self.split_file, command=self.job.command_line, kind=self.job.command,
             engine=self.engine_info, retried=self.retried, interrupted=interrupted,
             settings=self.settings_info)
-        report.write_results(self.out, res)
+        split_report.write_results(self.out, res)
         return res
 
 
