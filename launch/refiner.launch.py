@@ -7,10 +7,12 @@ remapped (docs/node.md "Launch").
 
 * ``params_file``: a ROS 2 parameter file (default: the installed generic
   ``params/refiner.yaml``, every parameter at its default; ``params/kitti.yaml`` is KITTI's
-  camera and must be asked for). A shared file with ``/**`` sections for several nodes, and
-  the keys ROS owns (``use_sim_time``, ``qos_overrides.*``), are accepted; an unknown key in
-  the node's own section stops the launch with the key named
-  (:func:`sfm_ttr_ros.ros.launch_params.node_parameters`);
+  camera and must be asked for). Its sections apply as rcl applies them to the node's full
+  name ``/<namespace>/refiner`` (``/**``, ``/<namespace>/refiner``, ``/**/refiner``, ...; later
+  sections override earlier ones). A shared file with wildcard sections for several nodes,
+  and the keys ROS owns (``use_sim_time``, ``qos_overrides.*``), are accepted; an unknown key
+  in the node's own section, or no section for the node, stops the launch with the key or the
+  sections named (:func:`sfm_ttr_ros.ros.launch_params.node_parameters`);
 * ``namespace``: the node's namespace (default: none): ``/<namespace>/refiner``, its outputs
   ``/<namespace>/refiner/depth/image``, ..., its inputs ``/<namespace>/image``, ...;
 * ``use_sim_time``: ``true`` or ``false`` override the file; empty (default): as the file says;
@@ -59,7 +61,8 @@ def generate_launch_description():
 
     def refiner(context):
         given = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
-        values = launch_params.node_parameters(given["params_file"])
+        values = launch_params.node_parameters(given["params_file"],
+                                               namespace=given["namespace"])
         return [Node(
             package=names.PACKAGE,
             executable=EXECUTABLE,

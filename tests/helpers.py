@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sfm_ttr_ros.core import params
 from sfm_ttr_ros.core.alignment.scale import _check, _valid
 from sfm_ttr_ros.core.frames import Frame, Intrinsics, load_rgb
 from sfm_ttr_ros.core.models.base import DepthModel
@@ -17,6 +18,23 @@ from sfm_ttr_ros.core.refinement import trainable
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
+from sfm_ttr_ros.core.window_io import TTRConfig
+
+#: The paper's method as a parameter file (Izquierdo & Civera, CVPR 2023, Sec. 3).
+PAPER_PARAMS = Path(__file__).resolve().parents[1] / "params" / "paper.yaml"
+
+
+def paper_settings() -> params.Settings:
+    """Everything ``params/paper.yaml`` configures, read by the one reader of parameter files:
+    windows of 10 every 5, batch SfM from the upsampled octave, 200 whole-encoder steps of
+    Eq. (5), ``reset``, no unsupported-change check, the default memory format. For tests whose
+    assertions are about those settings rather than the defaults (the real-footage ones)."""
+    return params.build(params.read_params_file(PAPER_PARAMS, "refiner"))
+
+
+def paper_config() -> TTRConfig:
+    """The core's configuration of :func:`paper_settings` (a fresh copy each call)."""
+    return paper_settings().ttr
 
 
 def load_frames(paths: Iterable[str | Path], stamps: Sequence[float] | None = None) -> list[Frame]:

@@ -154,12 +154,13 @@ def test_bad_window_rejected_before_sfm_or_network():
     from torch import nn
 
     from sfm_ttr_ros.core.models.base import EncoderDecoder
-    from sfm_ttr_ros.core.pipeline import SfmTTR
+    from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+    from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 
     torch.manual_seed(0)
     model = EncoderDecoder(nn.Conv2d(3, 4, 3, padding=1),
                            nn.Sequential(nn.Conv2d(4, 1, 3, padding=1), nn.Sigmoid()), (32, 32))
-    ttr = SfmTTR(model)
+    ttr = SfmTTR(model, TTRConfig(sfm=SfmConfig(mode="batch")))  # the batch mapper: spied on
     real = ttr.sfm.reconstructor
     ttr.sfm.reconstructor = NeverCalled()
     ttr.predictor.predict = _never  # the network must not run either

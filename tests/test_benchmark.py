@@ -408,14 +408,15 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
     path = default_params_file()
     assert path == REPO / "params" / "kitti.yaml"
     values = read_params_file(path)
-    assert values["window_size"] == 15 and values["overload_pending"] == 50
+    assert "window_size" not in values and values["metric.source"] == "camera_height"  # camera
     ttr, stream, model = settings_from_params(values)
+    assert (stream.window_size, stream.overload_pending) == (15, 50)  # the defaults
     full = schema.build({**schema.defaults(), **values})  # as the node builds them
     assert (ttr, stream, model) == (full.ttr, full.stream, full.model)
     assert model.type == "default"
 
     seq = open_kitti(data / "raw", DRIVE, data / "gt")
-    # (kitti.yaml's frozen_encoder_levels needs a staged encoder: the default architecture)
+    # the default architecture (its staged encoder: the default frozen_encoder_levels apply)
     res = run_benchmark(seq, lambda: MobileDepthNet(input_size=(64, 192)), out_dir=tmp_path / "a",
                         modes=["no_ttr"],
                         options=BenchmarkOptions(figure_frames=0, progress=None))
@@ -427,7 +428,7 @@ def test_default_settings_are_the_node_kitti_file_and_offline_chunks(data, tmp_p
 
     small = copy.deepcopy(ttr)
     small.refinement.steps, small.min_supervision_points = 3, 20
-    small.refinement.frozen_encoder_levels = 0  # the tiny plug-in has no stages
+    # the tiny plug-in has no encoder stages: the default frozen levels train it whole
     small.sfm.first_octave = -1  # octave 0 finds too few features in 320x96 images
     lines: list[str] = []
     res = run_benchmark(seq, factory, small, out_dir=tmp_path / "b",

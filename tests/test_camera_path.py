@@ -319,12 +319,14 @@ def test_the_path_of_a_short_generated_drive_drifts_less_than_its_metric_scale_e
     from sfm_ttr_ros.core.frames import Frame
     from sfm_ttr_ros.core.metric.metric_config import MetricConfig
     from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+    from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
     from sfm_ttr_ros.core.stream.path import StreamPath
     from sfm_ttr_ros.data.synthetic import make_sequence
 
     seq = make_sequence(seed=0, domain="A", num_frames=20, width=416, height=128)
     cfg = TTRConfig()
     cfg.refinement.steps = 1
+    cfg.sfm = SfmConfig(mode="batch", first_octave=-1)  # batch windows, as measured
     cfg.metric = MetricConfig(source="camera_height", camera_height=seq.params.camera_height)
     ttr = SfmTTR(tiny_model(), cfg)
     frames = [Frame(index=i, image=im, stamp=s)

@@ -4,6 +4,7 @@ database and mapped by its incremental mapper. All on the CPU."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -20,6 +21,10 @@ from sfm_ttr_ros.core.frames import Frame  # noqa: E402
 from sfm_ttr_ros.core.sfm.features.matching_torch import MatchConfig, match_mutual_ratio  # noqa: E402
 from sfm_ttr_ros.core.sfm.features.sift_torch import TorchSiftConfig, detect_and_describe  # noqa: E402
 from sfm_ttr_ros.core.sfm.reconstruction import SfmConfig, SfmReconstructor  # noqa: E402
+
+# torch features run in batch SfM only (the streaming mapper extracts pycolmap's SIFT); from the
+# upsampled octave, as these tests' figures were measured
+TORCH_SFM = SfmConfig(features="torch", mode="batch", first_octave=-1)
 
 
 def blobs(size: tuple[int, int], centres, sigmas, bright: bool = True) -> np.ndarray:
@@ -237,7 +242,7 @@ def test_a_window_extracted_as_one_batch_reconstructs(drive, monkeypatch):
 
     seq, frames = drive
     monkeypatch.setattr(database, "CPU_FEATURE_BATCH", 8)
-    with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
+    with SfmReconstructor(TORCH_SFM, feature_device="cpu") as rec:
         res = rec.reconstruct(frames, seq.intrinsics)
         assert rec.features.torch_db.batch == 8
     assert res.ok and res.num_registered == 8 and res.num_points >= 150
@@ -278,7 +283,7 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
     import pycolmap
 
     seq, frames = drive
-    with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
+    with SfmReconstructor(TORCH_SFM, feature_device="cpu") as rec:
         # frames 0-4 first, their features then dropped from memory: the full window's new
         # pairs read them back from the database
         assert rec.reconstruct(frames[:5], seq.intrinsics).num_registered >= 4
@@ -295,7 +300,7 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
         again = rec.reconstruct(frames[4:], seq.intrinsics)
         assert rec.frames_extracted == extracted and again.ok
         # switching to COLMAP's features starts a fresh database (kinds are never mixed)
-        rec.config = SfmConfig(features="colmap")
+        rec.config = dataclasses.replace(TORCH_SFM, features="colmap")
         rec.reconstruct(frames[:3], seq.intrinsics)
         assert rec.frames_extracted == extracted + 3
         with pycolmap.Database.open(rec.workspace.database_path) as db:
@@ -319,7 +324,7 @@ def test_torch_features_reconstruct_a_generated_drive(drive):
 def test_torch_features_on_real_hololens_frames(shared_data):
     seq = open_hololens(shared_data)
     frames = seq.frames(55, 61)  # 6 frames (files 00058-00063)
-    with SfmReconstructor(SfmConfig(features="torch"), feature_device="cpu") as rec:
+    with SfmReconstructor(TORCH_SFM, feature_device="cpu") as rec:
         res = rec.reconstruct(frames, seq.intrinsics)
     # measured: 6/6 registered, ~1700 points, 0.34 px, depth error 1.0 % (COLMAP's SIFT on the
     # same frames: 6/6, ~1500 points, 0.34 px, 1.1 %)

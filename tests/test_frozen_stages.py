@@ -2,11 +2,14 @@
 once per frame (a speed option), must give exactly the refinement of the remaining
 stages."""
 
+import logging
+
 import numpy as np
 import pytest
 import torch
 from conftest import tiny_model
 
+import sfm_ttr_ros.core.refinement.encoder as encoder_module
 from sfm_ttr_ros.core.errors import InputError
 from sfm_ttr_ros.core.geometry import normalized_grid, sample_depth
 from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
@@ -100,16 +103,10 @@ def test_frozen_stages_train_exactly_the_remaining_stages():
 
 
 def test_frozen_levels_validation():
-    sup = one_frame()
     for bad_level in (-1, 5):
         with pytest.raises(InputError, match=r"0\.\.4"):
             RefinementConfig(frozen_encoder_levels=bad_level)
-    with pytest.raises(InputError, match="staged-encoder protocol"):
-        refine_encoder(tiny_model(), sup, RefinementConfig(steps=1, frozen_encoder_levels=1))
-    bad = TTRConfig(refinement=RefinementConfig(frozen_encoder_levels=2))
-    with pytest.raises(InputError, match="staged-encoder protocol"):
-        SfmTTR(tiny_model(), bad)
-    SfmTTR(tiny_model(), TTRConfig()).close()  # level 0 needs no protocol
+    assert frozen_stage_count(tiny_model().encoder, 2) == 0  # no stages: none kept fixed
 
     class ThreeMaps(torch.nn.Module):  # a protocol encoder with fewer feature maps
         num_stages, level_stages = 3, (1, 2, 3)
@@ -127,3 +124,32 @@ def test_frozen_levels_validation():
     ttr.set_config(TTRConfig(refinement=RefinementConfig(frozen_encoder_levels=4)))
     assert ttr.config.refinement.frozen_encoder_levels == 4
     ttr.close()
+
+
+def test_an_encoder_without_stages_trains_whole_and_says_so_once(caplog):
+    """frozen_encoder_levels > 0 on an encoder without the staged-encoder protocol (the stand-in's
+    Sequential): every encoder parameter trains, exactly as with 0; one warning per model, the
+    reason in every result; the pipeline accepts the configuration."""
+    sup = one_frame()
+    whole, fallback = tiny_model(), tiny_model()
+    start = {n: v.clone() for n, v in fallback.encoder.state_dict().items()}
+    ref = refine_encoder(whole, sup, RefinementConfig(steps=3, lr=1e-3, frozen_encoder_levels=0))
+    assert ref.frozen_levels_reason == ""
+    with caplog.at_level(logging.WARNING, logger=encoder_module.__name__):
+        runs = [refine_encoder(fallback, sup, RefinementConfig(steps=3, lr=1e-3,
+                                                               frozen_encoder_levels=2))
+                for _ in range(2)]
+        other = refine_encoder(tiny_model(), sup, RefinementConfig(steps=1,
+                                                                   frozen_encoder_levels=1))
+    assert runs[0].loss_history == ref.loss_history  # the same steps as the whole encoder's
+    for name, value in fallback.encoder.state_dict().items():
+        assert not torch.equal(value, start[name]), name  # the first layers trained too
+    reason = runs[0].frozen_levels_reason
+    assert "Sequential has no encoder stages" in reason and "whole encoder trains" in reason
+    assert runs[1].frozen_levels_reason == reason and other.frozen_levels_reason
+    # once per model: the second refinement of the same model does not repeat it
+    assert [r.getMessage() for r in caplog.records] == [reason, other.frozen_levels_reason]
+    # a staged encoder is still held to its range, through the same configuration
+    SfmTTR(tiny_model(), TTRConfig(refinement=RefinementConfig(frozen_encoder_levels=2))).close()
+    with pytest.raises(InputError, match="below the encoder's"):
+        frozen_stage_count(mobile().encoder, 5)

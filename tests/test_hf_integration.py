@@ -44,10 +44,11 @@ def test_lora_refinement_merges_and_serves_the_refined_weights(model_dirs, block
     model = test_hf_model.load(model_dirs, "da")
     keys = set(model.encoder.state_dict())
     serving = ServingModel(model)
-    ttr = SfmTTR(model, TTRConfig())  # checks the mode, keeps the start-up snapshot
+    whole = RefinementConfig(frozen_encoder_levels=0)  # the tiny model has 2 feature maps
+    ttr = SfmTTR(model, TTRConfig(refinement=whole))  # checks the mode, keeps the snapshot
     before = model.predict(FRAME)[0]
     cfg = RefinementConfig(steps=8, lr=1e-3, trainable="lora", lora_rank=4,
-                           trainable_blocks=blocks)
+                           trainable_blocks=blocks, frozen_encoder_levels=0)
     result = refine_encoder(model, supervision(model), cfg)
     assert result.steps_done == 8
     assert np.mean(result.loss_history[-2:]) < np.mean(result.loss_history[:2])

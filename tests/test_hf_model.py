@@ -297,7 +297,8 @@ def test_refine_encoder_runs_on_a_transformers_model(model_dirs):
     pixels = np.stack([rng.uniform(0, 129, 60), rng.uniform(0, 39, 60)], axis=1)
     target = 1.2 * before[pixels[:, 1].astype(int), pixels[:, 0].astype(int)] + 0.05
     sup = FrameSupervision("f0", FRAME, pixels, target, np.ones(60))
-    result = refine_encoder(model, [sup], RefinementConfig(steps=8, lr=1e-3))
+    result = refine_encoder(model, [sup], RefinementConfig(steps=8, lr=1e-3,
+                                                           frozen_encoder_levels=0))
     assert result.steps_done == 8
     assert np.mean(result.loss_history[-2:]) < 0.9 * result.loss_history[0]
     assert not np.allclose(model.predict(FRAME)[0], before)
@@ -309,7 +310,7 @@ def test_staged_depth_anything_matches_its_forward(model_dirs):
     """Depth Anything's blocks as stages (models/hf_stages.py): split at any stage, the staged
     forward gives the model's own output; DPT (no staged form here) keeps its backbone."""
     from sfm_ttr_ros.core.models.hf_stages import Dinov2Stages
-    from sfm_ttr_ros.core.refinement.encoder import frozen_stage_count
+    from sfm_ttr_ros.core.refinement.encoder import frozen_stage_count, unstaged_reason
 
     model = load(model_dirs, "da")
     stages = model.staged_encoder
@@ -325,10 +326,13 @@ def test_staged_depth_anything_matches_its_forward(model_dirs):
             torch.testing.assert_close(model.depth_from_features(feats), whole,
                                        rtol=0, atol=1e-6)
     assert frozen_stage_count(stages, 1) == 2
+    # its 2 feature maps: level 2 (the default) would leave none to train, and is refused
+    with pytest.raises(InputError, match="below the encoder's 2 feature maps"):
+        frozen_stage_count(stages, 2)
     dpt = load(model_dirs, "dpt")
-    assert dpt.staged_encoder is dpt.encoder
-    with pytest.raises(InputError, match="frozen_encoder_levels"):
-        frozen_stage_count(dpt.staged_encoder, 1)
+    assert dpt.staged_encoder is dpt.encoder  # no stages: frozen levels train it whole
+    assert frozen_stage_count(dpt.staged_encoder, 1) == 0
+    assert "has no encoder stages" in unstaged_reason(dpt.staged_encoder, 1)
 
 
 @pytest.mark.parametrize("mode", ["norm", "lora"])
@@ -342,7 +346,8 @@ def test_trainable_blocks_compute_the_blocks_before_them_once(model_dirs, monkey
     pixels = np.stack([rng.uniform(0, 129, 60), rng.uniform(0, 39, 60)], axis=1)
     sup = [FrameSupervision(f"f{i}", FRAME, pixels, rng.uniform(0.5, 2.0, 60), np.ones(60))
            for i in range(2)]
-    cfg = RefinementConfig(steps=5, lr=1e-2, trainable=mode, lora_rank=2, trainable_blocks=1)
+    cfg = RefinementConfig(steps=5, lr=1e-2, trainable=mode, lora_rank=2, trainable_blocks=1,
+                           frozen_encoder_levels=0)  # the tiny model's 2 maps: blocks alone
     cached = load(model_dirs, "da")
     assert refinement.block_prefix_stages(cached, 1) == 2
     calls = []

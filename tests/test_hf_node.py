@@ -40,7 +40,8 @@ def stamp(msg) -> tuple[int, int]:
 def test_node_runs_a_transformers_model_from_a_local_directory(graph_factory, model_dirs,
                                                                sequence):
     g = graph_factory(own_model=True, model_type="hf", model_path=model_dirs["da"],
-                      window_size=WINDOW, window_stride=WINDOW)
+                      window_size=WINDOW, window_stride=WINDOW,
+                      **{"refinement.frozen_encoder_levels": 0})  # the tiny model's 2 maps
     model = g.refiner.ttr.model
     assert isinstance(model, HFDepthModel) and model.output_kind == "relative_inverse_depth"
     sent = []

@@ -88,6 +88,11 @@ def test_the_node_action_matches_names_and_writes_no_file():
     assert kw["ros_arguments"] == ("launch_params.parameter_arguments(values, "
                                    "given['use_sim_time'])")
     assert "parameters" not in kw  # a dict there makes launch_ros write a file it keeps
+    # the file is read for the node's full name, as rcl would apply it: in its namespace
+    (read,) = _call(_tree(), "launch_params.node_parameters") or [
+        n for n in ast.walk(_tree()) if isinstance(n, ast.Call)
+        and _src(n.func) == "launch_params.node_parameters"]
+    assert {k.arg: _src(k.value) for k in read.keywords} == {"namespace": "given['namespace']"}
     for source in (LAUNCH, REPO / "sfm_ttr_ros" / "ros" / "launch_params.py"):
         assert "tempfile" not in source.read_text(encoding="utf-8")
     module = _load_module()
@@ -105,7 +110,7 @@ def test_the_default_parameter_file_is_the_generic_one():
 
 
 def test_a_shared_file_passes_ros_keys_and_other_nodes_keys(tmp_path):
-    values = launch_params.node_parameters(_shared_file(tmp_path))
+    values = launch_params.node_parameters(_shared_file(tmp_path), namespace="cam1")
     assert values == {
         "use_sim_time": False, "window_size": 7,
         "qos_overrides./cam1/camera/image_raw.subscription.reliability": "reliable",
@@ -119,7 +124,7 @@ def test_a_shared_file_passes_ros_keys_and_other_nodes_keys(tmp_path):
 ])
 def test_the_nodes_own_bad_keys_stop_the_launch_with_the_key_named(tmp_path, own, match):
     with pytest.raises(InputError, match=match):
-        launch_params.node_parameters(_shared_file(tmp_path, own))
+        launch_params.node_parameters(_shared_file(tmp_path, own), namespace="/cam1")
 
 
 def test_a_bad_value_of_ours_in_a_wildcard_section_is_refused(tmp_path):
@@ -128,8 +133,31 @@ def test_a_bad_value_of_ours_in_a_wildcard_section_is_refused(tmp_path):
     with pytest.raises(InputError, match="window_stride"):
         launch_params.node_parameters(path)
     path.write_text("/other_node:\n  ros__parameters:\n    gain: 1\n")
-    with pytest.raises(InputError, match="no ros__parameters for node"):
+    with pytest.raises(InputError, match="no section applies to node /refiner"):
         launch_params.node_parameters(path)
+
+
+def test_each_namespace_gets_its_own_section_and_a_stray_one_stops_the_launch(tmp_path):
+    """One file for /cam1/refiner and /cam2/refiner: each launch (``namespace:=cam1``,
+    ``namespace:=cam2``) hands its node its own section over the shared ``/**``, never the
+    other camera's; a namespace the file does not name stops the launch, the sections named
+    (rcl would start that node at the defaults)."""
+    path = tmp_path / "cameras.yaml"
+    path.write_text(yaml.safe_dump({
+        "/**": {"ros__parameters": {"refinement.steps": 40, "frame_rate": 30}},
+        "/cam1/refiner": {"ros__parameters": {"window_size": 6, "window_stride": 6}},
+        "/cam2/refiner": {"ros__parameters": {"window_size": 8, "window_stride": 4}},
+        "/cam2/camera_driver": {"ros__parameters": {"exposure_us": 800}},
+    }, sort_keys=False))
+    assert launch_params.node_parameters(path, namespace="cam1") == {
+        "refinement.steps": 40, "window_size": 6, "window_stride": 6}
+    assert launch_params.node_parameters(path, namespace="/cam2") == {
+        "refinement.steps": 40, "window_size": 8, "window_stride": 4}
+    path.write_text(yaml.safe_dump({k: v for k, v in yaml.safe_load(path.read_text()).items()
+                                    if k != "/**"}, sort_keys=False))
+    with pytest.raises(InputError, match=r"no section applies to node /cam3/refiner \(its "
+                       r"sections: /cam1/refiner, /cam2/refiner, /cam2/camera_driver\)"):
+        launch_params.node_parameters(path, namespace="cam3")
 
 
 def test_arguments_become_parameters_and_remaps():
@@ -161,7 +189,7 @@ def test_namespace_sim_time_and_a_shared_file_reach_the_node(monkeypatch, tmp_pa
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
-    values = launch_params.node_parameters(_shared_file(tmp_path))
+    values = launch_params.node_parameters(_shared_file(tmp_path), namespace="cam1")
     given = {"image_topic": "/cam1/camera/image_raw", "depth_topic": "/cam1/depth",
              "points_topic": "sparse_points"}
     remaps = [a for src, dst in launch_params.remappings(given) for a in ("-r", f"{src}:={dst}")]
@@ -273,7 +301,10 @@ def test_the_launched_node_replays_a_bag_in_sim_time_to_the_same_depth(monkeypat
         "/**": {"ros__parameters": {
             "use_sim_time": False, "window_size": 4, "window_stride": 2, "keyframe_policy": "all",
             "republish_unrefined": True, "refinement.steps": 5, "min_supervision_points": 20,
-            "sfm.max_num_features": 2048, "torch_num_threads": 1}},
+            "sfm.max_num_features": 2048, "torch_num_threads": 1,
+            # the stand-in network's encoder has no stages to hold fixed; 160x48 frames: the
+            # paper's SfM (each window mapped alone, SIFT from the upsampled octave)
+            "refinement.frozen_encoder_levels": 0, "sfm.mode": "batch", "sfm.first_octave": -1}},
         "/cam1/lidar": {"ros__parameters": {"range_max": 80.0}}}))
     remaps = launch_params.remappings({"image_topic": IMAGE_TOPIC,
                                        "camera_info_topic": CAMERA_INFO_TOPIC,

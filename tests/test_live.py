@@ -195,6 +195,7 @@ def window_run(lr: float, policy: str = "continue"):
     cfg = TTRConfig(weight_policy=policy, min_supervision_points=10)
     cfg.refinement.steps, cfg.refinement.lr = 10, lr
     cfg.check.min_parallax = 0.0  # the fake SfM's cameras do not move: no parallax to check
+    cfg.sfm.mode = "batch"  # the fake stands in for the batch mapper
     ttr = SfmTTR(small_model(), cfg)
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
@@ -372,7 +373,9 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     cfg = TTRConfig(weight_policy="reset", min_supervision_points=10)
     cfg.refinement.steps, cfg.refinement.lr = 10, lr
     cfg.check.min_parallax = 0.0
-    cfg.check.max_unsupported_change = unsupported
+    cfg.check.max_unsupported_change = unsupported  # the threshold alone: no stream ratio
+    cfg.check.unsupported_change_ratio = 0.0
+    cfg.sfm.mode = "batch"
     ttr = SfmTTR(small_model(), cfg)
     rng = np.random.default_rng(3)
     frames = [Frame(i, rng.integers(0, 255, (32, 48, 3), dtype=np.uint8), stamp=0.1 * i,
@@ -550,6 +553,7 @@ def two_windows_served_live(reuse_live: bool):
                     reuse_live_predictions=reuse_live)
     cfg.refinement.steps, cfg.refinement.lr = 5, 1e-3
     cfg.check.min_parallax = 0.0
+    cfg.sfm.mode = "batch"
     ttr = SfmTTR(small_model(), cfg)
     rng = np.random.default_rng(3)
     ttr.sfm.reconstructor.reconstruct = lambda fs, *a, **k: fake_sfm([f.name for f in fs], rng)

@@ -451,12 +451,14 @@ def test_build_random_and_from_files(r18_files, tiny_mobile_files):
 
     ref, enc_path, dec_path = r18_files
     model = build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
-                                    decoder_path=str(dec_path), device="auto"))
+                                    decoder_path=str(dec_path), device="auto",
+                                    channels_last=False))  # the files' layout: bit for bit
     x = torch.rand(1, 3, *SMALL)
     with torch.no_grad():
         assert torch.equal(model(x.to(model.device)).cpu(), ref(x))
-    # channels-last: the same network (weights, outputs to float rounding), another layout,
-    # and it stays channels-last through a refinement step and a weights restore
+    # channels-last (the default): the same network (weights, outputs to float rounding),
+    # another layout, and it stays channels-last through a refinement step and a weights restore
+    assert ModelConfig().channels_last
     cl = build_model(ModelConfig(type="monodepth2", encoder_path=str(enc_path),
                                  decoder_path=str(dec_path), channels_last=True))
     conv = cl.encoder.encoder.conv1.weight
@@ -473,7 +475,8 @@ def test_build_random_and_from_files(r18_files, tiny_mobile_files):
                                 decoder_path=str(dec_path)))
     mob_ref, mob_enc, mob_dec = tiny_mobile_files
     mob = build_model(ModelConfig(type="mobilenet", encoder_path=str(mob_enc),
-                                  decoder_path=str(mob_dec), input_height=128, input_width=64))
+                                  decoder_path=str(mob_dec), input_height=128, input_width=64,
+                                  channels_last=False))
     assert isinstance(mob, MobileDepthNet) and mob.input_size == (128, 64)
     with torch.no_grad():
         assert torch.equal(mob(x), mob_ref(x))
@@ -514,7 +517,7 @@ def test_default_model_missing_or_present(tmp_path, monkeypatch):
     monkeypatch.setattr(registry_module, "DEFAULT_WEIGHTS_PACKAGE", pkg)
     try:
         assert registry_module.default_weights_available()
-        model = build_model(ModelConfig(type="default"))
+        model = build_model(ModelConfig(type="default", channels_last=False))  # bit for bit
         x = torch.rand(1, 3, *SMALL)
         with torch.no_grad():
             assert torch.equal(model(x), ref(x))

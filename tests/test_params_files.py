@@ -26,6 +26,7 @@ from sfm_ttr_ros.core import params as schema  # noqa: E402
 from sfm_ttr_ros.ros import params as node_params  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+SECTION = "/**"  # the shipped files' one section
 FILES = sorted((REPO / "params").glob("*.yaml"))
 pytestmark = pytest.mark.ros
 
@@ -45,12 +46,19 @@ def parameter_dict_from_yaml_file(path: str, target_nodes: list[str]) -> dict:
 
 
 def test_both_files_are_shipped():
-    assert {p.name for p in FILES} >= {"refiner.yaml", "kitti.yaml"}
+    assert {p.name for p in FILES} >= {"refiner.yaml", "kitti.yaml", "paper.yaml"}
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def test_shipped_files_apply_in_any_namespace(path: Path):
+    """One ``/**`` section: rcl applies it to the node under any ``__ns`` (a ``refiner:``
+    section is ``/refiner``'s only)."""
+    assert list(yaml.safe_load(path.read_text())) == [SECTION]
 
 
 def test_the_defaults_file_lists_every_parameter_with_its_default():
     params = parameter_dict_from_yaml_file(str(REPO / "params" / "refiner.yaml"),
-                                           target_nodes=["refiner"])
+                                           target_nodes=[SECTION])
     values = {k: Parameter.from_parameter_msg(m).value for k, m in params.items()}
     assert values == node_params.DEFAULTS
 
@@ -69,7 +77,7 @@ def test_a_profile_lists_only_what_differs_from_the_defaults(path: Path):
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
 def test_every_key_is_declared_typed_and_in_range(path: Path, context):
-    params = parameter_dict_from_yaml_file(str(path), target_nodes=["refiner"])
+    params = parameter_dict_from_yaml_file(str(path), target_nodes=[SECTION])
     assert params, f"{path.name}: no parameters for node 'refiner'"
     unknown = sorted(set(params) - set(node_params.SPECS))
     assert not unknown, f"{path.name}: undeclared parameters {unknown}"
@@ -106,7 +114,7 @@ def test_the_node_starts_with_the_file(path: Path, context):
     node = RefinerNode(model=model, context=context,
                        cli_args=["--ros-args", "--params-file", str(path)])
     try:
-        params = parameter_dict_from_yaml_file(str(path), target_nodes=["refiner"])
+        params = parameter_dict_from_yaml_file(str(path), target_nodes=[SECTION])
         for name, msg in params.items():
             assert node.get_parameter(name).value == Parameter.from_parameter_msg(msg).value
     finally:
@@ -148,3 +156,68 @@ def test_every_descriptor_is_complete_and_from_the_schema():
     ro = {s.name for s in node_params.PARAMS if not s.live}
     assert {"model_type", "device", "qos_reliability", "qos_depth", "max_pending"} <= ro
     assert not ro & {"refinement.steps", "window_size", "refinement.lr"}
+
+
+TWO_CAMERAS = """\
+/**:
+  ros__parameters:
+    refinement.steps: 40
+/cam1/refiner:
+  ros__parameters:
+    window_size: 6
+    window_stride: 6
+/cam2/refiner:
+  ros__parameters:
+    window_size: 8
+    window_stride: 4
+"""
+
+
+def test_two_namespaces_take_their_own_sections_through_rcl(tmp_path: Path, context, capfd):
+    """Two refiners in /cam1 and /cam2 started as a user does (``-r __ns:=...
+    --params-file``): rcl gives each its own section, the shared ``/**`` section both, and the
+    launch's reader agrees; a file with only ``refiner:`` under a namespace applies nothing and
+    the node says so."""
+    pytest.importorskip("torch")
+    from sfm_ttr_ros.core.models.mobilenet import MobileDepthNet
+    from sfm_ttr_ros.ros.launch_params import node_parameters
+    from sfm_ttr_ros.ros.node import RefinerNode
+
+    shared = tmp_path / "cameras.yaml"
+    shared.write_text(TWO_CAMERAS)
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("refiner:\n  ros__parameters:\n    window_size: 9\n")
+    want = {"/cam1": (6, 6, 40), "/cam2": (8, 4, 40)}
+    for ns, (size, stride, steps) in want.items():
+        node = RefinerNode(model=MobileDepthNet(input_size=(64, 96)), context=context,
+                           cli_args=["--ros-args", "-r", f"__ns:={ns}", "--params-file",
+                                     str(shared), "--params-file", str(bare)])
+        try:
+            assert node.get_fully_qualified_name() == f"{ns}/refiner"
+            got = tuple(node.get_parameter(n).value
+                        for n in ("window_size", "window_stride", "refinement.steps"))
+            assert got == (size, stride, steps)
+        finally:
+            node.destroy_node()
+        assert node_parameters(shared, namespace=ns) == {
+            "refinement.steps": steps, "window_size": size, "window_stride": stride}
+        err = capfd.readouterr().err
+        assert f"{bare}: no section applies to node {ns}/refiner" in err
+        assert f"{shared}: no section" not in err
+
+
+def test_the_section_table_is_what_rcl_applies(tmp_path: Path, context):
+    """test_params_schema.py's table of sections against node names, asked of rcl itself."""
+    from test_params_schema import RCL_MATCHES
+
+    f = tmp_path / "one.yaml"
+    for section, fqn, applies in RCL_MATCHES:
+        f.write_text(f"{section}:\n  ros__parameters:\n    probe: 1\n")
+        ns, _, name = fqn.rpartition("/")
+        node = Node(name, namespace=ns or "/", context=context,
+                    cli_args=["--ros-args", "--params-file", str(f)],
+                    automatically_declare_parameters_from_overrides=True)
+        try:
+            assert node.has_parameter("probe") is applies, (section, fqn)
+        finally:
+            node.destroy_node()

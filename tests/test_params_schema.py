@@ -4,7 +4,9 @@ files, the precedence of the command line, and the generated docs/parameters.md.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -66,6 +68,10 @@ def test_every_row_reaches_its_config_fields():
         values = {p.name: value}
         if p.name in companions:
             values[companions[p.name]] = value
+        if p.name == "window_stride":  # a stride above the default window needs a wider one
+            values["window_size"] = value
+        if p.name == "sfm.features":  # torch features: batch SfM only (the default streams)
+            values["sfm.mode"] = "batch"
         settings = schema.build(values)
         for target in p.targets:
             section, _, name = target.partition(".")
@@ -182,8 +188,9 @@ def test_params_file_is_read_and_checked_like_the_node(tmp_path):
           ros__parameters:
             window_size: 99
     """)
-    assert schema.read_params_file(nested, "refiner") == {
+    assert schema.read_params_file(nested, "refiner", namespace="robot") == {
         "window_size": 6, "window_stride": 3, "refinement.steps": 7}
+    assert schema.read_params_file(nested, "refiner") == {"window_size": 6, "window_stride": 2}
     for body, msg in (
         ("refiner:\n  ros__parameters:\n    refinement.lr: 1\n", "write doubles"),
         ("refiner:\n  ros__parameters:\n    refinement.stepz: 1\n",
@@ -192,7 +199,8 @@ def test_params_file_is_read_and_checked_like_the_node(tmp_path):
         ("refiner:\n  ros__parameters:\n    window_size: 1\n", "window_size must be >= 2"),
         ("refiner:\n  ros__parameters:\n    keyframe_policy: x\n", "one of"),
         ("refiner:\n  ros__parameters: [1, 2]\n", "not a mapping"),
-        ("other_node:\n  ros__parameters:\n    window_size: 4\n", "no ros__parameters"),
+        ("other_node:\n  ros__parameters:\n    window_size: 4\n",
+         r"no section applies to node /refiner \(its sections: /other_node\)"),
         ("- a list\n", "expected a mapping"),
         ("refiner: {ros__parameters: {window_size: [}\n", "cannot read"),
     ):
@@ -200,6 +208,95 @@ def test_params_file_is_read_and_checked_like_the_node(tmp_path):
             schema.read_params_file(write(body), "refiner")
     with pytest.raises(InputError, match="not found"):
         schema.read_params_file(tmp_path / "missing.yaml", "refiner")
+
+
+# (section, the node's full name, whether rcl applies the section: measured with rclpy's own
+# --params-file; test_params_files.py checks a few against a live rcl)
+RCL_MATCHES = [
+    ("/**", "/refiner", True), ("/**", "/cam1/refiner", True), ("/**", "/a/b/refiner", True),
+    ("/*", "/refiner", True), ("/*", "/cam1/refiner", False),
+    ("/**/refiner", "/refiner", True), ("/**/refiner", "/cam1/refiner", True),
+    ("/**/refiner", "/a/b/refiner", True), ("/**/refiner", "/cam1/other", False),
+    ("/cam1/*", "/refiner", False), ("/cam1/*", "/cam1/refiner", True),
+    ("/cam1/*", "/cam1/a/refiner", False), ("/cam1/**", "/cam1/a/refiner", True),
+    ("refiner", "/refiner", True), ("refiner", "/cam1/refiner", False),
+    ("/refiner", "/refiner", True), ("/refiner", "/cam1/refiner", False),
+    ("/cam1/refiner", "/cam1/refiner", True), ("/cam1/refiner", "/refiner", False),
+    ("/cam1/refiner", "/cam2/refiner", False), ("cam1/refiner", "/cam1/refiner", True),
+    ("/*/refiner", "/refiner", False), ("/*/refiner", "/cam1/refiner", True),
+    ("/**/*", "/a/b/refiner", True), ("/**/cam1/*", "/cam1/refiner", True),
+    ("/**/cam1/*", "/cam1/a/refiner", False), ("/*/*", "/cam1/refiner", True),
+]
+
+
+@pytest.mark.parametrize("section,fqn,applies", RCL_MATCHES)
+def test_sections_match_node_names_as_rcl_does(section, fqn, applies):
+    from sfm_ttr_ros.core.params.sections import section_matches
+
+    assert section_matches(section, fqn) is applies
+
+
+def test_later_sections_override_earlier_ones_key_by_key(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text(textwrap.dedent("""
+        /cam1/refiner:
+          ros__parameters: {window_size: 6, window_stride: 2}
+        /**:
+          ros__parameters: {window_size: 8}
+        /cam2/refiner:
+          ros__parameters: {window_size: 12}
+        /cam1/*:
+          ros__parameters: {refinement.steps: 9}
+    """))
+    assert schema.read_params_file(f, "refiner", namespace="/cam1") == {
+        "window_size": 8, "window_stride": 2, "refinement.steps": 9}
+    assert schema.read_params_file(f, "refiner", namespace="cam2") == {"window_size": 12}
+    assert schema.read_params_file(f, "refiner") == {"window_size": 8}
+
+
+def test_parameter_files_that_skip_the_node_are_named(tmp_path):
+    from sfm_ttr_ros.core.params.sections import params_file_arguments, unapplied_files
+
+    own, other = tmp_path / "own.yaml", tmp_path / "other.yaml"
+    own.write_text("/**:\n  ros__parameters:\n    window_size: 6\n")
+    other.write_text("refiner:\n  ros__parameters:\n    window_size: 6\n")
+    args = ["prog", "--accounting", "a.json", "--ros-args", "-r", "__ns:=/cam1",
+            "--params-file", str(own), "--", "--params-file", "not-ros.yaml",
+            "--ros-args", "--params-file", str(other)]
+    assert params_file_arguments(args) == [str(own), str(other)]
+    [message] = unapplied_files(args, "/cam1/refiner")
+    assert message.startswith(f"{other}: no section applies to node /cam1/refiner (its "
+                              "sections: /refiner)")
+    assert unapplied_files(args, "/refiner") == []
+
+
+BEFORE = json.loads((REPO / "tests" / "data" / "params_before_defaults.json").read_text())
+
+
+def _built(values: dict) -> dict:
+    """Everything ``values`` configures, as JSON would hold it."""
+    s = schema.build(values)
+    return json.loads(json.dumps({k: dataclasses.asdict(getattr(s, k))
+                                  for k in ("ttr", "stream", "model", "node")}))
+
+
+@pytest.mark.parametrize("name", sorted(BEFORE["settings"]))
+def test_shipped_profiles_build_what_they_built_before_the_defaults_moved(name):
+    """The defaults became the measured real-footage settings (docs/decisions.md, 2026-11-29):
+    kitti.yaml keeps KITTI's camera, paper.yaml and kitti_accurate.yaml say everything the
+    paper's method sets; each still builds exactly the configs it built with the old defaults
+    (``tests/data/params_before_defaults.json``, computed from the tree before the change)."""
+    values = schema.read_params_file(REPO / "params" / f"{name}.yaml", "refiner")
+    assert _built(values) == BEFORE["settings"][name]
+
+
+def test_the_defaults_are_the_kitti_profile_without_kittis_camera():
+    """No file: the settings every real-footage figure was made with (the old kitti.yaml),
+    less KITTI's camera facts: its intrinsics, their source and metres from its height."""
+    expected = copy.deepcopy(BEFORE["settings"]["kitti"])
+    expected["node"].update(fallback_intrinsics="", camera_info_use_projection="auto")
+    expected["ttr"]["metric"]["source"] = "none"
+    assert _built({}) == expected
 
 
 def test_command_line_precedence(tmp_path):
@@ -219,7 +316,7 @@ def test_command_line_precedence(tmp_path):
     def steps(*extra: str) -> int:
         return schema.build(values(*extra)).ttr.refinement.steps
 
-    assert values() == {} and steps() == 200  # no file: the schema's defaults (the paper's)
+    assert values() == {} and steps() == 70  # no file: the defaults (measured on real video)
     assert steps("--params-file", str(f)) == 7
     assert steps("--params-file", str(f), "--steps", "9") == 9
     assert steps("--params-file", str(f), "--steps", "9", "--set", "refinement.steps=11") == 11
@@ -247,7 +344,7 @@ def test_parameters_page_is_up_to_date(capsys):
     assert main(["params", "--table"]) == 0
     table = capsys.readouterr().out
     assert table in page and len(table.splitlines()) == len(schema.PARAMS) + 2
-    assert "| `refinement.steps` | integer | `200` | 0 … 1e6 | live |" in table
+    assert "| `refinement.steps` | integer | `70` | 0 … 1e6 | live |" in table
     assert "| `model_type` | string | `\"default\"` |" in table and "start-up" in table
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from helpers import paper_config
 from torch import nn
 
 import sfm_ttr_ros.core.pipeline as pipeline_module
@@ -101,9 +102,9 @@ def biased_state(scene):
 
 
 def config(seed: int = 0) -> TTRConfig:
-    """The paper's method: Eq. (5), every window from the start-up weights."""
-    cfg = TTRConfig(weight_policy="reset")
-    cfg.refinement.loss = "sfm"
+    """The paper's method (params/paper.yaml: batch SfM, Eq. (5) on the whole encoder, every
+    window from the start-up weights), with fewer steps at a higher rate for the tiny network."""
+    cfg = paper_config()
     cfg.refinement.steps = STEPS
     cfg.refinement.lr = LR
     cfg.refinement.seed = seed

@@ -22,6 +22,7 @@ from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
 from sfm_ttr_ros.core.prediction import PREDICTION_CACHE_FRAMES
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 
 W, H = 160, 64
 INTR = Intrinsics(100.0, 100.0, W / 2, H / 2, W, H)
@@ -67,6 +68,7 @@ class FakeReconstructor:
 
 def make_ttr(reuse: bool, weight_policy: str = "continue", batch: int = 1) -> SfmTTR:
     cfg = TTRConfig(refinement=RefinementConfig(steps=3, lr=1e-2),
+                    sfm=SfmConfig(mode="batch"),  # the fake stands in for the batch mapper
                     reuse_predictions=reuse, weight_policy=weight_policy,
                     predict_batch=batch)
     cfg.check.min_parallax = 0.0  # the fake SfM's cameras do not move: no parallax to check

@@ -106,12 +106,14 @@ def test_the_refiner_serving_interim_weights_through_the_real_rclpy_logger(rclpy
     from test_live import fake_sfm, small_model
 
     from sfm_ttr_ros.core.pipeline import SfmTTR, TTRConfig
+    from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
     from sfm_ttr_ros.core.stream.refiner import StreamRefiner
 
     lr = {"now": 50.0}
 
     def config():
-        cfg = TTRConfig(weight_policy="reset", min_supervision_points=10)
+        cfg = TTRConfig(weight_policy="reset", min_supervision_points=10,
+                        sfm=SfmConfig(mode="batch"))  # the fake stands in for the batch mapper
         cfg.refinement.steps, cfg.refinement.lr = 4, lr["now"]
         cfg.check.min_parallax = 0.0  # the fake SfM's cameras do not move
         return cfg

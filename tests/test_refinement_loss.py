@@ -26,6 +26,7 @@ from sfm_ttr_ros.core.refinement.photometric import (
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.sfm.result import FrameObservations, SfmResult
+from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.data.synthetic import render_sequence, sample_scene_params
 
 W, H = 256, 80
@@ -206,7 +207,7 @@ def process(window, monkeypatch, **refinement):
         calls.append(kwargs)
         return real(*args, **kwargs)
 
-    cfg = TTRConfig(min_supervision_points=20)
+    cfg = TTRConfig(min_supervision_points=20, sfm=SfmConfig(mode="batch"))  # the fake's mapper
     cfg.refinement = replace(cfg.refinement, steps=6, lr=1e-3, **refinement)
     ttr = SfmTTR(tiny_model(INPUT, batch_norm=1), cfg)
     monkeypatch.setattr(ttr.sfm.reconstructor, "reconstruct", lambda *a, **k: sfm)

@@ -232,9 +232,13 @@ def test_unrelated_frames_fail_with_a_reason(street):
     _, intr = small(street)
     rng = np.random.default_rng(0)
     noise = [rng.integers(0, 255, (H // 2, W // 2, 3), np.uint8) for _ in range(3)]
-    res = reconstruct_window([Frame(i, im) for i, im in enumerate(noise)], intr,
-                             SfmConfig(max_num_features=1024))
+    frames = [Frame(i, im) for i, im in enumerate(noise)]
+    # from the upsampled octave SIFT finds keypoints in the noise, none of which match
+    res = reconstruct_window(frames, intr, SfmConfig(max_num_features=1024, first_octave=-1))
     failed(res, 3, "no frame pair of the window could be matched")
+    # from octave 0 (the default) quarter-size noise holds too few keypoints to get that far
+    res = reconstruct_window(frames, intr, SfmConfig(max_num_features=1024))
+    failed(res, 3, "too few features")
 
 
 # ------------------------------------------------------------------ mapping attempts

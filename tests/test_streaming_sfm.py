@@ -33,7 +33,8 @@ from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
 W, H = 640, 192  # the smallest size tests/test_sfm.py found every window registered at
 WINDOW, OVERLAP = 4, 3
-SFM = SfmConfig(first_octave=0, overlap=OVERLAP)  # first_octave 0: ~3x faster SIFT
+# batch unless a test asks for streaming; first_octave 0: ~3x faster SIFT
+SFM = SfmConfig(mode="batch", first_octave=0, overlap=OVERLAP)
 
 
 def _frames(seed: int, num: int, first_index: int = 0):

@@ -156,11 +156,13 @@ def test_window_unsupported_change_is_the_mean_over_frames_and_its_verdict():
     u = unsupported_change(before, after, {"a": px, "b": px, "missing": px})
     share_b = frame_unsupported_change(before["b"], after["b"], px)
     assert 0.3 < share_b < 0.5 and u == pytest.approx(share_b / 2)
-    assert unsupported_refusal(CheckConfig(max_unsupported_change=0.1), u).startswith(
-        f"{u:.3g} of the pixels moved")
-    assert unsupported_refusal(CheckConfig(max_unsupported_change=0.5), u) == ""
-    assert unsupported_refusal(CheckConfig(), u) == ""  # 0 = off
-    assert unsupported_refusal(CheckConfig(max_unsupported_change=0.1), float("nan")) == ""
+    def absolute(threshold: float) -> CheckConfig:  # the threshold alone: no stream ratio
+        return CheckConfig(max_unsupported_change=threshold, unsupported_change_ratio=0.0)
+
+    assert unsupported_refusal(absolute(0.1), u).startswith(f"{u:.3g} of the pixels moved")
+    assert unsupported_refusal(absolute(0.5), u) == ""
+    assert unsupported_refusal(absolute(0.0), u) == ""  # 0 = off
+    assert unsupported_refusal(absolute(0.1), float("nan")) == ""
     assert Unrefined.CHECK_UNSUPPORTED_CHANGE in CHECKS
     assert validate({"check.max_unsupported_change": 1.5})
 
@@ -180,11 +182,14 @@ def test_the_unsupported_change_ratio_judges_a_window_against_the_streams_accept
     assert unsupported_refusal(cfg, 0.046, [0.0046]) == ""
     assert unsupported_refusal(cfg, 0.046, [0.0046, 0.005, float("nan")]) == ""
     assert "the last 3 accepted" in unsupported_refusal(cfg, 0.046, [0.0046, 0.005, 0.004])
-    plain = CheckConfig(max_unsupported_change=0.025)  # ratio 0: the absolute threshold
+    plain = CheckConfig(max_unsupported_change=0.025, unsupported_change_ratio=0.0)  # absolute
     assert unsupported_refusal(plain, 0.3, indoor) and unsupported_refusal(plain, 0.05, [])
     assert validate({"check.unsupported_change_ratio": 0.5})  # a factor >= 1 or 0
     assert not validate({"check.unsupported_change_ratio": 5.0})
-    assert cfg.after_refinement and not CheckConfig().after_refinement
+    assert cfg.after_refinement and not CheckConfig(max_unsupported_change=0.0).after_refinement
+    # the defaults are the real-footage check: 0.025, judged against the stream's windows
+    assert (CheckConfig().max_unsupported_change, CheckConfig().unsupported_change_ratio) == (
+        0.025, 5.0)
 
 
 def test_the_reprojection_ratio_judges_a_window_against_the_streams_accepted_ones():

@@ -300,7 +300,8 @@ class SfmTTR:
         return config if r is config.refinement else dataclasses.replace(config, refinement=r)
 
     def check_config(self, config: TTRConfig) -> None:
-        """InputError if ``config`` cannot run on this model (frozen encoder levels it lacks; a
+        """InputError if ``config`` cannot run on this model (frozen encoder levels out of range
+        for its staged encoder, or all of its levels; an encoder without stages trains whole; a
         photometric loss or a metric source on affine-invariant inverse depth)."""
         frozen_stage_count(self.model.staged_encoder, config.refinement.frozen_encoder_levels)
         r = config.refinement

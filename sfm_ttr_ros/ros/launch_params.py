@@ -3,18 +3,20 @@ packages (docs/node.md "Launch"): the node's parameters read from a ROS 2 parame
 ``--ros-args -p NAME:=VALUE`` arguments (no file is written), and the topic remappings of its
 launch arguments.
 
-Which keys of a parameter file are the node's (rcl's matching of node names in parameter
-files, ROS 2 design "Parameters", "YAML file format"):
+Which keys of a parameter file are the node's: those of the sections that apply to the node's
+full name (``/<namespace>/refiner``) as rcl matches them (:mod:`sfm_ttr_ros.core.params.sections`:
+``/**``, ``/*``, ``/**/refiner``, ``/<ns>/*``, ``refiner`` = ``/refiner``, ...), a later section
+overriding an earlier one key by key, as rcl applies them:
 
-* sections that name the node (``refiner``, ``/refiner``, ``/<ns>/refiner``, ``/**/refiner``):
-  every key is checked as the node checks it (the one reader of parameter files,
-  :func:`~sfm_ttr_ros.core.params.values.read_params_file`); a
+* sections that name the node (no wildcard): every key is checked as the node checks it (the
+  one reader of parameter files, :func:`~sfm_ttr_ros.core.params.values.read_params_file`); a
   key that is neither a parameter of the node nor owned by ROS itself (:data:`ROS_OWNED`:
   ``use_sim_time``, ``qos_overrides.*``, ...) stops the launch, with the key named;
-* wildcard sections (``/**``): the node's parameters among them are checked the same way, the
-  keys ROS owns pass through, any other key is another node's (a shared file) and is left to it.
+* wildcard sections: the node's parameters among them are checked the same way, the keys ROS
+  owns pass through, any other key is another node's (a shared file) and is left to it.
 
-The node's sections win over the wildcard ones (rcl applies the later, more specific match).
+A file none of whose sections applies to the node stops the launch, its sections named (rcl
+would start the node with every value at its default, silently).
 """
 
 from __future__ import annotations
@@ -63,13 +65,14 @@ def ros_owned(key: str) -> bool:
     return key in ROS_OWNED or key.startswith(ROS_OWNED_PREFIXES)
 
 
-def node_parameters(path: str | Path, node_name: str = names.NODE_NAME) -> dict[str, Any]:
-    """The parameters the file at ``path`` gives node ``node_name``, checked (see the module's
-    docstring) by the one reader of parameter files,
+def node_parameters(path: str | Path, node_name: str = names.NODE_NAME,
+                    namespace: str = "") -> dict[str, Any]:
+    """The parameters the file at ``path`` gives node ``node_name`` in ``namespace``, checked
+    (see the module's docstring) by the one reader of parameter files,
     :func:`~sfm_ttr_ros.core.params.values.read_params_file`, with ROS's own keys passed
-    through; an unknown key of the node's own sections, a wrong type or a value out of range
-    raises :class:`InputError` naming the key."""
-    return read_params_file(path, node_name, passed_through=ros_owned)
+    through; an unknown key of the node's own sections, a wrong type, a value out of range or
+    no section for the node raises :class:`InputError` saying which."""
+    return read_params_file(path, node_name, namespace=namespace, passed_through=ros_owned)
 
 
 def parameter_arguments(values: Mapping[str, Any], use_sim_time: str = "") -> list[str]:

@@ -62,6 +62,7 @@ from sfm_ttr_ros.core.models.base import DepthModel
 from sfm_ttr_ros.core.models.registry import build_model
 from sfm_ttr_ros.core.outcomes import Dropped, Unrefined
 from sfm_ttr_ros.core.params.node import LIVE_OUTPUTS
+from sfm_ttr_ros.core.params.sections import unapplied_files
 from sfm_ttr_ros.core.pipeline import SfmTTR
 from sfm_ttr_ros.core.stream.diagnostics import StreamDiagnostics, scale_level
 from sfm_ttr_ros.core.stream.health import Health
@@ -100,6 +101,7 @@ class RefinerNode(Node):
     def __init__(self, *, model: DepthModel | None = None, node_name: str = names.NODE_NAME,
                  **kwargs):
         super().__init__(node_name, **kwargs)
+        warn_unapplied_params_files(self, kwargs.get("cli_args") or ())
         try:
             self._setup(model)
         except BaseException:
@@ -385,7 +387,8 @@ def main(args=None) -> int:
     """Entry point of ``ros2 run sfm_ttr_ros refiner [--accounting FILE]``."""
     malloc_note = allocator.preload()  # mimalloc unless SFM_TTR_MALLOC says: ros/allocator.py
     dds_note = dds.apply_profile()  # before rclpy.init: Fast DDS reads it when it starts
-    accounting_file = accounting.accounting_path(sys.argv if args is None else args)
+    argv = sys.argv if args is None else args
+    accounting_file = accounting.accounting_path(argv)
     # Our own signal handling: SIGINT/SIGTERM raise KeyboardInterrupt in the main thread, so the
     # worker is stopped BEFORE the context goes down (the executor spins with a timeout).
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -400,7 +403,7 @@ def main(args=None) -> int:
     log.info(malloc_note)
     node, executor, code = None, None, 0
     try:
-        node, code = _start(log)
+        node, code = _start(log, argv)
         if node is not None:
             executor = SingleThreadedExecutor()
             executor.add_node(node)
@@ -424,10 +427,21 @@ def main(args=None) -> int:
     return code
 
 
-def _start(log) -> tuple[RefinerNode | None, int]:
-    """The node, or None and :data:`EXIT_START_UP` with one ``cannot start`` line."""
+def warn_unapplied_params_files(node: Node, args) -> None:
+    """A WARNING for each ``--params-file`` among the ROS arguments ``args`` that has no section
+    for this node's full name (rcl then starts it at the defaults and says nothing; e.g. a
+    ``refiner:`` section under ``-r __ns:=/cam1``)."""
+    for message in unapplied_files(args, node.get_fully_qualified_name()):
+        node.get_logger().warning(message)
+
+
+def _start(log, argv) -> tuple[RefinerNode | None, int]:
+    """The node (``argv``: the process's arguments, whose parameter files it checks), or None
+    and :data:`EXIT_START_UP` with one ``cannot start`` line."""
     try:
-        return RefinerNode(), 0
+        node = RefinerNode()
+        warn_unapplied_params_files(node, argv)
+        return node, 0
     except (InputError, ParameterException) as exc:  # bad parameters / model: one line
         log.fatal(f"cannot start: {type(exc).__name__}: {exc}")
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -105,8 +105,8 @@ class CheckConfig:
     max_reprojection_ratio: float = 1.25  # x the median error of the stream's accepted windows
     min_parallax: float = 0.1  # camera-centre diameter / median SfM depth
     max_scale_jump: float = 2.0  # shared-frame path within [1/x, x] of the previous window's
-    max_unsupported_change: float = 0.0  # share of pixels moved > τ far from any SfM point
-    unsupported_change_ratio: float = 0.0  # refuse U above k x the stream's accepted median
+    max_unsupported_change: float = 0.025  # share of pixels moved > τ far from any SfM point
+    unsupported_change_ratio: float = 5.0  # refuse U above k x the stream's accepted median
 
     def __post_init__(self) -> None:
         for name in ("max_reprojection_error", "max_reprojection_ratio", "min_parallax",

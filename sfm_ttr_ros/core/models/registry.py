@@ -64,7 +64,7 @@ class ModelConfig:
     input_height: int = 0
     input_width: int = 0
     device: str = "cpu"
-    channels_last: bool = False
+    channels_last: bool = True
     model_path: str = ""
     output_kind: str = ""
 

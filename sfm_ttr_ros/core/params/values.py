@@ -32,6 +32,13 @@ from sfm_ttr_ros.core.params.schema import (
     config_field,
     settable,
 )
+from sfm_ttr_ros.core.params.sections import (
+    full_node_name,
+    is_wildcard_section,
+    no_section_message,
+    parameter_sections,
+    section_matches,
+)
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
 from sfm_ttr_ros.core.stream.settings import StreamSettings
@@ -165,74 +172,22 @@ def validate(values: Mapping[str, Any]) -> str:
     return ""
 
 
-def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, Mapping):
-            out.update(_flatten(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
-def parameter_sections(path: Path) -> list[tuple[str, dict[str, Any]]]:
-    """Each section of the ROS 2 parameter file at ``path`` that has ``ros__parameters``: its
-    node name (``/**``, ``refiner``, ``/ns/refiner``, ...) and its parameters, nested mappings
-    flattened with dots, in the file's order."""
-    import yaml
-
-    if not path.is_file():
-        raise InputError(f"parameter file not found: {path}")
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise InputError(f"cannot read parameter file {path}: {exc}") from exc
-    if not isinstance(doc, Mapping):
-        raise InputError(f"{path}: expected a mapping of node names to ros__parameters")
-    sections = []
-    for section, body in doc.items():
-        s = str(section).strip()
-        if not isinstance(body, Mapping) or "ros__parameters" not in body:
-            continue
-        params = body["ros__parameters"]
-        if not isinstance(params, Mapping):
-            raise InputError(f"{path}: ros__parameters of {s!r} is not a mapping")
-        sections.append((s, _flatten(params)))
-    return sections
-
-
-def is_wildcard_section(section: str) -> bool:
-    """True for a parameter file's section that applies to every node (``/**``)."""
-    return section in ("/**", "**")
-
-
-def names_node(section: str, node_name: str) -> bool:
-    """True for a parameter file's section that names node ``node_name`` (``refiner``,
-    ``/refiner``, ``/<ns>/refiner``, ``/**/refiner``)."""
-    return section.lstrip("/").split("/")[-1] == node_name
-
-
-def read_params_file(path: str | Path, node_name: str, *,
+def read_params_file(path: str | Path, node_name: str, *, namespace: str = "",
                      passed_through: Callable[[str], bool] | None = None) -> dict[str, Any]:
-    """The ``ros__parameters`` a ROS 2 parameter file gives node ``node_name`` (wildcard
-    sections ``/**`` first, then the node's own, which win; nested mappings flattened with
-    dots), checked as the node checks them: every key a parameter (or a legacy name), of its
-    type (a double written as ``1`` is an error, as for rclpy) and within its range and
-    choices. The one reader of parameter files (the CLI, the benchmark, the launch).
+    """The ``ros__parameters`` a ROS 2 parameter file gives node ``node_name`` in ``namespace``
+    (the sections that match its full name as rcl matches them, applied in the file's order,
+    a later one overriding an earlier one key by key: :mod:`.sections`; nested mappings
+    flattened with dots), checked as the node checks them: every key a parameter (or a legacy
+    name), of its type (a double written as ``1`` is an error, as for rclpy) and within its
+    range and choices. The one reader of parameter files (the CLI, the benchmark, the launch).
+    A file that gives the node nothing is an :class:`InputError` naming its sections.
 
     ``passed_through(key)``: keys the caller hands on unchecked (ROS's own parameters, for the
     launch). With it, a file is read as one shared by several nodes: a wildcard section's keys
     that are neither the node's nor passed through are other nodes' and are left out; without
     it every key must be the node's."""
     path = Path(path)
-    wild: dict[str, Any] = {}
-    own: dict[str, Any] = {}
-    for section, params in parameter_sections(path):
-        if is_wildcard_section(section):
-            wild.update(params)
-        elif names_node(section, node_name):
-            own.update(params)
+    fqn = full_node_name(node_name, namespace)
 
     def ours(key: str) -> bool:
         return key in SCHEMA or key in legacy.BY_NAME
@@ -240,11 +195,16 @@ def read_params_file(path: str | Path, node_name: str, *,
     def kept(key: str) -> bool:
         return passed_through is not None and passed_through(key)
 
-    if passed_through is not None:
-        wild = {k: v for k, v in wild.items() if ours(k) or kept(k)}
-    values = {**wild, **own}
+    sections = parameter_sections(path)
+    values: dict[str, Any] = {}
+    for section, params in sections:
+        if not section_matches(section, fqn):
+            continue
+        if passed_through is not None and is_wildcard_section(section):
+            params = {k: v for k, v in params.items() if ours(k) or kept(k)}
+        values.update(params)
     if not values:
-        raise InputError(f"{path}: no ros__parameters for node {node_name!r}")
+        raise InputError(no_section_message(path, fqn, [s for s, _ in sections]))
     for key, value in values.items():
         if kept(key):
             continue

@@ -16,21 +16,28 @@ and including its L-th feature map as well (L = 2: everything that produces the 
 maps; at most 4, so that the 1/32 stages always train). Those outputs (the image's early
 features and skip connections) then do not change between steps, so they are computed once per
 frame and each step runs only the remaining stages, the decoder and the backward pass through
-them: at high resolution these are the costliest layers of a step. ``L = 0`` (the default) is
-the paper's whole-encoder refinement. The model's ``staged_encoder`` must implement the
-staged-encoder protocol (``num_stages``, ``level_stages``, ``stage_modules(i)``,
-``forward_stages(x, start, stop, features)``), as the MobileNetV2 and ResNet encoders here do,
-and Depth Anything's DINOv2 backbone through :mod:`~sfm_ttr_ros.core.models.hf_stages` (its
-stages: the patch embedding, then one per transformer block). There, ``trainable_blocks = N``
-caches every block before the last N the same way (:func:`block_prefix_stages`). With
+them: at high resolution these are the costliest layers of a step. ``L = 0`` is the paper's
+whole-encoder refinement (the default is 2, the real-footage setting). Stages are cached
+through the model's ``staged_encoder`` when it implements the staged-encoder protocol
+(``num_stages``, ``level_stages``, ``stage_modules(i)``, ``forward_stages(x, start, stop,
+features)``), as the MobileNetV2 and ResNet encoders here do, and Depth Anything's DINOv2
+backbone through :mod:`~sfm_ttr_ros.core.models.hf_stages` (its stages: the patch embedding,
+then one per transformer block). There, ``trainable_blocks = N`` caches every block before the
+last N the same way (:func:`block_prefix_stages`). With
 ``bn_mode="train"`` the frozen stages normalise with the frame's own statistics once (their
-running statistics are updated once per frame, not once per step).
+running statistics are updated once per frame, not once per step). An encoder without the
+protocol (a plug-in, a transformer without stages) has no levels to keep fixed: with L > 0 its
+whole encoder trains, as with L = 0, and :func:`unstaged_reason` says why (logged once per model,
+kept in ``RefinementResult.frozen_levels_reason``); a value out of range for an encoder that has
+stages is refused.
 """
 
 from __future__ import annotations
 
 import copy
+import logging
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -50,6 +57,11 @@ from sfm_ttr_ros.core.refinement.photometric import PhotometricFrame, prepare_fr
 from sfm_ttr_ros.core.refinement.refinement_config import RefinementConfig, resolve_loss
 from sfm_ttr_ros.core.refinement.supervision import FrameSupervision
 from sfm_ttr_ros.core.refinement.trainable import merge_lora, select_trainable
+
+LOG = logging.getLogger(__name__)
+#: The staged-encoder protocol: what an encoder needs for ``frozen_encoder_levels`` to apply.
+STAGED_ENCODER_PROTOCOL = ("num_stages", "level_stages", "stage_modules", "forward_stages")
+_UNSTAGED_WARNED: weakref.WeakSet = weakref.WeakSet()  # models already told (once per model)
 
 
 @dataclass
@@ -71,6 +83,9 @@ class RefinementResult:
     # and why it is not refinement.precision ("" = as asked; bf16 on a device without it)
     precision: str = ""
     precision_reason: str = ""
+    # why refinement.frozen_encoder_levels did not apply ("" = it did, or it is 0): an encoder
+    # without encoder stages trains whole (unstaged_reason)
+    frozen_levels_reason: str = ""
 
 
 def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
@@ -80,19 +95,26 @@ def set_bn_mode(model: DepthModel, bn_mode: str) -> None:
         model.encoder.train()
 
 
-def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
-    """The number of leading encoder stages that ``frozen_levels`` feature maps need (0 for 0).
+def unstaged_reason(encoder: torch.nn.Module, frozen_levels: int) -> str:
+    """Why ``frozen_levels`` does not apply to ``encoder`` ("" = it does, or it is 0): the
+    encoder lacks the staged-encoder protocol, so it has no stages to keep fixed and trains
+    whole."""
+    missing = [a for a in STAGED_ENCODER_PROTOCOL if not hasattr(encoder, a)]
+    if not frozen_levels or not missing:
+        return ""
+    return (f"frozen_encoder_levels = {frozen_levels} does not apply: "
+            f"{type(encoder).__name__} has no encoder stages (it lacks {', '.join(missing)} "
+            "of the staged-encoder protocol); its whole encoder trains")
 
-    Raises :class:`InputError` when the encoder does not implement the staged-encoder protocol
-    or would have no stage left to train."""
-    if not frozen_levels:
+
+def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
+    """The number of leading encoder stages that ``frozen_levels`` feature maps need (0 for 0,
+    and 0 for an encoder without the staged-encoder protocol: :func:`unstaged_reason`).
+
+    Raises :class:`InputError` when a staged encoder has fewer feature maps than
+    ``frozen_levels`` or would have no stage left to train."""
+    if not frozen_levels or unstaged_reason(encoder, frozen_levels):
         return 0
-    missing = [a for a in ("num_stages", "level_stages", "stage_modules", "forward_stages")
-               if not hasattr(encoder, a)]
-    if missing:
-        raise InputError(f"frozen_encoder_levels = {frozen_levels} needs an encoder with "
-                         f"{', '.join(missing)} (the staged-encoder protocol); "
-                         f"{type(encoder).__name__} lacks it: use 0")
     levels = tuple(int(k) for k in encoder.level_stages)
     if not 0 < frozen_levels < len(levels):
         raise InputError(f"frozen_encoder_levels must be below the encoder's {len(levels)} "
@@ -102,6 +124,13 @@ def frozen_stage_count(encoder: torch.nn.Module, frozen_levels: int) -> int:
         raise InputError(f"{type(encoder).__name__}.level_stages {levels} does not leave a "
                          f"stage of its {encoder.num_stages} to train")
     return stages
+
+
+def _say_unstaged_once(model: DepthModel, reason: str) -> None:
+    """Log ``reason`` (:func:`unstaged_reason`) the first time ``model`` refines with it."""
+    if reason and model not in _UNSTAGED_WARNED:
+        _UNSTAGED_WARNED.add(model)
+        LOG.warning(reason)
 
 
 def block_prefix_stages(model: DepthModel, blocks: int) -> int:
@@ -133,12 +162,15 @@ def refine_encoder(model: DepthModel, supervision: Sequence[FrameSupervision],
     on CPU."""
     cfg = resolve_loss(config or RefinementConfig(), model, bool(photometric))
     cfg, precision_reason = resolve_precision(cfg, model.device)
-    result = RefinementResult(precision=cfg.precision, precision_reason=precision_reason)
+    result = RefinementResult(precision=cfg.precision, precision_reason=precision_reason,
+                              frozen_levels_reason=unstaged_reason(model.staged_encoder,
+                                                                   cfg.frozen_encoder_levels))
     usable = _training_frames(supervision, photometric, cfg)
     result.frames_used = len(usable)
     if not usable or cfg.steps == 0:
         return result
     t0 = time.perf_counter()
+    _say_unstaged_once(model, result.frozen_levels_reason)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     frozen = max(frozen_stage_count(model.staged_encoder, cfg.frozen_encoder_levels),
@@ -270,6 +302,8 @@ def warm_up_refinement(model: DepthModel, config: RefinementConfig) -> float:
     poses["b"][0, 3] = -1.0
     cfg = copy.deepcopy(config)
     cfg.steps, cfg.min_points = WARM_UP_STEPS, 1
+    if unstaged_reason(twin.staged_encoder, cfg.frozen_encoder_levels):
+        cfg.frozen_encoder_levels = 0  # what the windows run; said by model's first window
     if twin.device.type == "cuda":  # past the eager steps before a capture: the graph's too
         cfg.steps += GRAPH_WARM_UP_STEPS
     photometric = (prepare_frames(twin, ["a", "b"], {"a": image, "b": image}, poses, 1.0,

@@ -44,13 +44,13 @@ MAX_FROZEN_LEVELS = 4  # of an encoder's 5 feature maps (1/2 … 1/32): the 1/32
 
 @dataclass
 class RefinementConfig:
-    steps: int = 200
+    steps: int = 70
     lr: float = 1e-4
     bn_mode: str = "frozen"
     weighting: str = "observation"  # exp(−r²) with r per observation, per track, or w = 1
     sampling: str = "bilinear"  # how D_nn is read at the keypoints (the release: nearest)
     min_points: int = 10  # frames with fewer selected points are not used for training
-    frozen_encoder_levels: int = 0  # 1..4: encoder fixed up to its 1/2^L feature map (speed)
+    frozen_encoder_levels: int = 2  # 1..4: encoder fixed up to its 1/2^L feature map (speed)
     # Which parameters a step trains (core/refinement/trainable.py): "encoder" (the paper),
     # "norm" (normalisation affine weights only) or "lora" (adapters of rank lora_rank on the
     # attention projections, merged into the encoder when the refinement ends);

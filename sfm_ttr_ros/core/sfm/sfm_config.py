@@ -22,7 +22,7 @@ class SfmConfig:
 
     max_image_size: int = 640  # SIFT runs on images downscaled to this longest side; <=0: full
     max_num_features: int = 8192
-    first_octave: int = -1  # -1: COLMAP default (upsampled first octave); 0: ~3x faster
+    first_octave: int = 0  # -1: COLMAP default (upsampled first octave); 0: ~3x faster
     num_threads: int = 2
     overlap: int = 10  # sequential matching: each frame with the next `overlap` frames
     init_min_tri_angle: float = 1.0  # degrees; COLMAP's 16 rejects consecutive driving frames
@@ -52,7 +52,7 @@ class SfmConfig:
     # the window: core/sfm/reconstruction.py); "streaming": each keyframe's features, matches
     # and registration into one map carried across windows as the stream takes it, a window
     # then only maps what is left (core/sfm/streaming_map.py; pycolmap's SIFT only)
-    mode: str = "batch"
+    mode: str = "streaming"
 
     def __post_init__(self) -> None:
         # Values that reach pycolmap options known to end the process or to fail every window
@@ -72,7 +72,8 @@ class SfmConfig:
             raise InputError(f"sfm.mode must be one of {list(SFM_MODES)}, got {self.mode!r}")
         if self.mode == "streaming" and self.features != "colmap":
             raise InputError("sfm.mode streaming extracts pycolmap's SIFT as each keyframe "
-                             f"arrives: it needs sfm.features colmap, got {self.features!r}")
+                             f"arrives: it needs sfm.features colmap, got {self.features!r} "
+                             "(torch features: set sfm.mode batch too)")
         if int(self.mapping_attempts) < 1:
             raise InputError(f"sfm.mapping_attempts must be >= 1, got {self.mapping_attempts}")
         for name in ("retry_above_error", "retry_above_ratio"):

@@ -16,8 +16,8 @@ from sfm_ttr_ros.core.stream.keyframes import KEYFRAME_POLICIES
 class StreamSettings:
     """Options of the online windowing (the node's parameters of the same names)."""
 
-    window_size: int = 10
-    window_stride: int = 5
+    window_size: int = 15
+    window_stride: int = 15
     # > 0: the stream's first window closes after this many keyframes instead of window_size,
     # so that the first refined weights reach the live output sooner (a short clip); 0 = off
     first_window_size: int = 0
@@ -27,8 +27,8 @@ class StreamSettings:
     min_keyframe_interval_s: float = 0.0
     min_keyframe_motion: float = 0.0  # mean abs grey difference on thumbnails, 0 = off
     # input queue bound (frames holding an image); overflow drops the oldest queued frame
-    max_pending: int = 100
-    overload_pending: int = 30  # more queued frames than this at a window: skip refinement; 0 off
+    max_pending: int = 200
+    overload_pending: int = 50  # more queued frames than this at a window: skip refinement; 0 off
     idle_flush_s: float = 2.0  # > 0: flush an incomplete window after this long without input
     # Live serving (core/stream/refiner.py): bound of the live queue (oldest skipped when full) and
     # the nice value added to the background window worker, so live prediction gets the cores first.
@@ -39,7 +39,7 @@ class StreamSettings:
     worker_threads: int = 1
     # > 0: while a window refines, its weights are served every this many steps
     # (core/stream/refiner.py)
-    serve_every_steps: int = 0
+    serve_every_steps: int = 10
     # False: a frame no window refines that the live output already served is not predicted
     # again for the windowed output (FrameOutput.depth None; counted under its reason as before)
     republish_unrefined: bool = False
