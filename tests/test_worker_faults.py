@@ -43,6 +43,7 @@ def _refiner(outs, windows, faults):
     cfg = TTRConfig(weight_policy="continue", min_supervision_points=10)
     cfg.refinement.steps, cfg.refinement.lr = 10, 1e-3
     cfg.check.min_parallax = 0.0  # the stand-in SfM's cameras do not move
+    cfg.sfm.mode = "batch"  # the stand-in replaces the batch mapper
     ttr = SfmTTR(tiny_model((32, 48), downsample=False), cfg)
     # each window's stand-in SfM from its own frames only: the same whatever came before
     ttr.sfm.reconstructor.reconstruct = lambda frames, *a, **k: fake_sfm(

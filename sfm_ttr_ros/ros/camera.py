@@ -355,8 +355,8 @@ def intrinsics_values(resolver: IntrinsicsResolver, focal) -> dict[str, object]:
     (``focal``: core/sfm/self_calibration.py), ``intrinsics.focal_px``, the estimate so far."""
     source = resolver.kind(focal.state)
     values: dict[str, object] = {"intrinsics.source": source}
-    if source in ("refining", "settled") and focal.focal is not None:
-        values["intrinsics.focal_px"] = round(float(focal.focal), 2)
+    if source in ("refining", "settled") and focal.median is not None:
+        values["intrinsics.focal_px"] = round(float(focal.median), 2)
     return values
 
 

@@ -127,8 +127,8 @@ PARAMS: tuple[Param, ...] = (
        "window, so that the first refined weights reach ~/depth sooner; 0 = window_size.",
        0, 1000, constraints="0 or 2..window_size"),
     _p("window_stride", "stream.window_stride", "New keyframes between consecutive windows "
-       "(window_size - window_stride keyframes overlap).", 1, 1000,
-       constraints="<= window_size"),
+       "(window_size - window_stride keyframes overlap); 0 = window_size (side by side).", 0,
+       1000, constraints="0 or <= window_size"),
     _p("keyframe_policy", "stream.keyframe_policy", "Which frames the windows take: newest = "
        "windows of the newest consecutive frames, frames the next window has left behind "
        "skipped ('stale'); all = every frame (a camera faster than the windows overloads the "

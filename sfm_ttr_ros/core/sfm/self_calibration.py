@@ -4,14 +4,16 @@ Intrinsics assumed from a field of view (``Intrinsics.from_fov``: f = (W / 2) / 
 the principal point at the image centre) are a starting point only: each window's bundle
 adjustment refines one focal length (a SIMPLE_PINHOLE camera, ``SfmConfig.refine_intrinsics``),
 and :class:`FocalCalibration` keeps what the windows found. A single short window of forward
-driving constrains f poorly (measured on generated drives: one window's f lands anywhere within
-about ±30 % of the truth, docs/decisions.md), so the estimate carried to the next window is the
-median of the windows' focal lengths so far, and it is *settled* once a window moved it by
+driving constrains f poorly (docs/decisions.md, "A ROS citizen on any camera"), so the
+estimate is the median of the windows' focal lengths so far, and it is *settled* once a window
+moved it by
 less than :data:`SETTLED_CHANGE` and the last :data:`AGREEING` windows' focal lengths agree with
 it within :data:`AGREEMENT` (a median that stands still between windows that disagree is not
 settled: on a forward drive with little rotation f is barely observable, see
 docs/decisions.md "A ROS citizen on any camera"): from then on the focal length is held fixed (the
-paper's fixed-K SfM), as for a calibrated camera.
+paper's fixed-K SfM), as for a calibrated camera. Until then every window starts from the
+assumed focal length and the frames keep it: a median of windows that disagree is no better
+than the assumption (on a drive that barely turns it can be worse), so it is reported, not used.
 
 States (the ``intrinsics.source`` of /diagnostics): ``assumed`` (no window refined f yet),
 ``refining``, ``settled``.
@@ -47,7 +49,8 @@ class FocalCalibration:
     size: tuple[int, int] | None = None
     assumed: float | None = None  # the assumed focal length (px) of that size
     state: str = ASSUMED
-    focal: float | None = None  # the estimate carried over (None: the assumed one)
+    focal: float | None = None  # the settled estimate, carried over (None: the assumed one)
+    median: float | None = None  # the median of the windows' focal lengths so far (reported)
 
     @property
     def settled(self) -> bool:
@@ -65,6 +68,7 @@ class FocalCalibration:
         size = (assumed.width, assumed.height)
         if size != self.size:
             self.estimates, self.size, self.state, self.focal = [], size, ASSUMED, None
+            self.median = None
             self.assumed = 0.5 * (assumed.fx + assumed.fy)
         if self.focal is None:
             return assumed
@@ -81,13 +85,15 @@ class FocalCalibration:
                                              <= self.assumed * PLAUSIBLE_FACTOR):
             return
         self.estimates.append(f)
-        before, self.focal = self.focal, float(statistics.median(self.estimates))
+        before, self.median = self.median, float(statistics.median(self.estimates))
         recent = self.estimates[-AGREEING:]
-        agree = len(recent) == AGREEING and all(abs(e - self.focal) <= AGREEMENT * self.focal
+        agree = len(recent) == AGREEING and all(abs(e - self.median) <= AGREEMENT * self.median
                                                  for e in recent)
         settled = (before is not None and agree
-                   and abs(self.focal - before) < SETTLED_CHANGE * before)
+                   and abs(self.median - before) < SETTLED_CHANGE * before)
         self.state = SETTLED if settled else REFINING
+        if settled:
+            self.focal = self.median
 
 
 class SelfCalibration(FocalCalibration):

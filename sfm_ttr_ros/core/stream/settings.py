@@ -17,7 +17,9 @@ class StreamSettings:
     """Options of the online windowing (the node's parameters of the same names)."""
 
     window_size: int = 15
-    window_stride: int = 15
+    # new keyframes between windows; 0 = window_size (windows side by side), so that a
+    # window_size given alone never conflicts with a stride meant for another size
+    window_stride: int = 0
     # > 0: the stream's first window closes after this many keyframes instead of window_size,
     # so that the first refined weights reach the live output sooner (a short clip); 0 = off
     first_window_size: int = 0
@@ -64,6 +66,8 @@ class StreamSettings:
         if self.first_window_size and not 2 <= self.first_window_size <= self.window_size:
             raise InputError(f"first_window_size must be 0 or in [2, window_size="
                              f"{self.window_size}], got {self.first_window_size}")
+        if self.window_stride == 0:
+            self.window_stride = self.window_size
         if not 1 <= self.window_stride <= self.window_size:
             raise InputError(f"window_stride must be in [1, window_size={self.window_size}], "
                              f"got {self.window_stride}")
