@@ -376,7 +376,7 @@ def invalid_parameter_sets() -> list[tuple[str, object]]:
     nan, inf = float("nan"), float("inf")
     return [
         ("window_size", 1), ("window_size", 0), ("window_size", -3), ("window_size", 10**9),
-        ("window_size", 2.5), ("window_size", "ten"), ("window_stride", 0),
+        ("window_size", 2.5), ("window_size", "ten"), ("window_stride", -1),
         ("window_stride", 100), ("window_stride", 10**9), ("refinement.lr", 0.0),
         ("refinement.lr", -1e-4), ("refinement.lr", nan), ("refinement.lr", inf),
         ("refinement.lr", 1), ("refinement.lr", 2.0), ("refinement.steps", -1),

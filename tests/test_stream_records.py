@@ -21,7 +21,7 @@ from sfm_ttr_ros.core.stream.settings import StreamSettings
 
 @pytest.mark.parametrize("bad", [
     {"window_size": 1}, {"first_window_size": 1}, {"window_size": 4, "first_window_size": 5},
-    {"window_stride": 0}, {"window_size": 4, "window_stride": 5}, {"keyframe_policy": "some"},
+    {"window_stride": -1}, {"window_size": 4, "window_stride": 5}, {"keyframe_policy": "some"},
     {"max_pending": 0}, {"min_keyframe_interval_s": -1.0}, {"min_keyframe_motion": float("nan")},
     {"idle_flush_s": float("inf")}, {"live_max_queue": 0}, {"worker_threads": -1},
     {"serve_every_steps": -1}, {"worker_nice": 20}, {"overload_pending": -1}])
