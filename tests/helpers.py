@@ -5,7 +5,8 @@ Each was once in the package beside the code it wraps; the package keeps only wh
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -82,3 +83,25 @@ def reset_lora(model: DepthModel) -> int:
 def remove_lora(model: DepthModel) -> int:
     """Put the plain layers back, discarding the adapters (the original network)."""
     return trainable._unwrap(model.encoder, merge=False)
+
+
+def wait_for(pred: Callable[[], object], timeout: float, what: str, period: float = 0.02):
+    """Poll ``pred`` until it gives a true value (returned) or ``timeout`` seconds passed (an
+    AssertionError naming ``what``)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(period)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def stop_spun(refiner, executor, thread, *nodes) -> None:
+    """Stop a refiner node spun by ``executor`` in ``thread`` beside ``nodes``: its worker,
+    the executor, the thread, then every node."""
+    refiner.stop_worker()
+    executor.shutdown(timeout_sec=2.0)
+    thread.join(5)
+    for node in (refiner, *nodes):
+        node.destroy_node()

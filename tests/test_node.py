@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 from conftest import tiny_model  # noqa: E402
+from helpers import wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -64,15 +65,6 @@ pytestmark = pytest.mark.ros
 FAST = {"refinement.steps": 5, "sfm.max_num_features": 2048, "min_supervision_points": 20,
         "diagnostics_period_s": 0.5, "republish_unrefined": True, "sfm.first_octave": -1}
 
-
-def wait_for(pred, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 def stamp_of(seconds: float) -> Time:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import tiny_model
+from helpers import stop_spun, wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -32,14 +33,6 @@ from sfm_ttr_ros.ros.node import RefinerNode  # noqa: E402
 pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parents[1]
 
-
-def wait_for(pred, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 class Spun:
@@ -65,11 +58,7 @@ class Spun:
         self.pub.publish(numpy_to_image(rgb, "rgb8", header))
 
     def close(self) -> None:
-        self.refiner.stop_worker()
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5)
-        self.refiner.destroy_node()
-        self.driver.destroy_node()
+        stop_spun(self.refiner, self.executor, self.thread, self.driver)
 
 
 def test_a_frame_held_for_intrinsics_that_never_come_is_published_unrefined(context):

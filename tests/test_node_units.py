@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 from conftest import tiny_model
+from helpers import wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -34,14 +35,6 @@ QUIET = {"window_size": 50, "idle_flush_s": 0.0, "fallback_intrinsics": "100 100
          "outputs": "depth,depth_refined,compressed_depth,diagnostics",
          "diagnostics_period_s": 0.2}
 
-
-def wait_for(pred, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 class Consumer:

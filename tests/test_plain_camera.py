@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 from conftest import tiny_model
+from helpers import stop_spun, wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -26,14 +27,6 @@ from sfm_ttr_ros.ros.node import RefinerNode  # noqa: E402
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 WIDTH, HEIGHT, FRAMES, RATE_HZ = 320, 96, 40, 5.0
 
-
-def wait_for(pred, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 @pytest.fixture(scope="module")
@@ -81,11 +74,7 @@ class PlainCamera:
             time.sleep(1.0 / RATE_HZ)
 
     def close(self) -> None:
-        self.refiner.stop_worker()
-        self.executor.shutdown(timeout_sec=2.0)
-        self.thread.join(5)
-        self.refiner.destroy_node()
-        self.driver.destroy_node()
+        stop_spun(self.refiner, self.executor, self.thread, self.driver)
 
 
 @pytest.fixture
