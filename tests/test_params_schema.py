@@ -283,22 +283,24 @@ CONVENTIONS_CHANGED = ("qos_reliability", "odom_frame_id", "odom_child_frame_id"
                        "odom_camera_mount", "assumed_hfov_deg")
 
 
-def _built(values: dict) -> dict:
-    """Everything ``values`` configures, as JSON would hold it (less CONVENTIONS_CHANGED)."""
-    s = schema.build(values)
-    out = json.loads(json.dumps({k: dataclasses.asdict(getattr(s, k))
-                                 for k in ("ttr", "stream", "model", "node")}))
+def _without_conventions(settings: dict) -> dict:
+    """``settings`` (JSON-like) less the node's CONVENTIONS_CHANGED (a copy)."""
+    out = copy.deepcopy(settings)
     for key in CONVENTIONS_CHANGED:
         out["node"].pop(key, None)
     return out
+
+
+def _built(values: dict) -> dict:
+    """Everything ``values`` configures, as JSON would hold it (less CONVENTIONS_CHANGED)."""
+    s = schema.build(values)
+    return _without_conventions(json.loads(json.dumps(
+        {k: dataclasses.asdict(getattr(s, k)) for k in ("ttr", "stream", "model", "node")})))
 
 
 def _before(name: str) -> dict:
     """What profile ``name`` built before the defaults moved (less CONVENTIONS_CHANGED)."""
-    out = copy.deepcopy(BEFORE["settings"][name])
-    for key in CONVENTIONS_CHANGED:
-        out["node"].pop(key, None)
-    return out
+    return _without_conventions(BEFORE["settings"][name])
 
 
 @pytest.mark.parametrize("name", sorted(BEFORE["settings"]))
