@@ -66,20 +66,25 @@ def test_node_runs_a_transformers_model_from_a_local_directory(graph_factory, mo
         depth = np.frombuffer(m.data, np.float32)
         assert np.isfinite(depth).mean() > 0.99 and np.nanmin(depth) > 0
 
+    # two windows, or one when the worker fell a window behind (SIFT on admission, a loaded
+    # machine): keyframe_policy newest then skips the older frames as stale, counted
     windows = list(g.refiner.stream.windows)
-    assert len(windows) == NUM_FRAMES // WINDOW, [w.reason for w in windows]
+    assert windows, "no window ran"
     d = wait_for(lambda: (lambda v: v if v.get("frames_pending") == "0"
                           and v.get("live.pending") == "0"
                           and int(v.get("windows_ok", 0)) + int(v.get("windows_failed", 0))
                           == len(windows) else None)(g.last_diag()),
                  15, "final diagnostics")
     assert counts_add_up(d)
+    stale = int(d.get("unrefined.stale", 0))
+    assert sum(w.new_frames for w in windows) + stale == NUM_FRAMES, (windows, d)
     ok = sum(w.refined for w in windows)
     assert (int(d["windows_ok"]), int(d["windows_failed"])) == (ok, len(windows) - ok)
     assert int(d["windows_ok"]) + int(d["windows_failed"]) >= 1  # the hf model's windows ran
     assert (d["frames_received"], d["frames_dropped"]) == (str(NUM_FRAMES), "0")
-    assert int(d["frames_refined"]) == WINDOW * ok
-    assert int(d["frames_unrefined"]) == NUM_FRAMES - WINDOW * ok == sum(
+    refined = sum(w.new_frames for w in windows if w.refined)
+    assert int(d["frames_refined"]) == refined
+    assert int(d["frames_unrefined"]) == NUM_FRAMES - refined == sum(
         int(v) for k, v in d.items() if k.startswith("unrefined."))
     assert (d["live.received"], d["live.published"], d["live.skipped"]) == (
         str(NUM_FRAMES), str(NUM_FRAMES), "0")
