@@ -396,12 +396,25 @@ def online_window(lr: float, serve_every: int, unsupported: float = 0.0):
     return online, previews, start
 
 
+def test_interim_schedule_starts_early_and_settles_to_the_period():
+    from sfm_ttr_ros.core.stream.serving import interim_due
+
+    def due(every, steps=70):
+        return [s for s in range(1, steps + 1) if interim_due(s, every)]
+
+    assert due(10) == [2, 5, 10, 20, 30, 40, 50, 60, 70]
+    assert due(4, 12) == [1, 2, 4, 8, 12]
+    assert due(1, 3) == [1, 2, 3] and due(2, 4) == [1, 2, 4]  # N // 4 = 0 is no step
+    assert due(0) == [] and not interim_due(0, 10)
+
+
 def test_interim_weights_are_served_while_a_window_refines(one_thread):
     online, previews, start = online_window(lr=1e-3, serve_every=4)
     assert online.stream.last_window.refined
-    assert previews == [(1, 4), (1, 8)]  # window 0's weights after steps 4 and 8
+    # window 0's weights after a quarter and half the period, then every period (4 and 8)
+    assert previews == [(1, 1), (1, 2), (1, 4), (1, 8)]
     c = online.counters_live()
-    assert (c["version"], c["interim_step"], c["serving_previews"]) == (1, 0, 2)
+    assert (c["version"], c["interim_step"], c["serving_previews"]) == (1, 0, 4)
     assert c["serving_updates"] == 1 and c["serving_reverts"] == 0
     assert not np.array_equal(online.serving.predict(IMAGE)[0], start)
 
@@ -424,7 +437,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     import sfm_ttr_ros.core.checks.measures as verification
 
     online, previews, _ = online_window(lr=1e-3, serve_every=4, unsupported=1.0)  # U <= 1
-    assert previews == [(1, 4), (1, 8)] and online.stream.last_window.refined
+    assert previews == [(1, 1), (1, 2), (1, 4), (1, 8)] and online.stream.last_window.refined
     assert math.isfinite(online.ttr.checks.interim_unsupported)
     t = online.stream.last_window.timings  # the probes' time, spent inside the refinement
     assert 0 < t["interim_check"] < t["refine"] and t["check"] >= t["interim_check"]
@@ -432,7 +445,7 @@ def test_interim_weights_are_served_only_when_their_unsupported_change_passes(on
     monkeypatch.setattr(verification, "UNSUPPORTED_FACTOR", 1.0 + 1e-9)  # any change counts
     online, previews, start = online_window(lr=1e-3, serve_every=4, unsupported=1e-9)
     c = online.counters_live()
-    assert previews == [] and (c["serving_previews"], c["serving_interim_refused"]) == (0, 2)
+    assert previews == [] and (c["serving_previews"], c["serving_interim_refused"]) == (0, 4)
     assert online.ttr.checks.interim_unsupported > 1e-9
     assert online.stream.last_window.reason_key == "check_unsupported_change"
     assert (c["version"], c["serving_reverts"]) == (0, 0)

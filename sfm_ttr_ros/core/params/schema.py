@@ -156,7 +156,8 @@ PARAMS: tuple[Param, ...] = (
        "worker's torch operations (live serving keeps torch_num_threads); 0 = the OpenMP "
        "runtime's default.", 0, 256, **_START_UP),
     _p("serve_every_steps", "stream.serve_every_steps", "While a window refines, serve its "
-       "weights on ~/depth every this many steps (when the window checks pass them); a window "
+       "weights on ~/depth after a quarter and half this many steps, then every this many (when "
+       "the window checks pass them); a window "
        "that is then refused puts the weights before it back. 0 = at the window's end only.",
        0, 100_000),
     # -- SfM (live) ---------------------------------------------------------------------------

@@ -15,7 +15,8 @@ One object the ROS node and the benchmark's live mode both drive, so they run th
   version = window index + 1 (0 = the start-up weights). A window that fails, is skipped or
   is rolled back leaves the served weights unchanged.
 * With ``StreamSettings.serve_every_steps = N`` the refining window's weights are also served
-  after every N steps (:meth:`~sfm_ttr_ros.core.stream.serving.ServingModel.preview`, same version,
+  after N/4 and N/2 steps, then every N (:func:`~sfm_ttr_ros.core.stream.serving.interim_due`,
+  :meth:`~sfm_ttr_ros.core.stream.serving.ServingModel.preview`, same version,
   ``interim_step`` = the step), so a frame gets part of a window's gain seconds before the window
   ends; when the window then ends without being accepted the weights from before it are served
   again (:meth:`~sfm_ttr_ros.core.stream.serving.ServingModel.revert`). The pipeline calls the step
@@ -47,7 +48,7 @@ from sfm_ttr_ros.core.prediction import LiveDepths
 from sfm_ttr_ros.core.refinement.encoder import warm_up_optimiser
 from sfm_ttr_ros.core.stream.live import WARM_UP_WAIT_S, LiveOutput, LiveServer
 from sfm_ttr_ros.core.stream.records import FrameOutput, WindowStats
-from sfm_ttr_ros.core.stream.serving import ServingModel
+from sfm_ttr_ros.core.stream.serving import ServingModel, interim_due
 from sfm_ttr_ros.core.stream.settings import StreamSettings
 from sfm_ttr_ros.core.stream.window_runner import WindowRunner
 
@@ -199,11 +200,10 @@ class StreamRefiner:
 
     # -- windows --------------------------------------------------------------------------------
     def _refine_step(self, step: int) -> None:
-        """After each refinement step (worker thread): every ``serve_every_steps`` steps, serve
-        the window's weights as they are (non-finite ones are not served), once the window
-        check can vouch for them (:meth:`WindowJudge.interim_refusal`)."""
-        every = self.stream.settings.serve_every_steps
-        if every <= 0 or step % every:
+        """After each refinement step (worker thread): on the interim schedule
+        (:func:`interim_due`), serve the window's weights as they are (non-finite ones are not
+        served), once the window check can vouch for them (:meth:`WindowJudge.interim_refusal`)."""
+        if not interim_due(step, self.stream.settings.serve_every_steps):
             return
         why = self.ttr.checks.interim_refusal()
         if why:

@@ -9,8 +9,9 @@ the old or entirely on the new weights, never on half a state dict. ``version`` 
 window that produced the weights being served (0 = the start-up weights) and ``age_s`` says how
 long ago they were swapped in.
 
-Interim weights (``serve_every_steps``): while a window refines, :meth:`preview` serves
-its weights after every N steps; the first preview of a window keeps a copy of the weights it
+Interim weights (``serve_every_steps`` N): while a window refines, :meth:`preview` serves
+its weights on a schedule that starts early and settles to the period
+(:func:`interim_due`: after N/4 and N/2 steps, then every N); the first preview of a window keeps a copy of the weights it
 replaces, :meth:`update` (the window was accepted) drops that copy and :meth:`revert` (it was
 not: cancelled, rolled back, refused) puts them back, so a window that fails leaves the served
 weights as they were before it. ``interim_step`` is the refinement step of the previewed
@@ -42,6 +43,17 @@ from sfm_ttr_ros.core.models.base import DepthModel, finite_state, warm_up_image
 
 #: The live stream's priority (CUDA: lower is more urgent; the default stream's is 0)
 LIVE_STREAM_PRIORITY = -1
+
+
+def interim_due(step: int, every: int) -> bool:
+    """Whether a window's weights after refinement step ``step`` (1-based) are served as
+    interim weights under ``serve_every_steps`` = ``every`` (0: never): after ``every`` // 4
+    and ``every`` // 2 steps (the first gain reaches the live output a quarter of a period
+    in, which matters most for the stream's first window, when the start-up weights are all
+    there is), then every ``every`` steps."""
+    if every <= 0 or step <= 0:
+        return False
+    return step % every == 0 or step in (every // 4, every // 2)
 
 
 @dataclass(frozen=True)
