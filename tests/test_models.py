@@ -336,6 +336,35 @@ def test_mobile_depth_net_forward_and_roundtrip(tiny_mobile_files):
         load_monodepth2(enc_path, dec_path)
 
 
+def test_half_resolution_decoder_skips_level_0_and_round_trips(tmp_path):
+    """finest_scale 1: the decoder stops at half resolution, its ("disp", 0) is that head
+    upsampled; the level-0 convolutions stay in the Monodepth2 layout unused (no gradient
+    reaches them); the file records the scale and loads back as it was saved."""
+    torch.manual_seed(0)
+    model = MobileDepthNet(SMALL, decoder_channels=(8, 16, 24, 32, 48), finest_scale=1)
+    x = torch.rand(1, 3, *SMALL)
+    out = model.decoder(model.encoder(x), scales=(0, 1))
+    assert tuple(out[("disp", 1)].shape[-2:]) == (SMALL[0] // 2, SMALL[1] // 2)
+    up = torch.nn.functional.interpolate(out[("disp", 1)], scale_factor=2, mode="bilinear",
+                                         align_corners=False)
+    assert torch.equal(out[("disp", 0)], up)
+    model(x).mean().backward()
+    level0 = [model.decoder.decoder[model.decoder._index[("upconv", 0, k)]] for k in (0, 1)]
+    assert all(p.grad is None for m in level0 for p in m.parameters())
+    with pytest.raises(ValueError, match="finest_scale"):
+        DepthDecoder([16, 24, 32, 96, 320], scales=(0,), finest_scale=1)
+    save_monodepth2(model.eval(), tmp_path / "e.pth", tmp_path / "d.pth")
+    assert torch.load(tmp_path / "d.pth", weights_only=True)["finest_scale"] == 1
+    back = load_mobile_depth_net(tmp_path / "e.pth", tmp_path / "d.pth")
+    assert back.decoder.finest_scale == 1
+    with torch.no_grad():
+        assert torch.equal(back(x), model(x))
+    full = MobileDepthNet(SMALL, decoder_channels=(8, 16, 24, 32, 48))  # Monodepth2's: no key
+    save_monodepth2(full, tmp_path / "e0.pth", tmp_path / "d0.pth")
+    assert "finest_scale" not in torch.load(tmp_path / "d0.pth", weights_only=True)
+    assert load_mobile_depth_net(tmp_path / "e0.pth", tmp_path / "d0.pth").decoder.finest_scale == 0
+
+
 def test_encoder_only_training_step_reaches_every_encoder_parameter():
     model = MobileDepthNet(SMALL, decoder_channels=(8, 16, 24, 32, 48))
     for p in model.decoder.parameters():

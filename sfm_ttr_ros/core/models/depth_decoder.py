@@ -17,6 +17,8 @@ import torch.nn.functional as F
 from torch import nn
 
 DEFAULT_DECODER_CHANNELS = (16, 32, 64, 128, 256)
+#: The decoder file's entry that records a ``finest_scale`` > 0 (absent: 0, Monodepth2's).
+FINEST_SCALE_KEY = "finest_scale"
 
 
 class Conv3x3(nn.Module):
@@ -53,11 +55,17 @@ class DepthDecoder(nn.Module):
     ``forward(features, scales=None)`` returns ``{("disp", s): sigmoid N x C x h_s x w_s}`` for the
     scales in ``scales`` or, when ``None``, in :attr:`output_scales` (defaults to every head).
     SfM-TTR needs scale 0 only: setting ``output_scales = (0,)`` skips the other heads.
+
+    ``finest_scale`` > 0 (not Monodepth2's, which is 0): the decoder stops at that level and its
+    ``("disp", 0)`` is the level's disparity bilinearly upsampled 2^finest_scale times (the
+    full-resolution convolutions, the costliest per weight, are skipped; the level-0 modules
+    stay in the layout, unused, so the file keeps Monodepth2's keys). Saved as the decoder
+    file's ``finest_scale`` entry (:data:`FINEST_SCALE_KEY`).
     """
 
     def __init__(self, num_ch_enc: Sequence[int], scales: Iterable[int] = range(4),
                  num_output_channels: int = 1, use_skips: bool = True,
-                 num_ch_dec: Sequence[int] = DEFAULT_DECODER_CHANNELS):
+                 num_ch_dec: Sequence[int] = DEFAULT_DECODER_CHANNELS, finest_scale: int = 0):
         super().__init__()
         self.num_ch_enc = [int(c) for c in num_ch_enc]
         self.num_ch_dec = [int(c) for c in num_ch_dec]
@@ -70,6 +78,10 @@ class DepthDecoder(nn.Module):
         self.num_output_channels = int(num_output_channels)
         self.use_skips = bool(use_skips)
         self.output_scales: tuple[int, ...] = tuple(self.scales)
+        self.finest_scale = int(finest_scale)
+        if self.finest_scale not in self.scales:
+            raise ValueError(f"finest_scale {self.finest_scale} has no disparity head "
+                             f"(scales {self.scales})")
 
         modules: list[nn.Module] = []
         self._index: dict[tuple[str, int, int], int] = {}
@@ -95,18 +107,26 @@ class DepthDecoder(nn.Module):
         if unknown:
             raise ValueError(f"no disparity head for scales {sorted(unknown)}; "
                              f"this decoder has {self.scales}")
+        finest = self.finest_scale
+        below = sorted(s for s in wanted if 0 < s < finest)
+        if below:
+            raise ValueError(f"scales {below} lie below this decoder's finest_scale {finest}")
         outputs: dict[tuple[str, int], torch.Tensor] = {}
         x = input_features[-1]
-        for i in range(4, -1, -1):
+        for i in range(4, finest - 1, -1):
             x = self.decoder[self._index[("upconv", i, 0)]](x)
             x = [F.interpolate(x, scale_factor=2, mode="nearest")]
             if self.use_skips and i > 0:
                 x.append(input_features[i - 1])
             x = torch.cat(x, 1)
             x = self.decoder[self._index[("upconv", i, 1)]](x)
-            if i in wanted:
-                outputs[("disp", i)] = self.sigmoid(
-                    self.decoder[self._index[("dispconv", i, 0)]](x))
+            if i in wanted or (i == finest and 0 in wanted):
+                disp = self.sigmoid(self.decoder[self._index[("dispconv", i, 0)]](x))
+                if i in wanted:
+                    outputs[("disp", i)] = disp
+                if i == finest and finest > 0 and 0 in wanted:
+                    outputs[("disp", 0)] = F.interpolate(disp, scale_factor=2 ** finest,
+                                                         mode="bilinear", align_corners=False)
         return outputs
 
 

@@ -31,6 +31,7 @@ from torch import nn
 from sfm_ttr_ros.core.models.base import EncoderDecoder, ModelLoadError
 from sfm_ttr_ros.core.models.depth_decoder import (
     DEFAULT_DECODER_CHANNELS,
+    FINEST_SCALE_KEY,
     DepthDecoder,
     decoder_channels_from_state,
 )
@@ -177,15 +178,17 @@ class MobileDepthNet(EncoderDecoder):
     """MobileNetV2 encoder + Monodepth2 decoder with sigmoid disparity (depth 0.1 … 100).
 
     The decoder keeps the four disparity heads but computes scale 0 only by default
-    (``decoder.output_scales = (0,)``).
+    (``decoder.output_scales = (0,)``); ``finest_scale`` 1 stops it at half resolution
+    (:class:`~sfm_ttr_ros.core.models.depth_decoder.DepthDecoder`).
     """
 
     def __init__(self, input_size: tuple[int, int] = DEFAULT_INPUT_SIZE,
                  pretrained_encoder: bool = False,
                  decoder_channels: Sequence[int] = DEFAULT_DECODER_CHANNELS,
-                 use_last_conv: bool = False):
+                 use_last_conv: bool = False, finest_scale: int = 0):
         encoder = MobileNetV2Encoder(pretrained=pretrained_encoder, use_last_conv=use_last_conv)
-        decoder = DepthDecoder(encoder.num_ch_enc, scales=range(4), num_ch_dec=decoder_channels)
+        decoder = DepthDecoder(encoder.num_ch_enc, scales=range(4), num_ch_dec=decoder_channels,
+                               finest_scale=finest_scale)
         decoder.output_scales = (0,)
         super().__init__(encoder, decoder, check_input_size(input_size))
 
@@ -210,7 +213,8 @@ def load_mobile_depth_net(encoder_path: str | Path, decoder_path: str | Path,
         raise ModelLoadError(f"{decoder_path} is not a Monodepth2-layout decoder state dict "
                              f"(keys e.g. {list(dec_state)[:4]})")
     model = MobileDepthNet(input_size_from_state(enc_state), decoder_channels=channels,
-                           use_last_conv="features.18.0.weight" in enc_state)
+                           use_last_conv="features.18.0.weight" in enc_state,
+                           finest_scale=int(dec_state.get(FINEST_SCALE_KEY, 0)))
     load_matching_state(model.encoder, enc_state, "MobileDepthNet encoder", encoder_path)
     load_matching_state(model.decoder, dec_state, "MobileDepthNet decoder", decoder_path)
     if isinstance(map_location, str | torch.device):

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from sfm_ttr_ros.core.models.base import EncoderDecoder, ModelLoadError
-from sfm_ttr_ros.core.models.depth_decoder import DepthDecoder
+from sfm_ttr_ros.core.models.depth_decoder import FINEST_SCALE_KEY, DepthDecoder
 from sfm_ttr_ros.core.models.resnet import RESNET_SPECS, ResnetEncoder
 
 DEFAULT_INPUT_SIZE = (192, 640)
@@ -160,6 +160,9 @@ def save_monodepth2(model: EncoderDecoder, encoder_path: str | Path,
     h, w = model.input_size
     enc.update(height=int(h), width=int(w), use_stereo=False)
     dec = {k: v.detach().cpu() for k, v in model.decoder.state_dict().items()}
+    finest = int(getattr(model.decoder, "finest_scale", 0))
+    if finest:
+        dec[FINEST_SCALE_KEY] = finest
     for path, state in ((encoder_path, enc), (decoder_path, dec)):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         torch.save(state, path)

@@ -178,6 +178,7 @@ def render_frames(
     blur_sigma: float = 0.0,
     noise_std: float = 0.0,
     start_stamp: float = KITTI_START_STAMP,
+    scene: _Scene | None = None,
 ) -> SyntheticSequence:
     """Render one frame per camera pose ``poses[i] = (R_wc, C)`` (world-from-camera rotation,
     camera centre) in the scene of ``params``, built once over the poses' ``z`` range.
@@ -188,7 +189,8 @@ def render_frames(
     for frame ``i``. ``labels`` (optional): one per frame, kept in the sequence. A frame with
     the previous frame's pose and no extra objects reuses its rendering (a standing camera).
     ``seed`` only drives the augmentation (``blur_sigma``, ``noise_std``), as in
-    :func:`render_sequence`.
+    :func:`render_sequence`. ``scene`` (optional): a scene built elsewhere (an indoor room,
+    :mod:`.rooms`) instead of the street of ``params``.
     """
     n = len(poses)
     if n < 1:
@@ -200,7 +202,8 @@ def render_frames(
             raise InputError(f"{name} has {len(per_frame)} entries for {n} camera poses")
     intr = scene_intrinsics(params, int(width), int(height))
     zs = [float(C[2]) for _, C in poses]
-    scene = _build_scene(params, min(zs) - 40.0, max(zs) + params.max_depth * 1.5 + 20.0)
+    if scene is None:
+        scene = _build_scene(params, min(zs) - 40.0, max(zs) + params.max_depth * 1.5 + 20.0)
     rng = np.random.default_rng([int(seed), 4242])
     images, depths, cams, stamps = [], [], [], []
     prev = None  # (R_wc, C, image, depth) of a frame without extra objects
