@@ -85,8 +85,9 @@ def render_scene(job: tuple[str, int, int, str, tuple[float, float]]) -> str:
     rw = w * RENDER_SCALE
     rh = int(round(rw / aspect))
     blur, noise = rng.uniform(0, 1.2), rng.uniform(0, 4)
-    if kind == "room":
-        seq = render_room(seed, frames, rw, rh, focal_scale=rng.uniform(0.45, 0.8),
+    if kind == "room":  # a hand-held camera's frame: 4:3 to 2:1, a normal to wide lens
+        rh = int(round(rw / rng.uniform(*args_room_aspect(aspects))))
+        seq = render_room(seed, frames, rw, rh, focal_scale=rng.uniform(0.5, 1.05),
                           blur_sigma=blur, noise_std=noise)
     else:
         params = training_scene(seed, rng)
@@ -101,6 +102,11 @@ def render_scene(job: tuple[str, int, int, str, tuple[float, float]]) -> str:
                        for d in seq.depths])
     np.savez_compressed(path, images=images, depths=depths.astype(np.float32))
     return str(path)
+
+
+def args_room_aspect(aspects: tuple[float, float]) -> tuple[float, float]:
+    """Rooms' aspect ratios: ``--aspect-range`` capped at 2:1 (hand-held cameras)."""
+    return aspects[0], min(aspects[1], max(aspects[0], 2.0))
 
 
 def load_dataset(paths: list[str]) -> tuple[np.ndarray, np.ndarray]:

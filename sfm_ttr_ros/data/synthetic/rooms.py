@@ -58,7 +58,8 @@ class Room:
 
 def sample_room(seed: int) -> tuple[Room, _Builder]:
     """A room or corridor from ``seed``: 2–9 m wide, 3–25 m long, 2.4–3.4 m high, its
-    surfaces textured and tinted at random, 3–14 pieces of furniture along its walls and in it,
+    surfaces textured and tinted at random, 3–14 pieces of furniture along its walls and in it
+    (things on its tables, up to 5 small ones on its floor),
     indoor light (high ambient, a weak directional term)."""
     rng = np.random.default_rng([int(seed), 31337])
     corridor = rng.random() < 0.3
@@ -101,6 +102,12 @@ def sample_room(seed: int) -> tuple[Room, _Builder]:
         b.box(wall if same else mat_of(WALL_MATERIALS), lo, hi,
               wall_tint if same else tint(True), rng.uniform(0, 8, 2))
     footprints: list[tuple[float, float, float, float]] = []
+    for _ in range(int(rng.integers(0, 6))):  # small things on the floor (bags, bins, boxes)
+        sw, sd, sh = rng.uniform(0.15, 0.6), rng.uniform(0.15, 0.6), rng.uniform(0.1, 0.6)
+        sx, sz = rng.uniform(x0, x1 - sw), rng.uniform(z0, z1 - sd)
+        footprints.append((sx, sx + sw, sz, sz + sd))
+        b.box(mat_of(FURNITURE_MATERIALS), (sx, -sh, sz), (sx + sw, 0.0, sz + sd), tint(False),
+              rng.uniform(0, 4, 2))
     n = int(rng.integers(3, 15 if not corridor else 8))
     for _ in range(n):
         kind = rng.choice(["cabinet", "table", "box", "pillar", "shelf"],
@@ -136,6 +143,12 @@ def sample_room(seed: int) -> tuple[Room, _Builder]:
             leg = 0.05
             for lx, lz in ((fx0, fz0), (fx1 - leg, fz0), (fx0, fz1 - leg), (fx1 - leg, fz1 - leg)):
                 b.box(METAL, (lx, -h + top, lz), (lx + leg, -0.0, lz + leg), (0.6, 0.6, 0.6))
+            for _ in range(int(rng.integers(0, 5))):  # things on the table
+                sw, sd, sh = rng.uniform(0.05, 0.4), rng.uniform(0.05, 0.3), rng.uniform(0.03, 0.35)
+                sx = rng.uniform(fx0, max(fx0, fx1 - sw))
+                sz = rng.uniform(fz0, max(fz0, fz1 - sd))
+                b.box(mat_of(FURNITURE_MATERIALS), (sx, -h - sh, sz), (sx + sw, -h, sz + sd),
+                      tint(False), rng.uniform(0, 4, 2))
         elif kind == "pillar" and rng.random() < 0.5:
             r = (fx1 - fx0) / 2
             b.cylinder(m, (fx0 + fx1) / 2, (fz0 + fz1) / 2, r, -h, 0.0, t, off)
