@@ -131,7 +131,8 @@ def camera_artefacts(images: np.ndarray, rng: np.random.Generator) -> np.ndarray
             k = cv2.warpAffine(k, rot, (n, n))
             im = cv2.filter2D(im, -1, k / max(k.sum(), 1e-6))
         if rng.random() < 0.5:
-            ok, buf = cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(25, 91))])
+            quality = int(rng.integers(25, 91))
+            ok, buf = cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, quality])
             if ok:
                 im = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
         out[i] = im

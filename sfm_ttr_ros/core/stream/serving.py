@@ -9,15 +9,15 @@ the old or entirely on the new weights, never on half a state dict. ``version`` 
 window that produced the weights being served (0 = the start-up weights) and ``age_s`` says how
 long ago they were swapped in.
 
-Interim weights (``serve_every_steps`` N): while a window refines, :meth:`preview` serves
-its weights on a schedule that starts early and settles to the period
-(:func:`interim_due`: after N/4 and N/2 steps, then every N); the first preview of a window keeps a copy of the weights it
+Interim weights (``serve_every_steps`` N): while a window refines, :meth:`preview` serves its
+weights on a schedule that starts early and settles to the period (:func:`interim_due`: after
+N/4 and N/2 steps, then every N); the first preview of a window keeps a copy of the weights it
 replaces, :meth:`update` (the window was accepted) drops that copy and :meth:`revert` (it was
 not: cancelled, rolled back, refused) puts them back, so a window that fails leaves the served
-weights as they were before it. ``interim_step`` is the refinement step of the previewed
-weights (0: a finished window's, or the start-up weights). ``generation`` counts every swap
-(update, preview, revert): two predictions with one generation ran on the same weights, which
-is what the hand-over of live depths to the windows checks (core/prediction.py,
+weights as they were before it. ``interim_step`` is the refinement step of the previewed weights
+(0: a finished window's, or the start-up weights). ``generation`` counts every swap (update,
+preview, revert): two predictions with one generation ran on the same weights, which is what the
+hand-over of live depths to the windows checks (core/prediction.py,
 :class:`~sfm_ttr_ros.core.prediction.LiveDepths`).
 
 On CUDA the serving copy predicts on a stream of its own with a higher priority than the
