@@ -52,10 +52,10 @@ INPUT_SIZE = (128, 416)  # h, w: KITTI's 1242x375 aspect, SfMLearner's size, ~40
 RENDER_SCALE = 2  # render at 2x the input size, area-downsample (anti-aliased like inference)
 
 
-def training_scene(seed: int, rng: np.random.Generator):
-    """Domain-A (C for every fourth seed) scene parameters widened for variety (camera, focal,
-    pitch, speed, lighting)."""
-    p = sample_scene_params(seed, "C" if seed % 4 == 3 else "A")
+def training_scene(seed: int, rng: np.random.Generator, wide: bool = False):
+    """Domain-A (``wide``: C for every fourth seed) scene parameters widened for variety
+    (camera, focal, pitch, speed, lighting)."""
+    p = sample_scene_params(seed, "C" if wide and seed % 4 == 3 else "A")
     return dataclasses.replace(
         p,
         camera_height=rng.uniform(1.45, 1.85),
@@ -70,15 +70,23 @@ def training_scene(seed: int, rng: np.random.Generator):
     )
 
 
-def render_scene(job: tuple[str, int, int, str, tuple[float, float]]) -> str:
-    """Render one scene's frames (``kind`` street or room) at 2x the input width and a random
-    aspect ratio, and store them, resized to the input size, as ``cache/KIND_N.npz``."""
-    kind, seed, frames, cache, aspects = job
-    path = Path(cache) / f"{kind}_{seed}.npz"
+def render_scene(job: tuple[str, int, int, str, tuple[float, float], bool]) -> str:
+    """Render one scene's frames (``kind`` street or room) at 2x the input size and store them,
+    resized to the input size, as ``cache/KIND_N[_wide].npz``. ``wide`` (``--wide-world``):
+    streets of domains A and C at a random aspect ratio; else the embedded network's recipe
+    (domain A at the input's aspect, MODEL_CARD.md)."""
+    kind, seed, frames, cache, aspects, wide = job
+    path = Path(cache) / f"{kind}_{seed}{'_wide' if wide else ''}.npz"
     if path.exists():
         return str(path)
     rng = np.random.default_rng([seed, 99])
     h, w = INPUT_SIZE
+    if kind == "street" and not wide:
+        params = training_scene(seed, rng)
+        seq = render_sequence(params, frames, w * RENDER_SCALE, h * RENDER_SCALE, seed=seed,
+                              start_offset=rng.uniform(0, 200), blur_sigma=rng.uniform(0, 1.2),
+                              noise_std=rng.uniform(0, 4))
+        return _store(path, seq)
     # the frame's width / height: a KITTI-like strip for most streets, any camera for the rest
     kitti_like = kind == "street" and rng.random() < 0.6
     aspect = w / h if kitti_like else rng.uniform(*aspects)
@@ -90,12 +98,18 @@ def render_scene(job: tuple[str, int, int, str, tuple[float, float]]) -> str:
         seq = render_room(seed, frames, rw, rh, focal_scale=rng.uniform(0.5, 1.05),
                           blur_sigma=blur, noise_std=noise)
     else:
-        params = training_scene(seed, rng)
+        params = training_scene(seed, rng, wide=True)
         if not kitti_like:  # the same horizontal field of view, the principal point centred
             params = dataclasses.replace(params, cx_frac=0.5, cy_frac=rng.uniform(0.4, 0.55))
         seq = render_sequence(params, frames, rw, rh, seed=seed,
                               start_offset=rng.uniform(0, 200), blur_sigma=blur,
                               noise_std=noise)
+    return _store(path, seq)
+
+
+def _store(path: Path, seq) -> str:
+    """A rendered sequence resized to the input size, written as ``path``."""
+    h, w = INPUT_SIZE
     images = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in seq.images])
     # nearest keeps depth edges sharp (no mixed foreground/background values)
     depths = np.stack([cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST)
@@ -192,9 +206,9 @@ def render_dataset(args: argparse.Namespace, t0: float) -> list:
     cache.mkdir(parents=True, exist_ok=True)
     aspects = tuple(args.aspect_range)
     base = 10_000 * (args.seed + 1)
-    jobs = [("street", base + i, args.frames_per_scene, str(cache), aspects)
+    jobs = [("street", base + i, args.frames_per_scene, str(cache), aspects, args.wide_world)
             for i in range(args.scenes)]
-    jobs += [("room", base + 5_000 + i, args.frames_per_room, str(cache), aspects)
+    jobs += [("room", base + 5_000 + i, args.frames_per_room, str(cache), aspects, True)
              for i in range(args.rooms)]
     with Pool(args.workers) as pool:
         paths = []
@@ -234,7 +248,8 @@ def train(args: argparse.Namespace, images: np.ndarray, depths: np.ndarray):
             order, cursor = torch.randperm(n, generator=g), 0
         idx = order[cursor:cursor + args.batch].numpy()
         cursor += args.batch
-        x = torch.from_numpy(camera_artefacts(images[idx], np_rng)).permute(0, 3, 1, 2)
+        batch = camera_artefacts(images[idx], np_rng) if args.wide_world else images[idx]
+        x = torch.from_numpy(batch).permute(0, 3, 1, 2)
         x = x.float() / 255.0
         d = torch.from_numpy(depths[idx]).unsqueeze(1)
         x, d = augment(x, d, g)
@@ -255,6 +270,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scenes", type=int, default=160, help="training streets (domains A, C)")
     ap.add_argument("--frames-per-scene", type=int, default=10)
+    ap.add_argument("--wide-world", action="store_true",
+                    help="streets of domains A and C at any --aspect-range, camera artefacts "
+                    "(motion blur, JPEG); without it the embedded network's recipe")
     ap.add_argument("--rooms", type=int, default=0, help="training rooms and corridors")
     ap.add_argument("--frames-per-room", type=int, default=8)
     ap.add_argument("--aspect-range", type=float, nargs=2, default=(416 / 128, 416 / 128),
