@@ -94,7 +94,7 @@ def render_scene(job: tuple[str, int, int, str, tuple[float, float], bool]) -> s
     rh = int(round(rw / aspect))
     blur, noise = rng.uniform(0, 1.2), rng.uniform(0, 4)
     if kind == "room":  # a hand-held camera's frame: 4:3 to 2:1, a normal to wide lens
-        rh = int(round(rw / rng.uniform(*args_room_aspect(aspects))))
+        rh = int(round(rw / rng.uniform(*room_aspects(aspects))))
         seq = render_room(seed, frames, rw, rh, focal_scale=rng.uniform(0.5, 1.05),
                           blur_sigma=blur, noise_std=noise)
     else:
@@ -118,7 +118,7 @@ def _store(path: Path, seq) -> str:
     return str(path)
 
 
-def args_room_aspect(aspects: tuple[float, float]) -> tuple[float, float]:
+def room_aspects(aspects: tuple[float, float]) -> tuple[float, float]:
     """Rooms' aspect ratios: ``--aspect-range`` capped at 2:1 (hand-held cameras)."""
     return aspects[0], min(aspects[1], max(aspects[0], 2.0))
 

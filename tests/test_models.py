@@ -363,6 +363,11 @@ def test_half_resolution_decoder_skips_level_0_and_round_trips(tmp_path):
     save_monodepth2(full, tmp_path / "e0.pth", tmp_path / "d0.pth")
     assert "finest_scale" not in torch.load(tmp_path / "d0.pth", weights_only=True)
     assert load_mobile_depth_net(tmp_path / "e0.pth", tmp_path / "d0.pth").decoder.finest_scale == 0
+    dec = torch.load(tmp_path / "d0.pth", weights_only=True)
+    dec["finest_scale"] = 7
+    torch.save(dec, tmp_path / "bad.pth")
+    with pytest.raises(ModelLoadError, match="finest_scale"):
+        load_mobile_depth_net(tmp_path / "e0.pth", tmp_path / "bad.pth")
 
 
 def test_encoder_only_training_step_reaches_every_encoder_parameter():

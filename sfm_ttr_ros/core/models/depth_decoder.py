@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from sfm_ttr_ros.core.models.base import ModelLoadError
+
 DEFAULT_DECODER_CHANNELS = (16, 32, 64, 128, 256)
 #: The decoder file's entry that records a ``finest_scale`` > 0 (absent: 0, Monodepth2's).
 FINEST_SCALE_KEY = "finest_scale"
@@ -128,6 +130,18 @@ class DepthDecoder(nn.Module):
                     outputs[("disp", 0)] = F.interpolate(disp, scale_factor=2 ** finest,
                                                          mode="bilinear", align_corners=False)
         return outputs
+
+
+def finest_scale_from_state(state: dict) -> int:
+    """The ``finest_scale`` a decoder file records (:data:`FINEST_SCALE_KEY`; absent: 0, a
+    Monodepth2 file): every loader reads it here, so no layout drops it."""
+    value = state.get(FINEST_SCALE_KEY, 0)
+    if isinstance(value, torch.Tensor):
+        value = value.item()
+    if int(value) != value or not 0 <= int(value) <= 3:
+        raise ModelLoadError(f"decoder file entry {FINEST_SCALE_KEY!r} must be 0..3, got "
+                             f"{value!r}")
+    return int(value)
 
 
 def decoder_channels_from_state(state: dict[str, torch.Tensor]) -> tuple[int, ...] | None:

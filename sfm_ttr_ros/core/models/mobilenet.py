@@ -31,9 +31,9 @@ from torch import nn
 from sfm_ttr_ros.core.models.base import EncoderDecoder, ModelLoadError
 from sfm_ttr_ros.core.models.depth_decoder import (
     DEFAULT_DECODER_CHANNELS,
-    FINEST_SCALE_KEY,
     DepthDecoder,
     decoder_channels_from_state,
+    finest_scale_from_state,
 )
 from sfm_ttr_ros.core.models.monodepth2 import (
     DEFAULT_INPUT_SIZE,
@@ -214,7 +214,7 @@ def load_mobile_depth_net(encoder_path: str | Path, decoder_path: str | Path,
                              f"(keys e.g. {list(dec_state)[:4]})")
     model = MobileDepthNet(input_size_from_state(enc_state), decoder_channels=channels,
                            use_last_conv="features.18.0.weight" in enc_state,
-                           finest_scale=int(dec_state.get(FINEST_SCALE_KEY, 0)))
+                           finest_scale=finest_scale_from_state(dec_state))
     load_matching_state(model.encoder, enc_state, "MobileDepthNet encoder", encoder_path)
     load_matching_state(model.decoder, dec_state, "MobileDepthNet decoder", decoder_path)
     if isinstance(map_location, str | torch.device):

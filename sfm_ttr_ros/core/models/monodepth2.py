@@ -18,7 +18,11 @@ from pathlib import Path
 import torch
 
 from sfm_ttr_ros.core.models.base import EncoderDecoder, ModelLoadError
-from sfm_ttr_ros.core.models.depth_decoder import FINEST_SCALE_KEY, DepthDecoder
+from sfm_ttr_ros.core.models.depth_decoder import (
+    FINEST_SCALE_KEY,
+    DepthDecoder,
+    finest_scale_from_state,
+)
 from sfm_ttr_ros.core.models.resnet import RESNET_SPECS, ResnetEncoder
 
 DEFAULT_INPUT_SIZE = (192, 640)
@@ -146,6 +150,7 @@ def load_monodepth2(encoder_path: str | Path, decoder_path: str | Path,
     model = Monodepth2(inferred, input_size_from_state(enc_state))
     load_matching_state(model.encoder, enc_state, "Monodepth2 encoder", encoder_path)
     load_matching_state(model.decoder, dec_state, "Monodepth2 decoder", decoder_path)
+    model.decoder.finest_scale = finest_scale_from_state(dec_state)
     if isinstance(map_location, str | torch.device):
         model = model.to(map_location)
     return model.eval()
