@@ -159,6 +159,48 @@ def test_a_fresh_mapping_takes_the_maps_last_frames_as_anchors(street, monkeypat
     assert set(result.point_ids.tolist()) <= set(seen.tolist())
 
 
+def test_the_streaming_sfm_runs_in_a_process_of_its_own(street):
+    """pycolmap keeps the GIL in its extractor and mapper, which stalled live serving: the
+    streaming source runs the StreamingSfm in a child process, with the results it gives in
+    this one. A child that dies: the call raises SfmProcessError, the next call starts a
+    fresh child (the map is lost: its window maps afresh), counted in ``restarts``."""
+    import os
+    import signal
+
+    from sfm_ttr_ros.core.sfm.sfm_process import SfmProcessError
+
+    cfg = dataclasses.replace(SFM, mode="streaming", num_threads=1)
+    windows = [street.frames[k * WINDOW:(k + 1) * WINDOW] for k in range(3)]
+    with StreamingSfm(cfg) as here:
+        want = [here.reconstruct(w, street.intr) for w in windows[:2]]
+    source = StreamingSfmSource(cfg)
+    try:
+        assert source.streaming.pid is None  # started by the warm-up (or the first call)
+        source.warm_up()
+        child = source.streaming.pid
+        assert child is not None and child != os.getpid()
+        got = [source.reconstruct(w, street.intr)[0] for w in windows[:2]]
+        for g, w in zip(got, want, strict=True):
+            assert (g.ok, g.mapping, g.num_registered, g.num_points) == (
+                w.ok, w.mapping, w.num_registered, w.num_points)
+            assert g.reprojection_error == w.reprojection_error
+            for name, obs in w.frames.items():
+                np.testing.assert_array_equal(g.frames[name].depths, obs.depths)
+        assert source.counters()["sfm_streaming"] == {"continued": 1, "fresh": 1,
+                                                      "admitted_unmapped": 0}
+        assert source.frames_extracted == 2 * WINDOW
+        os.kill(child, signal.SIGKILL)
+        with pytest.raises(SfmProcessError, match="map is lost"):
+            source.admit(windows[2][0], street.intr)
+        third, _ = source.reconstruct(windows[2], street.intr)
+        assert third.ok and third.mapping == "fresh"
+        assert source.streaming.restarts == 1 and source.streaming.pid not in (None, child)
+        assert source.frames_extracted == 3 * WINDOW
+    finally:
+        source.close()
+    assert source.streaming.pid is None
+
+
 def test_other_intrinsics_start_the_stream_afresh(street):
     intr2 = type(street.intr)(street.intr.fx * 1.1, street.intr.fy * 1.1, street.intr.cx,
                               street.intr.cy, W, H)
@@ -205,7 +247,7 @@ def _run_stream(ttr, frames, intr, admitted: list | None = None):
         reconstruct = ttr.sfm.reconstruct
 
         def spy(window, intrinsics):
-            admitted.append(set(ttr.sfm.streaming.frontend.features))
+            admitted.append(set(ttr.sfm.streaming.held_frames()))
             return reconstruct(window, intrinsics)
         ttr.sfm.reconstruct = spy
     outs = []

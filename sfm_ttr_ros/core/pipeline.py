@@ -325,8 +325,11 @@ class SfmTTR:
         """Pay a window's one-time costs now, in the calling thread (on CUDA kernels load at
         first use and each thread makes its own cuDNN / cuBLAS handles): a forward pass on a
         batch of grey frames (nothing cached) and two refinement steps on a copy of the model
-        (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_refinement`). Returns the seconds."""
+        (:func:`~sfm_ttr_ros.core.refinement.encoder.warm_up_refinement`), and the SfM
+        source's (:meth:`~sfm_ttr_ros.core.sfm.source.SfmSource.warm_up`: the streaming SfM's
+        process started). Returns the seconds."""
         t0 = time.perf_counter()
+        self.sfm.warm_up()
         self.predictor.run([warm_up_image(self.model)] * self.predictor.effective_batch)
         warm_up_refinement(self.model, self.config.refinement)
         return time.perf_counter() - t0

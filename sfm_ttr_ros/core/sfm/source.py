@@ -10,7 +10,9 @@ frame. Keyframes are not
 admitted one by one: the window does it all after its last frame.
 
 Streaming (``sfm.mode: streaming``, :class:`StreamingSfmSource`): the stream's
-:class:`~sfm_ttr_ros.core.sfm.streaming_map.StreamingSfm`. The stream admits each keyframe as it
+:class:`~sfm_ttr_ros.core.sfm.streaming_map.StreamingSfm`, in a process of its own
+(:class:`~sfm_ttr_ros.core.sfm.sfm_process.StreamingSfmProcess`: pycolmap's extractor and
+mapper keep the GIL, which stalled live serving). The stream admits each keyframe as it
 takes it (:meth:`SfmSource.admit`: features, matches, registration into the map), so a window's
 :meth:`SfmSource.reconstruct` only maps what is left and collects; a fresh mapping replaces the
 continuation when it fits badly (the result's ``mapping`` and ``mapping_reason`` say which and
@@ -32,7 +34,7 @@ from sfm_ttr_ros.core.sfm.prefetch import SfmPrefetch
 from sfm_ttr_ros.core.sfm.reconstruction import SfmReconstructor
 from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
-from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
+from sfm_ttr_ros.core.sfm.sfm_process import StreamingSfmProcess
 
 #: what :meth:`SfmSource.counters` gives for reconstructions begun ahead when none can be
 NOTHING_AHEAD = {"started": 0, "used": 0, "discarded": 0}
@@ -45,7 +47,7 @@ class SfmSource(Protocol):
     mode: str  # the sfm.mode this kind of source serves
     config: SfmConfig
     workspace: str | Path | None  # the batch reconstructor's folder (None: a temporary one)
-    nice: int  # OS priority of the work it does in threads of its own (the window worker's)
+    nice: int  # OS priority of its threads or process of its own (the window worker's)
 
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
                     ) -> tuple[SfmResult, bool]:
@@ -55,6 +57,10 @@ class SfmSource(Protocol):
 
     def begin_window(self) -> None:
         """A window begins (its own reconstruction follows)."""
+        ...
+
+    def warm_up(self) -> None:
+        """Pay the source's one-time costs now (the window worker's warm-up)."""
         ...
 
     def admit(self, frame: Frame, intrinsics: Intrinsics) -> bool:
@@ -124,6 +130,9 @@ class BatchSfmSource:
         """A window begins: no SfM is begun ahead until its own has ended."""
         self._own_pending = True
 
+    def warm_up(self) -> None:
+        """Nothing to pay ahead."""
+
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
                     ) -> tuple[SfmResult, bool]:
         try:
@@ -189,12 +198,25 @@ class StreamingSfmSource:
     def __init__(self, config: SfmConfig, workspace: str | Path | None = None):
         self.config = config
         self.workspace = workspace  # the calibrating windows' (and a batch source's) folder
-        self.nice = 0  # no thread of its own
-        self.streaming = StreamingSfm(config)
+        self.streaming = StreamingSfmProcess(config)
         self.calibrating: SfmReconstructor | None = None  # while refine_intrinsics is on
         self._extracted_before = 0  # frames extracted by the calibrating reconstructors gone
         # the intrinsics the last window of assumed intrinsics was mapped with
         self._assumed_as: Intrinsics | None = None
+
+    @property
+    def nice(self) -> int:
+        """The SfM process's OS priority (the window worker's), set before it starts."""
+        return self.streaming.nice
+
+    @nice.setter
+    def nice(self, value: int) -> None:
+        self.streaming.nice = value
+
+    def warm_up(self) -> None:
+        """Start the SfM process (its imports), unless the focal length is refined."""
+        if self.calibrating is None:
+            self.streaming.start()
 
     def set_config(self, config: SfmConfig) -> None:
         self.config = config
@@ -207,8 +229,10 @@ class StreamingSfmSource:
             self._extracted_before += self.calibrating.frames_extracted
             self.calibrating.close()
             self.calibrating = None
+            nice, extracted = self.streaming.nice, self.streaming.stats()["frames_extracted"]
             self.streaming.close()
-            self.streaming = StreamingSfm(config)
+            self._extracted_before += extracted
+            self.streaming = StreamingSfmProcess(config, nice)
         self.streaming.set_config(config)
 
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics
@@ -248,15 +272,16 @@ class StreamingSfmSource:
         self.streaming.retain(names)
 
     def counters(self) -> dict[str, dict[str, int]]:
-        st = self.streaming
+        st = self.streaming.stats()
         return {"sfm_ahead": dict(NOTHING_AHEAD),
-                "sfm_streaming": {"continued": st.continuations, "fresh": st.fresh_mappings,
-                                  "admitted_unmapped": st.unmapped()}}
+                "sfm_streaming": {k: st[k] for k in ("continued", "fresh",
+                                                     "admitted_unmapped")}}
 
     @property
     def frames_extracted(self) -> int:
         calibrating = self.calibrating.frames_extracted if self.calibrating is not None else 0
-        return self._extracted_before + calibrating + self.streaming.frontend.frames_extracted
+        return (self._extracted_before + calibrating
+                + self.streaming.stats()["frames_extracted"])
 
     def cancel(self) -> None:
         """Interrupt a calibrating window's reconstruction; a window's mapping of the carried

@@ -156,6 +156,17 @@ class StreamingSfm:
         registered = set(self._registered_names())
         return sum(n not in registered for n in self._open)
 
+    def stats(self) -> dict[str, int]:
+        """Windows continued and mapped afresh, keyframes admitted but not registered yet
+        (:meth:`unmapped`), frames whose features were extracted."""
+        return {"continued": self.continuations, "fresh": self.fresh_mappings,
+                "admitted_unmapped": self.unmapped(),
+                "frames_extracted": self.frontend.frames_extracted}
+
+    def held_frames(self) -> list[str]:
+        """The frames whose features the front end holds, oldest first."""
+        return list(self.frontend.features)
+
     # -- per window --------------------------------------------------------------------------
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics) -> SfmResult:
         """The window's :class:`SfmResult` from the shared map (frames not admitted yet are
