@@ -159,11 +159,13 @@ def test_a_fresh_mapping_takes_the_maps_last_frames_as_anchors(street, monkeypat
     assert set(result.point_ids.tolist()) <= set(seen.tolist())
 
 
-def test_the_streaming_sfm_runs_in_a_process_of_its_own(street):
+def test_the_streaming_sfm_runs_in_a_process_of_its_own(street, caplog):
     """pycolmap keeps the GIL in its extractor and mapper, which stalled live serving: the
     streaming source runs the StreamingSfm in a child process, with the results it gives in
-    this one. A child that dies: the call raises SfmProcessError, the next call starts a
-    fresh child (the map is lost: its window maps afresh), counted in ``restarts``."""
+    this one, and its log lines come back to this process's loggers. A child that dies: the
+    call raises SfmProcessError, the next call starts a fresh child (the map is lost: its
+    window maps afresh), counted in ``restarts``."""
+    import logging
     import os
     import signal
 
@@ -173,6 +175,8 @@ def test_the_streaming_sfm_runs_in_a_process_of_its_own(street):
     windows = [street.frames[k * WINDOW:(k + 1) * WINDOW] for k in range(3)]
     with StreamingSfm(cfg) as here:
         want = [here.reconstruct(w, street.intr) for w in windows[:2]]
+    caplog.set_level(logging.INFO)  # the child takes this process's level when it starts
+    caplog.clear()
     source = StreamingSfmSource(cfg)
     try:
         assert source.streaming.pid is None  # started by the warm-up (or the first call)
@@ -180,6 +184,10 @@ def test_the_streaming_sfm_runs_in_a_process_of_its_own(street):
         child = source.streaming.pid
         assert child is not None and child != os.getpid()
         got = [source.reconstruct(w, street.intr)[0] for w in windows[:2]]
+        assert [r.getMessage() for r in caplog.records
+                if r.name == "sfm_ttr_ros.core.sfm.streaming_map"] == [
+            f"window {windows[0][0].name}..{windows[0][-1].name} mapped afresh: no map to "
+            "continue"]
         for g, w in zip(got, want, strict=True):
             assert (g.ok, g.mapping, g.num_registered, g.num_points) == (
                 w.ok, w.mapping, w.num_registered, w.num_points)

@@ -23,7 +23,9 @@ window maps afresh).
 
 from __future__ import annotations
 
+import logging
 import os
+import pickle
 import signal
 import socket
 import subprocess
@@ -45,14 +47,38 @@ class SfmProcessError(RuntimeError):
     """The SfM process ended during a call (its map is lost)."""
 
 
+class _Records(logging.Handler):
+    """The child's log records, sent with each answer and logged again by the parent."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        record.msg, record.args, record.exc_info = record.getMessage(), None, None
+        self.records.append(record)
+
+    def take(self) -> list[logging.LogRecord]:
+        taken, self.records = self.records, []
+        return taken
+
+
 def _serve(conn: Connection) -> None:
-    """The child: one StreamingSfm (its options and OS priority the first message), a call
-    at a time, each answered with (ok, value, stats)."""
+    """The child: one StreamingSfm (its options, OS priority and log level the first
+    message), a call at a time, each answered with (ok, value, stats, log records). Ends when
+    asked or when the parent's end closes."""
     from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
-    config, nice = conn.recv()
+    try:
+        config, nice, level = conn.recv()
+    except (EOFError, OSError):
+        return
     if nice > 0:
         os.nice(nice)
+    records = _Records()
+    root = logging.getLogger()
+    root.addHandler(records)
+    root.setLevel(level)
     sfm = StreamingSfm(config)
     while True:
         try:
@@ -60,16 +86,19 @@ def _serve(conn: Connection) -> None:
         except (EOFError, OSError):
             return
         if name == "close":
-            conn.send((True, None, sfm.stats()))
             return
         try:
-            answer = (True, getattr(sfm, name)(*args), sfm.stats())
+            answer = (True, getattr(sfm, name)(*args))
         except Exception as exc:  # noqa: BLE001 - raised again in the parent
-            answer = (False, exc, sfm.stats())
+            answer = (False, exc)
         try:
-            conn.send(answer)
-        except Exception as exc:  # noqa: BLE001 - an answer that does not pickle
-            conn.send((False, RuntimeError(f"{type(exc).__name__}: {exc}"), sfm.stats()))
+            try:
+                conn.send((*answer, sfm.stats(), records.take()))
+            except (pickle.PicklingError, TypeError, AttributeError) as exc:  # not picklable
+                conn.send((False, RuntimeError(f"{type(exc).__name__}: {exc}"), sfm.stats(),
+                           records.take()))
+        except OSError:  # the parent is gone
+            return
 
 
 class StreamingSfmProcess:
@@ -100,7 +129,7 @@ class StreamingSfmProcess:
                 [sys.executable, "-m", __name__, str(theirs.fileno())],
                 pass_fds=[theirs.fileno()], env=env, stdin=subprocess.DEVNULL)
         self._conn = Connection(ours.detach())
-        self._conn.send((self.config, int(self.nice)))
+        self._conn.send((self.config, int(self.nice), logging.getLogger().getEffectiveLevel()))
 
     def _call(self, name: str, *args):
         with self._lock:
@@ -108,7 +137,7 @@ class StreamingSfmProcess:
                 self._start()
             try:
                 self._conn.send((name, args))
-                ok, value, stats = self._conn.recv()
+                ok, value, stats, records = self._conn.recv()
             except (EOFError, OSError) as exc:
                 code = self._end(kill=True)
                 self.restarts += 1
@@ -118,6 +147,8 @@ class StreamingSfmProcess:
                                       f"{name}: its map is lost, the next call starts a "
                                       "fresh one") from exc
             self._stats = stats
+        for record in records:
+            logging.getLogger(record.name).handle(record)
         if not ok:
             raise value
         return value
@@ -174,8 +205,7 @@ class StreamingSfmProcess:
                 return
             try:
                 self._conn.send(("close", ()))
-                self._conn.recv()
-            except (EOFError, OSError):
+            except OSError:
                 pass
             self._end(kill=False)
 
