@@ -24,7 +24,9 @@ class SfmConfig:
     max_num_features: int = 8192
     first_octave: int = 0  # -1: COLMAP default (upsampled first octave); 0: ~3x faster
     num_threads: int = 2
-    overlap: int = 10  # sequential matching: each frame with the next `overlap` frames
+    # sequential matching: each frame with the next `overlap` frames (COLMAP's 10: the paper's
+    # profiles; 5 measured better on hololens_000 and half the matching: docs/decisions.md)
+    overlap: int = 5
     init_min_tri_angle: float = 1.0  # degrees; COLMAP's 16 rejects consecutive driving frames
     init_min_num_inliers: int = 50
     init_max_forward_motion: float = 1.0  # COLMAP's 0.95 rejects forward motion
