@@ -195,7 +195,8 @@ def test_the_streaming_sfm_runs_in_a_process_of_its_own(street, caplog):
             for name, obs in w.frames.items():
                 np.testing.assert_array_equal(g.frames[name].depths, obs.depths)
         assert source.counters()["sfm_streaming"] == {"continued": 1, "fresh": 1,
-                                                      "admitted_unmapped": 0}
+                                                      "admitted_unmapped": 0,
+                                                      "process_restarts": 0}
         assert source.frames_extracted == 2 * WINDOW
         os.kill(child, signal.SIGKILL)
         with pytest.raises(SfmProcessError, match="map is lost"):
@@ -204,6 +205,9 @@ def test_the_streaming_sfm_runs_in_a_process_of_its_own(street, caplog):
         assert third.ok and third.mapping == "fresh"
         assert source.streaming.restarts == 1 and source.streaming.pid not in (None, child)
         assert source.frames_extracted == 3 * WINDOW
+        assert source.counters()["sfm_streaming"] == {"continued": 1, "fresh": 2,  # kept
+                                                      "admitted_unmapped": 0,
+                                                      "process_restarts": 1}
     finally:
         source.close()
     assert source.streaming.pid is None
@@ -300,6 +304,7 @@ def test_streaming_mode_windows_refine_on_the_carried_map(streamed):
     d = streamed.diag
     assert (d["sfm.windows_continued"], d["sfm.windows_fresh"]) == (1, 2)
     assert d["sfm.admitted_unmapped"] == 0 and d["sfm.waiting_for_features"] == 0
+    assert d["sfm.process_restarts"] == 0
     assert d["last_window.sfm_mapping"] == "fresh"
     assert streamed.counters["sfm_ahead"]["started"] == 0  # nothing begun ahead
 
@@ -365,7 +370,7 @@ def test_one_source_per_mode_made_anew_when_the_mode_changes(street, tmp_path):
     assert not batch.prefetch(street.frames[:WINDOW], street.intr)  # closed: nothing ahead
     assert not streaming.prefetch(street.frames[:WINDOW], street.intr)
     assert streaming.counters() == {"sfm_ahead": zeros, "sfm_streaming": {
-        "continued": 0, "fresh": 0, "admitted_unmapped": 0}}
+        "continued": 0, "fresh": 0, "admitted_unmapped": 0, "process_restarts": 0}}
     back = reconfigure_sfm_source(streaming, SFM)
     assert isinstance(back, BatchSfmSource)
     assert back.counters() == {"sfm_ahead": zeros, "sfm_streaming": {}}

@@ -114,7 +114,8 @@ class StreamingSfmProcess:
         self._conn = None
         self._stats: dict[str, int] = {"continued": 0, "fresh": 0, "admitted_unmapped": 0,
                                        "frames_extracted": 0}
-        self._extracted_before = 0  # by children that died
+        # the counts of children that died (a count never goes back)
+        self._before = {"continued": 0, "fresh": 0, "frames_extracted": 0}
 
     # -- the child ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -133,16 +134,17 @@ class StreamingSfmProcess:
 
     def _call(self, name: str, *args):
         with self._lock:
-            if self._proc is None:
-                self._start()
             try:
+                if self._proc is None:
+                    self._start()
                 self._conn.send((name, args))
                 ok, value, stats, records = self._conn.recv()
             except (EOFError, OSError) as exc:
                 code = self._end(kill=True)
                 self.restarts += 1
-                self._extracted_before += self._stats["frames_extracted"]
-                self._stats = {**self._stats, "admitted_unmapped": 0, "frames_extracted": 0}
+                for key in self._before:
+                    self._before[key] += self._stats[key]
+                self._stats = dict.fromkeys(self._stats, 0)
                 raise SfmProcessError(f"the SfM process ended (exit code {code}) during "
                                       f"{name}: its map is lost, the next call starts a "
                                       "fresh one") from exc
@@ -194,9 +196,9 @@ class StreamingSfmProcess:
 
     def stats(self) -> dict[str, int]:
         """The child's :meth:`StreamingSfm.stats` after its last answer (no call: never waits
-        behind a running one); frames extracted include children that died."""
+        behind a running one); the counts include those of children that died."""
         stats = self._stats
-        return {**stats, "frames_extracted": stats["frames_extracted"] + self._extracted_before}
+        return {k: v + self._before.get(k, 0) for k, v in stats.items()}
 
     def close(self) -> None:
         """End the child (asked first, killed after :data:`CLOSE_WAIT_S`)."""

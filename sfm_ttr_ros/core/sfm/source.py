@@ -81,7 +81,8 @@ class SfmSource(Protocol):
     def counters(self) -> dict[str, dict[str, int]]:
         """What /diagnostics counts: ``sfm_ahead`` (reconstructions begun ahead: started, used
         by their window, discarded) and ``sfm_streaming`` (windows continued and mapped afresh,
-        keyframes admitted but not registered into the map yet; {} for batch)."""
+        keyframes admitted but not registered into the map yet, SfM processes that died and
+        were replaced; {} for batch)."""
         ...
 
     @property
@@ -274,8 +275,9 @@ class StreamingSfmSource:
     def counters(self) -> dict[str, dict[str, int]]:
         st = self.streaming.stats()
         return {"sfm_ahead": dict(NOTHING_AHEAD),
-                "sfm_streaming": {k: st[k] for k in ("continued", "fresh",
-                                                     "admitted_unmapped")}}
+                "sfm_streaming": {**{k: st[k] for k in ("continued", "fresh",
+                                                        "admitted_unmapped")},
+                                  "process_restarts": self.streaming.restarts}}
 
     @property
     def frames_extracted(self) -> int:

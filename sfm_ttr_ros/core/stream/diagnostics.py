@@ -242,13 +242,15 @@ class StreamDiagnostics:
 
     def _streaming_sfm_values(self, st: dict[str, int]) -> dict[str, object]:
         """``sfm.mode`` streaming (none in batch mode): windows whose map was continued
-        against those mapped afresh, and the front end's lag: keyframes admitted but not
-        registered into the map yet, frames queued for the worker (waiting for features)."""
+        against those mapped afresh, the front end's lag (keyframes admitted but not
+        registered into the map yet, frames queued for the worker: waiting for features), and
+        the SfM processes that died and were replaced."""
         if not st:
             return {}
         return {"sfm.windows_continued": st["continued"], "sfm.windows_fresh": st["fresh"],
                 "sfm.admitted_unmapped": st["admitted_unmapped"],
-                "sfm.waiting_for_features": self.stream.queued()}
+                "sfm.waiting_for_features": self.stream.queued(),
+                "sfm.process_restarts": st["process_restarts"]}
 
     def _last_window_values(self) -> dict[str, object]:
         """The last window's outcome and timings (none before the first)."""
