@@ -79,9 +79,12 @@ def windows(street):
         mp.setattr(pycolmap, "extract_features", spy)
         out.first = rec.reconstruct(f[0:10], street.intr)
         out.counts.append(rec.frames_extracted)
-        rec.config = replace(rec.config, refine_intrinsics=True)
+        # free focal lengths: the mapper now and then collapses this forward window to a few
+        # points (1 run in 10-20, whatever sfm.overlap); more seeds, as the mapper's retry rule
+        default = rec.config
+        rec.config = replace(default, refine_intrinsics=True, mapping_attempts=4)
         out.free_focal = rec.reconstruct(f[0:10], street.intr)
-        rec.config = replace(rec.config, refine_intrinsics=False)
+        rec.config = default
         out.counts.append(rec.frames_extracted)
         out.second = rec.reconstruct(f[4:12], street.intr)
         out.counts.append(rec.frames_extracted)
