@@ -198,6 +198,10 @@ def test_the_streaming_sfm_runs_in_a_process_of_its_own(street, caplog):
                                                       "admitted_unmapped": 0,
                                                       "process_restarts": 0}
         assert source.frames_extracted == 2 * WINDOW
+        source.streaming.afresh(cfg)  # as when an assumed focal length settles: same child
+        assert source.streaming.pid == child and source.streaming.held_frames() == []
+        assert source.counters()["sfm_streaming"]["fresh"] == 1  # the counts go on
+        assert source.frames_extracted == 2 * WINDOW
         os.kill(child, signal.SIGKILL)
         with pytest.raises(SfmProcessError, match="map is lost"):
             source.admit(windows[2][0], street.intr)

@@ -38,6 +38,7 @@ from sfm_ttr_ros.core.frames import Frame, Intrinsics
 from sfm_ttr_ros.core.sfm.frontend import AdmitTimings
 from sfm_ttr_ros.core.sfm.result import SfmResult
 from sfm_ttr_ros.core.sfm.sfm_config import SfmConfig
+from sfm_ttr_ros.core.sfm.streaming_map import STATS_COUNTS, STATS_KEYS
 
 #: How long :meth:`StreamingSfmProcess.close` waits for the child to end before killing it, s.
 CLOSE_WAIT_S = 5.0
@@ -65,8 +66,8 @@ class _Records(logging.Handler):
 
 def _serve(conn: Connection) -> None:
     """The child: one StreamingSfm (its options, OS priority and log level the first
-    message), a call at a time, each answered with (ok, value, stats, log records). Ends when
-    asked or when the parent's end closes."""
+    message; ``afresh`` replaces it), a call at a time, each answered with (ok, value, stats,
+    log records). Ends when asked or when the parent's end closes."""
     from sfm_ttr_ros.core.sfm.streaming_map import StreamingSfm
 
     try:
@@ -88,7 +89,11 @@ def _serve(conn: Connection) -> None:
         if name == "close":
             return
         try:
-            answer = (True, getattr(sfm, name)(*args))
+            if name == "afresh":
+                sfm, value = StreamingSfm(*args), None
+            else:
+                value = getattr(sfm, name)(*args)
+            answer = (True, value)
         except Exception as exc:  # noqa: BLE001 - raised again in the parent
             answer = (False, exc)
         try:
@@ -112,10 +117,9 @@ class StreamingSfmProcess:
         self._lock = threading.Lock()
         self._proc = None
         self._conn = None
-        self._stats: dict[str, int] = {"continued": 0, "fresh": 0, "admitted_unmapped": 0,
-                                       "frames_extracted": 0}
-        # the counts of children that died (a count never goes back)
-        self._before = {"continued": 0, "fresh": 0, "frames_extracted": 0}
+        self._stats = dict.fromkeys(STATS_KEYS, 0)  # the child's, after its last answer
+        # the counts of the StreamingSfm objects gone (a child that died, afresh): they only grow
+        self._before = dict.fromkeys(STATS_COUNTS, 0)
 
     # -- the child ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -142,18 +146,26 @@ class StreamingSfmProcess:
             except (EOFError, OSError) as exc:
                 code = self._end(kill=True)
                 self.restarts += 1
-                for key in self._before:
-                    self._before[key] += self._stats[key]
-                self._stats = dict.fromkeys(self._stats, 0)
+                self._carry_counts(dict.fromkeys(STATS_KEYS, 0))
                 raise SfmProcessError(f"the SfM process ended (exit code {code}) during "
                                       f"{name}: its map is lost, the next call starts a "
                                       "fresh one") from exc
-            self._stats = stats
+            if name == "afresh" and ok:
+                self._carry_counts(stats)
+            else:
+                self._stats = stats
         for record in records:
             logging.getLogger(record.name).handle(record)
         if not ok:
             raise value
         return value
+
+    def _carry_counts(self, stats: dict[str, int]) -> None:
+        """The StreamingSfm behind :attr:`_stats` is gone: its counts carried over, ``stats``
+        the new one's."""
+        for key in self._before:
+            self._before[key] += self._stats[key]
+        self._stats = stats
 
     def _end(self, kill: bool) -> int | None:
         """Forget the child (joined, killed when ``kill`` or when it does not end)."""
@@ -191,6 +203,12 @@ class StreamingSfmProcess:
         if self._proc is not None:
             self._call("set_config", config)
 
+    def afresh(self, config: SfmConfig) -> None:
+        """A new, empty StreamingSfm with ``config`` in the same child (the counts go on)."""
+        self.config = config
+        if self._proc is not None:
+            self._call("afresh", config)
+
     def held_frames(self) -> list[str]:
         return self._call("held_frames")
 
@@ -198,7 +216,7 @@ class StreamingSfmProcess:
         """The child's :meth:`StreamingSfm.stats` after its last answer (no call: never waits
         behind a running one); the counts include those of children that died."""
         stats = self._stats
-        return {k: v + self._before.get(k, 0) for k, v in stats.items()}
+        return {k: stats[k] + self._before.get(k, 0) for k in STATS_KEYS}
 
     def close(self) -> None:
         """End the child (asked first, killed after :data:`CLOSE_WAIT_S`)."""

@@ -230,10 +230,7 @@ class StreamingSfmSource:
             self._extracted_before += self.calibrating.frames_extracted
             self.calibrating.close()
             self.calibrating = None
-            nice, extracted = self.streaming.nice, self.streaming.stats()["frames_extracted"]
-            self.streaming.close()
-            self._extracted_before += extracted
-            self.streaming = StreamingSfmProcess(config, nice)
+            self.streaming.afresh(config)
         self.streaming.set_config(config)
 
     def reconstruct(self, frames: Sequence[Frame], intrinsics: Intrinsics

@@ -38,6 +38,11 @@ log = logging.getLogger(__name__)
 FRESH_ANCHORS = 3
 
 
+#: the keys of :meth:`StreamingSfm.stats` that count (they only grow), and the one that does not
+STATS_COUNTS = ("continued", "fresh", "frames_extracted")
+STATS_KEYS = (*STATS_COUNTS, "admitted_unmapped")
+
+
 #: a continuation that registered fewer than this fraction of a window's frames (or failed, or
 #: fits worse than the batch mapper's retry limit) is replaced by a fresh mapping
 MIN_REGISTERED_FRACTION = 0.8
@@ -157,8 +162,8 @@ class StreamingSfm:
         return sum(n not in registered for n in self._open)
 
     def stats(self) -> dict[str, int]:
-        """Windows continued and mapped afresh, keyframes admitted but not registered yet
-        (:meth:`unmapped`), frames whose features were extracted."""
+        """Windows continued and mapped afresh, frames whose features were extracted,
+        keyframes admitted but not registered yet (:meth:`unmapped`): :data:`STATS_KEYS`."""
         return {"continued": self.continuations, "fresh": self.fresh_mappings,
                 "admitted_unmapped": self.unmapped(),
                 "frames_extracted": self.frontend.frames_extracted}
